@@ -1,0 +1,217 @@
+"""The ``fdt`` command line: ``simulate``, ``info`` and ``forward``; one core shared with the API and napari.
+
+Errors a user can cause print one line naming the field and the fix, and exit with status 2
+(no traceback). Geometry warnings print as ``warning: …`` lines before any long computation.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+import warnings
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from .errors import FDTInputError, FDTWarning
+
+__all__ = ["main", "build_parser"]
+
+
+def _add_optics_args(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("optics and sampling (µm)")
+    g.add_argument("--shape", type=int, nargs=2, default=(96, 96), metavar=("H", "W"), help="image size in pixels (default 96 96)")
+    g.add_argument("--pixel-size-um", type=float, default=0.33, help="lateral sampling in the sample, µm (default 0.33)")
+    g.add_argument("--n-slices", type=int, default=8, help="slices of the RI volume (default 8)")
+    g.add_argument("--slice-spacing-um", type=float, default=2.0, help="slice thickness, µm (default 2)")
+    g.add_argument("--wavelength-um", type=float, default=0.635, help="vacuum emission wavelength, µm (default 0.635)")
+    g.add_argument("--n-background", type=float, default=1.33, help="background refractive index (default 1.33)")
+    g.add_argument("--na", type=float, default=0.8, help="detection numerical aperture (default 0.8)")
+    g.add_argument("--image-plane-um", type=float, default=0.0, help="camera focal plane below the volume's top face, µm (default 0)")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of ``fdt``."""
+    parser = argparse.ArgumentParser(prog="fdt", description="Fluorescence diffraction tomography (napari-fdt).")
+    parser.add_argument("--version", action="store_true", help="print the version and exit")
+    sub = parser.add_subparsers(dest="command")
+
+    sim = sub.add_parser("simulate", help="simulate an acquisition folder with its ground truth")
+    sim.add_argument("scene", choices=("letters", "beads", "cells"), help="test scene")
+    sim.add_argument("out_dir", type=Path, help="acquisition folder to create")
+    _add_optics_args(sim)
+    s = sim.add_argument_group("sources")
+    s.add_argument("--sources", type=int, default=8, help="sources per side of the square grid (default 8: 64 images)")
+    s.add_argument("--span-um", type=float, default=None, help="lateral extent of the source grid, µm (default 80%% of the field of view)")
+    s.add_argument("--depth-um", type=float, default=40.0, help="source depth below the volume's bottom face, µm (default 40)")
+    s.add_argument("--jitter-um", type=float, default=1.0, help="RMS error per axis of the initial source estimates, µm (default 1)")
+    m = sim.add_argument_group("measurement")
+    m.add_argument("--photons", type=float, default=2000.0, help="mean photo-electrons per pixel (default 2000)")
+    m.add_argument("--read-noise", type=float, default=2.0, help="camera read noise, electrons RMS (default 2)")
+    m.add_argument("--brightness-spread", type=float, default=0.2, help="log-normal spread of source brightness (default 0.2)")
+    m.add_argument("--no-noise", action="store_true", help="write the expected images without noise")
+    m.add_argument("--uint16", action="store_true", help="write images as uint16 counts instead of float32")
+    sc = sim.add_argument_group("scene")
+    sc.add_argument("--delta-n", type=float, default=None, help="index contrast of the objects (scene default)")
+    sc.add_argument("--text", default="UCDAVIS", help="letters of the letters scene (A-Z, 0-9)")
+    sc.add_argument("--letter-height-px", type=int, default=None, help="letter height in pixels (default 40%% of the image)")
+    sim.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    sim.add_argument("--device", default="auto", help="auto, cpu or cuda (default auto)")
+    sim.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
+
+    info = sub.add_parser("info", help="check an acquisition folder and show the forward model's grid")
+    info.add_argument("acquisition", type=Path)
+
+    fwd = sub.add_parser("forward", help="predict an acquisition's images from an RI volume and report the residual")
+    fwd.add_argument("acquisition", type=Path)
+    fwd.add_argument("--ri", type=Path, required=True, help="RI volume TIFF, absolute index, (n_slices, H, W)")
+    fwd.add_argument("--out", type=Path, default=None, help="write the predicted images here (TIFF)")
+    fwd.add_argument("--device", default="auto", help="auto, cpu or cuda (default auto)")
+    fwd.add_argument("--batch-size", type=int, default=16, help="images per forward batch (default 16)")
+    fwd.add_argument("--overwrite", action="store_true", help="replace an existing output file")
+    return parser
+
+
+def _optics_from_args(args: argparse.Namespace):
+    from .optics import Optics
+
+    return Optics(
+        wavelength_um=args.wavelength_um, n_background=args.n_background, na=args.na,
+        pixel_size_um=args.pixel_size_um, n_slices=args.n_slices, slice_spacing_um=args.slice_spacing_um,
+        image_plane_um=args.image_plane_um,
+    )
+
+
+def _cmd_simulate(args: argparse.Namespace) -> int:
+    from .io import write_acquisition, write_json_atomic, write_volume_tiff
+    from .simulate import make_scene, simulate, source_grid
+
+    optics = _optics_from_args(args)
+    out = Path(args.out_dir)
+    if out.exists() and not args.overwrite:
+        raise FDTInputError("out_dir", f"{out} exists", "choose another folder or pass --overwrite")
+    shape = tuple(args.shape)
+    fov = min(shape) * optics.pixel_size_um
+    span = 0.8 * fov if args.span_um is None else args.span_um
+    sources = source_grid(args.sources, span, args.depth_um)
+    delta_n = make_scene(args.scene, shape, optics, delta_n=args.delta_n, text=args.text,
+                         letter_height_px=args.letter_height_px, rng=args.seed)
+    t0 = time.perf_counter()
+    sim = simulate(delta_n, optics, sources, photons=args.photons, read_noise=args.read_noise,
+                   brightness_spread=args.brightness_spread, jitter_xy_um=args.jitter_um, jitter_depth_um=args.jitter_um,
+                   noise=not args.no_noise, seed=args.seed, device=args.device, uint16=args.uint16)
+    seconds = time.perf_counter() - t0
+    sim.acquisition.extra["simulated"].update(scene=args.scene, text=args.text if args.scene == "letters" else None)
+    write_acquisition(sim.acquisition, out, overwrite=args.overwrite)
+    write_volume_tiff(out / "ground_truth_ri.tif", sim.ri,
+                      (optics.slice_spacing_um, optics.pixel_size_um, optics.pixel_size_um), overwrite=True)
+    write_json_atomic(out / "ground_truth_sources_um.json", sim.truth_metadata(), overwrite=True)
+    hp, wp = sim.plan.padded_shape
+    print(f"wrote {out}: {sim.acquisition.n_images} images of {shape[0]}x{shape[1]} px, {optics.n_slices} slices; "
+          f"window {hp}x{wp} px; {seconds:.1f} s")
+    return 0
+
+
+def _cmd_info(args: argparse.Namespace) -> int:
+    from .grid import plan_for_sources
+    from .io import read_acquisition
+
+    acq = read_acquisition(args.acquisition)
+    o = acq.optics
+    h, w = acq.image_shape
+    print(f"{args.acquisition}: {acq.n_images} images of {h}x{w} px ({acq.images.dtype}), "
+          f"field of view {h * o.pixel_size_um:.1f} x {w * o.pixel_size_um:.1f} µm")
+    print(f"optics: λ {o.wavelength_um:g} µm, n_b {o.n_background:g}, NA {o.na:g}, pixel {o.pixel_size_um:g} µm, "
+          f"{o.n_slices} slices x {o.slice_spacing_um:g} µm = {o.thickness_um:g} µm, image plane {o.image_plane_um:g} µm below the top")
+    if acq.sources_um is None:
+        print("sources: none given (the solver fits them)")
+        return 0
+    s = acq.sources_um
+    print(f"sources: x {s[:, 0].min():.1f}..{s[:, 0].max():.1f} µm, y {s[:, 1].min():.1f}..{s[:, 1].max():.1f} µm, "
+          f"depth {s[:, 2].min():.1f}..{s[:, 2].max():.1f} µm")
+    plan = plan_for_sources(o, acq.image_shape, s)
+    hp, wp = plan.padded_shape
+    print(f"forward window: {hp}x{wp} px ({plan.padding_factor:.2f}x the image area), light-cone margin {plan.margin_um:.1f} µm, "
+          f"band limit {plan.f_lo_per_um:.3f}..{plan.f_hi_per_um:.3f} cycles/µm")
+    return 0
+
+
+def _cmd_forward(args: argparse.Namespace) -> int:
+    import torch
+
+    from .forward import MultiSliceModel
+    from .grid import plan_for_sources
+    from .io import read_acquisition, read_volume_tiff, write_volume_tiff
+    from .simulate import render_images
+
+    acq = read_acquisition(args.acquisition)
+    o = acq.optics
+    if args.out is not None and Path(args.out).exists() and not args.overwrite:
+        raise FDTInputError("out", f"{args.out} exists", "choose another file or pass --overwrite")
+    if args.batch_size < 1:
+        raise FDTInputError("batch_size", f"must be >= 1, got {args.batch_size}", "use e.g. 16")
+    if acq.sources_um is None:
+        raise FDTInputError("sources_um", "the acquisition has no source positions", "add sources_um to acquisition.json")
+    ri, _ = read_volume_tiff(args.ri)
+    expected = (o.n_slices, *acq.image_shape)
+    if ri.shape != expected:
+        raise FDTInputError("ri", f"volume shape {ri.shape} does not match the acquisition's {expected}",
+                            "give a volume of (n_slices, H, W) on the acquisition's grid")
+    model = MultiSliceModel(o, plan_for_sources(o, acq.image_shape, acq.sources_um), device=args.device)
+    t0 = time.perf_counter()
+    pred = render_images(model, ri.astype(np.float32) - np.float32(o.n_background), acq.sources_um, batch_size=args.batch_size)
+    seconds = time.perf_counter() - t0
+    meas = acq.images_float32().astype(np.float64)
+    p = pred.astype(np.float64)
+    # Least-squares gain per image (brightness is unknown per fluorophore).
+    gain = (p * meas).sum(axis=(1, 2)) / np.maximum((p * p).sum(axis=(1, 2)), 1e-30)
+    fit = p * gain[:, None, None]
+    rel = np.linalg.norm((fit - meas).reshape(len(meas), -1), axis=1) / np.maximum(
+        np.linalg.norm(meas.reshape(len(meas), -1), axis=1), 1e-30)
+    total = float(np.linalg.norm(fit - meas) / np.linalg.norm(meas))
+    n_img = acq.n_images
+    print(f"forward: {n_img} images x {o.n_slices} slices in {seconds:.2f} s on {model.device} "
+          f"({n_img * o.n_slices / seconds:.0f} image-slices/s), window {model.plan.padded_shape[0]}x{model.plan.padded_shape[1]}")
+    print(f"relative residual after a per-image gain: {total:.4f} overall; per image median {np.median(rel):.4f}, "
+          f"worst {rel.max():.4f} (image {int(rel.argmax())})")
+    if args.out is not None:
+        write_volume_tiff(args.out, fit.astype(np.float32), (1.0, o.pixel_size_um, o.pixel_size_um), overwrite=args.overwrite)
+        print(f"wrote {args.out}")
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of ``fdt``; returns the exit status."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.version:
+        from . import __version__
+
+        print(__version__)
+        return 0
+    if args.command is None:
+        parser.print_help()
+        return 2
+
+    def show_warning(message, category, filename, lineno, file=None, line=None):
+        if issubclass(category, FDTWarning):
+            print(f"warning: {message}", file=sys.stderr)
+        else:
+            print(warnings.formatwarning(message, category, filename, lineno, line), file=sys.stderr, end="")
+
+    warnings.showwarning = show_warning
+    commands = {"simulate": _cmd_simulate, "info": _cmd_info, "forward": _cmd_forward}
+    try:
+        return commands[args.command](args)
+    except FDTInputError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("interrupted: no output was left half-written", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

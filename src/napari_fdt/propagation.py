@@ -1,0 +1,61 @@
+"""Angular-spectrum propagation in the background medium, phase screens and the pupil.
+
+Convention (``docs/physics.md``): fields vary as ``exp(+i(k·r − ωt))``; a plane wave of lateral
+frequency f (cycles/µm) advances by ``exp(+i·2π·qz·Δz)`` over Δz, with
+``qz = sqrt((n_b/λ)² − |f|²)`` and λ the vacuum wavelength. Fields are envelopes: the carrier
+``exp(+i·2π·(n_b/λ)·z)`` is factored out, so kernels carry ``exp(+i·2π·(qz − n_b/λ)·Δz)``, whose
+phase stays small in float32. Evanescent frequencies (``|f| >= n_b/λ``) are set to zero.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+__all__ = ["axial_frequency_offset", "propagation_kernel", "phase_screen", "pupil"]
+
+
+def axial_frequency_offset(
+    f2: torch.Tensor, n_background: float | torch.Tensor, wavelength_um: float | torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``qz − n_b/λ`` (cycles/µm, ≤ 0) and the propagating mask for squared lateral frequencies ``f2``.
+
+    Written as ``−|f|² / (qz + n_b/λ)`` so it keeps full relative precision near the axis.
+    Returns ``(offset, propagating)``; the offset is 0 where not propagating.
+    """
+    k = n_background / wavelength_um
+    k2 = k * k
+    propagating = f2 < k2
+    qz = torch.sqrt(torch.clamp(k2 - f2, min=0.0))
+    offset = torch.where(propagating, -f2 / (qz + k), torch.zeros_like(f2))
+    return offset, propagating
+
+
+def propagation_kernel(
+    f2: torch.Tensor,
+    distance_um: float | torch.Tensor,
+    n_background: float | torch.Tensor,
+    wavelength_um: float | torch.Tensor,
+) -> torch.Tensor:
+    """Transfer function of the background medium over ``distance_um`` (negative: back-propagation).
+
+    ``f2`` is |f|² in (cycles/µm)², any shape; returns the complex kernel of the same shape
+    (complex64 for float32 input), zero on evanescent frequencies.
+    """
+    offset, propagating = axial_frequency_offset(f2, n_background, wavelength_um)
+    phase = (2.0 * math.pi) * offset * distance_um
+    kernel = torch.polar(propagating.to(f2.dtype), phase)
+    return kernel
+
+
+def phase_screen(delta_n: torch.Tensor, slice_spacing_um: float | torch.Tensor, wavelength_um: float | torch.Tensor) -> torch.Tensor:
+    """Transmission ``exp(+i·2π/λ·Δz·Δn)`` of a thin slab of index contrast ``delta_n = n − n_b``."""
+    phase = (2.0 * math.pi / wavelength_um) * slice_spacing_um * delta_n
+    return torch.polar(torch.ones_like(phase), phase)
+
+
+def pupil(f2: torch.Tensor, na: float | torch.Tensor, wavelength_um: float | torch.Tensor) -> torch.Tensor:
+    """Circular pupil: 1 for ``|f| <= NA/λ``, else 0 (same shape and real dtype as ``f2``)."""
+    cutoff = na / wavelength_um
+    return (f2 <= cutoff * cutoff).to(f2.dtype)
