@@ -61,7 +61,7 @@ class MultiSliceModel:
         self._slice_kernel = propagation_kernel(f2, dz, optics.n_background, optics.wavelength_um)
         exit_distance = 0.5 * dz - optics.image_plane_um  # last screen → camera focal plane
         self._exit_kernel = propagation_kernel(f2, exit_distance, optics.n_background, optics.wavelength_um) * pupil(
-            f2, optics.na, optics.wavelength_um
+            f2, optics.na, optics.wavelength_um, plan.pupil_taper
         )
 
     # -- pieces -------------------------------------------------------------------------------

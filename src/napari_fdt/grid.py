@@ -3,8 +3,11 @@
 The padded grid is derived from the geometry, not from a fixed factor (``docs/physics.md``,
 section "Grid and band limit"):
 
-* ``s_lo = na / n_background`` is the sine of the largest angle the pupil accepts; the point-source
-  spectrum is exact up to the pupil edge ``f_lo = na / wavelength``.
+* The pupil's edge is a raised cosine from ``(1 − pupil_taper)·NA/λ`` to ``(1 + pupil_taper)·NA/λ``
+  (a hard edge diffracts into tails that no finite periodic window holds: 4 % image error at the
+  planned window, 0.06 % with a 3 % taper; ``docs/physics.md``).
+* ``s_lo = (1 + pupil_taper)·na / n_background`` is the sine of the largest angle the pupil passes; the
+  point-source spectrum is exact up to ``f_lo = n_b·s_lo/λ``.
 * ``s_hi = min(s_lo + taper, 0.98)`` ends a raised-cosine roll-off at ``f_hi = n_b * s_hi / wavelength``.
 * Light that reaches the image through the pupil crossed the volume within ``p = T * tan(asin(s_lo))``
   of the image (``T`` the volume thickness): the window holds the image plus ``p`` per side.
@@ -26,12 +29,17 @@ import torch
 from .errors import FDTInputError, FDTWarning
 from .optics import Optics
 
-__all__ = ["GridPlan", "plan_grid", "plan_for_sources", "next_fast_even", "frequency_grid", "DEFAULT_TAPER", "MAX_SINE"]
+__all__ = [
+    "GridPlan", "plan_grid", "plan_for_sources", "next_fast_even", "frequency_grid",
+    "DEFAULT_TAPER", "DEFAULT_PUPIL_TAPER", "MAX_SINE",
+]
 
 #: Width of the raised-cosine roll-off beyond the pupil, in units of the sine of the angle.
 DEFAULT_TAPER = 0.1
 #: The roll-off ends at most at this sine (the 1/kz factor of a point source diverges at 90°).
 MAX_SINE = 0.98
+#: Half-width of the pupil's raised-cosine edge, relative to NA/λ.
+DEFAULT_PUPIL_TAPER = 0.03
 #: Largest padded side we accept (beyond it the geometry is almost certainly a unit mistake).
 MAX_PADDED_SIDE = 16384
 
@@ -60,7 +68,8 @@ class GridPlan:
     padded_shape: (Hp, Wp) of the computational window, even.
     offset: (row, col) of image pixel (0, 0) inside the window; ``offset = padded // 2 - image // 2``.
     pixel_size_um: sampling, µm.
-    f_lo_per_um: pupil edge NA/λ, cycles/µm; the source spectrum is exact below it.
+    pupil_taper: half-width of the pupil's soft edge relative to NA/λ (0: hard edge).
+    f_lo_per_um: outer pupil edge (1 + pupil_taper)·NA/λ, cycles/µm; the source spectrum is exact below it.
     f_hi_per_um: end of the raised-cosine roll-off, cycles/µm.
     margin_um: (y, x) lateral margin ``p`` the volume's light cone needs around the image, µm.
     warnings: the sampling problems found (also emitted as :class:`FDTWarning`).
@@ -70,6 +79,7 @@ class GridPlan:
     padded_shape: tuple[int, int]
     offset: tuple[int, int]
     pixel_size_um: float
+    pupil_taper: float
     f_lo_per_um: float
     f_hi_per_um: float
     margin_um: float
@@ -88,6 +98,7 @@ def plan_grid(
     max_depth_um: float,
     *,
     taper: float = DEFAULT_TAPER,
+    pupil_taper: float = DEFAULT_PUPIL_TAPER,
     warn: bool = True,
 ) -> GridPlan:
     """Plan the padded window and band limit for a geometry.
@@ -98,22 +109,25 @@ def plan_grid(
     image_shape: (H, W) in pixels.
     max_source_offset_um: largest |y| and |x| of any source from the image centre, µm.
     max_depth_um: largest source depth below the volume's bottom face, µm.
-    taper: width of the roll-off in sine units (default :data:`DEFAULT_TAPER`).
+    taper: width of the source's roll-off in sine units (default :data:`DEFAULT_TAPER`).
+    pupil_taper: half-width of the pupil's soft edge relative to NA/λ (default :data:`DEFAULT_PUPIL_TAPER`).
     warn: emit :class:`FDTWarning` for each sampling problem found.
     """
     h, w = (int(s) for s in image_shape)
     dx = optics.pixel_size_um
     lam = optics.wavelength_um
     n_b = optics.n_background
-    s_lo = optics.na / n_b
     if not (0.0 < taper < 1.0):
         raise FDTInputError("taper", f"must be in (0, 1), got {taper!r}", "use the default 0.1")
+    if not (0.0 <= pupil_taper < 0.5):
+        raise FDTInputError("pupil_taper", f"must be in [0, 0.5), got {pupil_taper!r}", "use the default 0.03, or 0 for a hard edge")
+    s_lo = (1.0 + pupil_taper) * optics.na / n_b
     s_hi = min(s_lo + taper, MAX_SINE)
     if s_hi - s_lo < 0.02:
         raise FDTInputError(
             "na",
-            f"na/n_background = {s_lo:.3f} leaves no room for a smooth band limit below {MAX_SINE}",
-            f"na must be at most {(MAX_SINE - 0.02) * n_b:.3f} for n_background {n_b:g}",
+            f"na/n_background = {optics.na / n_b:.3f} leaves no room for a smooth band limit below {MAX_SINE}",
+            f"na must be at most {(MAX_SINE - 0.02) * n_b / (1.0 + pupil_taper):.3f} for n_background {n_b:g}",
         )
     tan_lo = s_lo / math.sqrt(1.0 - s_lo**2)
     thickness = optics.thickness_um
@@ -137,12 +151,12 @@ def plan_grid(
             )
         padded.append(n_pad)
     messages = []
-    f_lo = optics.na / lam
+    f_lo = n_b * s_lo / lam
     f_hi = n_b * s_hi / lam
     f_nyquist = 1.0 / (2.0 * dx)
-    if f_lo > f_nyquist:
+    if optics.na / lam > f_nyquist:
         messages.append(
-            f"pixel_size_um {dx:g} undersamples the pupil: NA/λ = {f_lo:.3f} /µm exceeds the Nyquist "
+            f"pixel_size_um {dx:g} undersamples the pupil: NA/λ = {optics.na / lam:.3f} /µm exceeds the Nyquist "
             f"frequency {f_nyquist:.3f} /µm (pixel must be <= λ/(2·NA) = {lam / (2 * optics.na):.3f} µm); "
             "fine detail aliases in the model as in the camera"
         )
@@ -165,6 +179,7 @@ def plan_grid(
         padded_shape=(hp, wp),
         offset=(hp // 2 - h // 2, wp // 2 - w // 2),
         pixel_size_um=dx,
+        pupil_taper=float(pupil_taper),
         f_lo_per_um=f_lo,
         f_hi_per_um=f_hi,
         margin_um=margin,

@@ -55,7 +55,17 @@ def phase_screen(delta_n: torch.Tensor, slice_spacing_um: float | torch.Tensor, 
     return torch.polar(torch.ones_like(phase), phase)
 
 
-def pupil(f2: torch.Tensor, na: float | torch.Tensor, wavelength_um: float | torch.Tensor) -> torch.Tensor:
-    """Circular pupil: 1 for ``|f| <= NA/λ``, else 0 (same shape and real dtype as ``f2``)."""
+def pupil(
+    f2: torch.Tensor, na: float | torch.Tensor, wavelength_um: float | torch.Tensor, taper: float = 0.0
+) -> torch.Tensor:
+    """Circular pupil of radius NA/λ, same shape and real dtype as ``f2``.
+
+    ``taper = 0``: hard edge (1 inside, 0 outside). ``taper > 0``: raised-cosine edge from
+    ``(1 − taper)·NA/λ`` to ``(1 + taper)·NA/λ`` (0.5 at NA/λ; same transmitted power to first order).
+    """
     cutoff = na / wavelength_um
-    return (f2 <= cutoff * cutoff).to(f2.dtype)
+    if taper <= 0:
+        return (f2 <= cutoff * cutoff).to(f2.dtype)
+    f = torch.sqrt(f2)
+    t = torch.clamp((f - (1.0 - taper) * cutoff) / (2.0 * taper * cutoff), 0.0, 1.0)
+    return 0.5 * (1.0 + torch.cos(math.pi * t))
