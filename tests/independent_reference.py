@@ -3,6 +3,12 @@
 Written from ``docs/format.md`` and ``docs/physics.md`` alone (numpy + math only, no
 import of ``napari_fdt``), to check that those documents specify the model completely.
 
+Model (physics.md §2-4): point source built from its Weyl angular spectrum with a
+raised-cosine band limit, on a periodic window sized by the documented rule; multi-slice
+split step with phase screens at slice centres; propagation to the camera's focal plane;
+raised-cosine-edged pupil; intensity times a per-image gain. All arithmetic in
+float64/complex128.
+
 Public entry point: :func:`forward_images`.
 """
 
@@ -19,6 +25,7 @@ __all__ = [
     "frequency_grid",
     "source_spectrum",
     "propagator",
+    "pupil",
     "forward_images",
 ]
 

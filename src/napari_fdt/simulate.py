@@ -91,7 +91,7 @@ def simulate_measurement(
     rng = np.random.default_rng(rng)
     n = clean.shape[0]
     brightness = np.exp(brightness_spread * rng.standard_normal(n))
-    scale = float(photons / clean.mean())
+    scale = float(photons) / float(clean.mean(dtype=np.float64))
     expected = clean.astype(np.float64) * (scale * brightness)[:, None, None]
     if not noise:
         return expected.astype(np.float32), brightness, scale
