@@ -9,6 +9,8 @@ detected as ``gain · |E|²``.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import torch
 import torch.nn.functional as F
 
@@ -17,7 +19,7 @@ from .optics import Optics
 from .propagation import phase_screen, propagation_kernel, pupil
 from .sources import band_limit, centering_sign, point_source_spectrum
 
-__all__ = ["MultiSliceModel", "resolve_device"]
+__all__ = ["MultiSliceModel", "Kernels", "resolve_device"]
 
 
 def resolve_device(device: str | torch.device | None = "auto") -> torch.device:
@@ -32,8 +34,30 @@ def resolve_device(device: str | torch.device | None = "auto") -> torch.device:
     return dev
 
 
+Scalar = float | torch.Tensor
+
+
+@dataclass
+class Kernels:
+    """Everything the loop needs for one set of optical parameters (all on the model's device).
+
+    ``fy``, ``fx``: frequencies (cycles/µm), (Hp, 1) and (1, Wp); ``window``: source band limit (Hp, Wp);
+    ``slice_kernel``: propagation over one slice; ``exit_kernel``: last screen → focal plane, times the
+    pupil; ``pixel_size_um``, ``slice_spacing_um``, ``wavelength_um``: the parameters they were built for.
+    """
+
+    fy: torch.Tensor
+    fx: torch.Tensor
+    window: torch.Tensor
+    slice_kernel: torch.Tensor
+    exit_kernel: torch.Tensor
+    pixel_size_um: Scalar
+    slice_spacing_um: Scalar
+    wavelength_um: Scalar
+
+
 class MultiSliceModel:
-    """The forward model for one optics and grid plan; kernels are built once at construction.
+    """The forward model for one optics and grid plan.
 
     Parameters
     ----------
@@ -42,7 +66,10 @@ class MultiSliceModel:
     device: ``"auto"``, ``"cpu"``, ``"cuda"`` or a torch device.
     dtype: real dtype, ``torch.float32`` (complex64 fields, default) or ``torch.float64``.
 
-    Call it as ``model(delta_n, sources_um, gain)`` → images (B, H, W).
+    Call it as ``model(delta_n, sources_um, gain)`` → images (B, H, W). The optical parameters
+    ``pixel_size_um``, ``slice_spacing_um`` and ``wavelength_um`` may be overridden per call, with
+    floats or tensors (differentiable: self-calibration and the spectral-bandwidth model); kernels for
+    the acquisition's own values are built once and cached.
     """
 
     def __init__(self, optics: Optics, plan: GridPlan, *, device: str | torch.device | None = "auto", dtype: torch.dtype = torch.float32) -> None:
@@ -52,30 +79,51 @@ class MultiSliceModel:
         self.plan = plan
         self.device = resolve_device(device)
         self.dtype = dtype
-        dz = optics.slice_spacing_um
-        fy, fx = frequency_grid(plan.padded_shape, optics.pixel_size_um, device=self.device, dtype=dtype)
-        self._fy, self._fx = fy, fx
-        f2 = fy * fy + fx * fx
-        self._window = band_limit(f2, plan.f_lo_per_um, plan.f_hi_per_um)
         self._centering = centering_sign(plan.padded_shape, device=self.device, dtype=dtype)
-        self._slice_kernel = propagation_kernel(f2, dz, optics.n_background, optics.wavelength_um)
-        exit_distance = 0.5 * dz - optics.image_plane_um  # last screen → camera focal plane
-        self._exit_kernel = propagation_kernel(f2, exit_distance, optics.n_background, optics.wavelength_um) * pupil(
-            f2, optics.na, optics.wavelength_um, plan.pupil_taper
+        self._default = self.kernels()
+
+    # -- kernels ------------------------------------------------------------------------------
+    def kernels(
+        self,
+        pixel_size_um: Scalar | None = None,
+        slice_spacing_um: Scalar | None = None,
+        wavelength_um: Scalar | None = None,
+    ) -> Kernels:
+        """Kernels for the given parameters (None: the acquisition's value); cached when all are None.
+
+        A different wavelength scales the band limit and the pupil with it (they are angles).
+        """
+        if pixel_size_um is None and slice_spacing_um is None and wavelength_um is None and hasattr(self, "_default"):
+            return self._default
+        o = self.optics
+        dx = o.pixel_size_um if pixel_size_um is None else pixel_size_um
+        dz = o.slice_spacing_um if slice_spacing_um is None else slice_spacing_um
+        lam = o.wavelength_um if wavelength_um is None else wavelength_um
+        fy, fx = frequency_grid(self.plan.padded_shape, 1.0, device=self.device, dtype=self.dtype)
+        fy, fx = fy / dx, fx / dx
+        f2 = fy * fy + fx * fx
+        ratio = o.wavelength_um / lam  # band limits are angles: frequencies scale as 1/λ
+        window = band_limit(f2, self.plan.f_lo_per_um * ratio, self.plan.f_hi_per_um * ratio)
+        slice_kernel = propagation_kernel(f2, dz, o.n_background, lam)
+        exit_distance = 0.5 * dz - o.image_plane_um  # last screen → camera focal plane
+        exit_kernel = propagation_kernel(f2, exit_distance, o.n_background, lam) * pupil(
+            f2, o.na, lam, self.plan.pupil_taper
         )
+        return Kernels(fy, fx, window, slice_kernel, exit_kernel, dx, dz, lam)
 
     # -- pieces -------------------------------------------------------------------------------
-    def source_spectrum(self, sources_um: torch.Tensor) -> torch.Tensor:
+    def source_spectrum(self, sources_um: torch.Tensor, kernels: Kernels | None = None) -> torch.Tensor:
         """(B, Hp, Wp) spectrum of the sources at the first screen (half a slice above the bottom face)."""
+        k = kernels or self._default
         return point_source_spectrum(
-            self._fy,
-            self._fx,
+            k.fy,
+            k.fx,
             sources_um.to(self.device, self.dtype),
-            0.5 * self.optics.slice_spacing_um,
+            0.5 * k.slice_spacing_um,
             n_background=self.optics.n_background,
-            wavelength_um=self.optics.wavelength_um,
-            pixel_size_um=self.optics.pixel_size_um,
-            window=self._window,
+            wavelength_um=k.wavelength_um,
+            pixel_size_um=k.pixel_size_um,
+            window=k.window,
             centering=self._centering,
         )
 
@@ -100,23 +148,41 @@ class MultiSliceModel:
         h, w = self.plan.image_shape
         return field[..., oy : oy + h, ox : ox + w]
 
-    def camera_field(self, delta_n: torch.Tensor, sources_um: torch.Tensor) -> torch.Tensor:
+    def camera_field(
+        self,
+        delta_n: torch.Tensor,
+        sources_um: torch.Tensor,
+        *,
+        pixel_size_um: Scalar | None = None,
+        slice_spacing_um: Scalar | None = None,
+        wavelength_um: Scalar | None = None,
+    ) -> torch.Tensor:
         """Complex field at the camera, (B, H, W), for contrast ``delta_n = n − n_b``.
 
         ``delta_n`` is (n_slices, H, W) on the image grid (background outside) or (n_slices, Hp, Wp).
         """
+        k = self.kernels(pixel_size_um, slice_spacing_um, wavelength_um)
         dn = self.pad_volume(delta_n)
-        u = torch.fft.ifft2(self.source_spectrum(sources_um))
-        for k in range(dn.shape[0]):
-            if k:
-                u = torch.fft.ifft2(torch.fft.fft2(u) * self._slice_kernel)
-            u = u * phase_screen(dn[k], self.optics.slice_spacing_um, self.optics.wavelength_um)
-        u = torch.fft.ifft2(torch.fft.fft2(u) * self._exit_kernel)
+        u = torch.fft.ifft2(self.source_spectrum(sources_um, k))
+        for i in range(dn.shape[0]):
+            if i:
+                u = torch.fft.ifft2(torch.fft.fft2(u) * k.slice_kernel)
+            u = u * phase_screen(dn[i], k.slice_spacing_um, k.wavelength_um)
+        u = torch.fft.ifft2(torch.fft.fft2(u) * k.exit_kernel)
         return self.crop(u)
 
-    def __call__(self, delta_n: torch.Tensor, sources_um: torch.Tensor, gain: torch.Tensor | None = None) -> torch.Tensor:
-        """Images ``gain · |E|²``, (B, H, W) real; ``gain`` is (B,) or None (1)."""
-        field = self.camera_field(delta_n, sources_um)
+    def __call__(
+        self,
+        delta_n: torch.Tensor,
+        sources_um: torch.Tensor,
+        gain: torch.Tensor | None = None,
+        **optics_overrides: Scalar | None,
+    ) -> torch.Tensor:
+        """Images ``gain · |E|²``, (B, H, W) real; ``gain`` is (B,) or None (1).
+
+        Keyword overrides: ``pixel_size_um``, ``slice_spacing_um``, ``wavelength_um`` (see :meth:`kernels`).
+        """
+        field = self.camera_field(delta_n, sources_um, **optics_overrides)
         intensity = field.real.square() + field.imag.square()
         if gain is not None:
             intensity = intensity * gain.to(self.device, self.dtype).reshape(-1, 1, 1)

@@ -15,6 +15,9 @@ import torch
 
 __all__ = ["axial_frequency_offset", "propagation_kernel", "phase_screen", "pupil"]
 
+#: Floor under square roots of squared frequencies, (cycles/µm)²: far below any grid frequency.
+_TINY = 1e-30
+
 
 def axial_frequency_offset(
     f2: torch.Tensor, n_background: float | torch.Tensor, wavelength_um: float | torch.Tensor
@@ -27,7 +30,8 @@ def axial_frequency_offset(
     k = n_background / wavelength_um
     k2 = k * k
     propagating = f2 < k2
-    qz = torch.sqrt(torch.clamp(k2 - f2, min=0.0))
+    # The clamp keeps sqrt's derivative finite (it is 0 on clamped entries): gradients in λ, n_b, dx stay clean.
+    qz = torch.sqrt(torch.clamp(k2 - f2, min=_TINY))
     offset = torch.where(propagating, -f2 / (qz + k), torch.zeros_like(f2))
     return offset, propagating
 
@@ -66,6 +70,6 @@ def pupil(
     cutoff = na / wavelength_um
     if taper <= 0:
         return (f2 <= cutoff * cutoff).to(f2.dtype)
-    f = torch.sqrt(f2)
+    f = torch.sqrt(torch.clamp(f2, min=_TINY))
     t = torch.clamp((f - (1.0 - taper) * cutoff) / (2.0 * taper * cutoff), 0.0, 1.0)
     return 0.5 * (1.0 + torch.cos(math.pi * t))
