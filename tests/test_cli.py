@@ -94,3 +94,33 @@ def test_warning_printed_for_undersampled_pupil(tmp_path: Path, capsys) -> None:
     out = tmp_path / "acq"
     assert main(["simulate", "letters", str(out), *SMALL, "--na", "1.0", "--pixel-size-um", "0.4"]) == 0
     assert "warning: pixel_size_um 0.4 undersamples the pupil" in capsys.readouterr().err
+
+
+def test_simulate_with_emission_bandwidth_records_it(tmp_path: Path, capsys) -> None:
+    out = tmp_path / "acq"
+    args = ["simulate", "beads", str(out), *SMALL, "--no-noise", "--jitter-um", "0"]
+    assert main([*args, "--bandwidth-um", "0.04", "--n-wavelengths", "5"]) == 0
+    assert "emission FWHM 40 nm in 5 wavelengths, coherence length 7.6 µm" in capsys.readouterr().out
+    settings = json.loads((out / "acquisition.json").read_text())["simulated"]
+    assert settings["bandwidth_um"] == 0.04 and settings["n_wavelengths"] == 5
+    lam, w = np.array(settings["emission_wavelengths_um"]), np.array(settings["emission_weights"])
+    assert lam.shape == w.shape == (5,) and np.sum(w) == pytest.approx(1.0) and np.sum(w * lam) == pytest.approx(0.635)
+    assert settings["coherence_length_um"] == pytest.approx(0.635**2 / (1.33 * 0.04))
+    truth = json.loads((out / "ground_truth_sources_um.json").read_text())
+    assert truth["settings"]["bandwidth_um"] == 0.04 and truth["settings"]["n_wavelengths"] == 5
+    partial = read_acquisition(out).images
+    # The coherent simulation of the same scene differs (fringes), but only by some per cent.
+    coherent_dir = tmp_path / "coherent"
+    assert main([*args[:2], str(coherent_dir), *args[3:]]) == 0
+    settings0 = json.loads((coherent_dir / "acquisition.json").read_text())["simulated"]
+    assert settings0["bandwidth_um"] == 0.0 and settings0["n_wavelengths"] == 9 and settings0["emission_wavelengths_um"] == [0.635]
+    coherent = read_acquisition(coherent_dir).images
+    rel = np.linalg.norm(partial - coherent) / np.linalg.norm(coherent)
+    assert 1e-4 < rel < 0.2
+    # Bad spectra are refused with the field named, before any output.
+    bad = tmp_path / "bad"
+    assert main(["simulate", "letters", str(bad), *SMALL, "--bandwidth-um", "-0.01"]) == 2
+    assert capsys.readouterr().err.startswith("error: bandwidth_um:")
+    assert main(["simulate", "letters", str(bad), *SMALL, "--bandwidth-um", "0.04", "--n-wavelengths", "0"]) == 2
+    assert capsys.readouterr().err.startswith("error: n_wavelengths:")
+    assert not bad.exists()

@@ -5,7 +5,9 @@ The measurement model (``docs/physics.md``, "Simulated measurement"): image i is
 model's image for the true source, ``b_i`` a per-source brightness drawn log-normally (median 1,
 log-standard deviation ``brightness_spread``) and ``scale`` sets the mean photo-electron count of a
 unit-brightness image to ``photons``. The acquisition's ``sources_um`` are the true positions plus
-Gaussian jitter, as an imperfect initial estimate.
+Gaussian jitter, as an imperfect initial estimate. With an emission bandwidth, ``I_i`` is the
+incoherent sum of the model's images over a Gauss–Hermite sampling of the emission spectrum
+(:mod:`napari_fdt.coherence`): temporally partially coherent light, whose far fringes wash out.
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ import numpy as np
 import torch
 
 from .acquisition import Acquisition
+from .coherence import coherence_length_um, emission_spectrum, spectral_images
 from .errors import FDTInputError
 from .forward import MultiSliceModel
 from .grid import GridPlan, plan_for_sources
@@ -57,8 +60,14 @@ def render_images(
     gain: np.ndarray | None = None,
     *,
     batch_size: int = 16,
+    wavelengths_um: np.ndarray | None = None,
+    weights: np.ndarray | None = None,
 ) -> np.ndarray:
-    """Noise-free images ``gain · |E|²`` for every source, (N, H, W) float32, computed in batches without autograd."""
+    """Noise-free images ``gain · |E|²`` for every source, (N, H, W) float32, computed in batches without autograd.
+
+    With ``wavelengths_um`` and ``weights`` (e.g. :func:`napari_fdt.coherence.emission_spectrum`), each image
+    is the spectral sum ``Σ_k w_k · gain · |E(λ_k)|²`` (:func:`napari_fdt.coherence.spectral_images`).
+    """
     dn = torch.as_tensor(np.asarray(delta_n), dtype=model.dtype, device=model.device)
     src = torch.as_tensor(np.asarray(sources_um, dtype=np.float64), dtype=model.dtype)
     g = None if gain is None else torch.as_tensor(np.asarray(gain, dtype=np.float64), dtype=model.dtype)
@@ -66,7 +75,7 @@ def render_images(
     with torch.no_grad():
         dn_pad = model.pad_volume(dn)
         for sl in iter_batches(src.shape[0], batch_size):
-            out[sl] = model(dn_pad, src[sl], None if g is None else g[sl]).cpu().numpy()
+            out[sl] = spectral_images(model, dn_pad, src[sl], None if g is None else g[sl], wavelengths_um, weights).cpu().numpy()
     return out
 
 
@@ -150,6 +159,11 @@ class Simulation:
         }
 
 
+def _json_length(value: float) -> float | None:
+    """A length for JSON: None stands for infinity (JSON has no inf)."""
+    return None if math.isinf(value) else float(value)
+
+
 def simulate(
     delta_n: np.ndarray,
     optics: Optics,
@@ -165,8 +179,16 @@ def simulate(
     device: str = "auto",
     batch_size: int = 16,
     uint16: bool = False,
+    bandwidth_um: float = 0.0,
+    n_wavelengths: int = 9,
 ) -> Simulation:
-    """Simulate an acquisition of ``delta_n`` (n_slices, H, W) lit by ``sources_um`` (N, 3)."""
+    """Simulate an acquisition of ``delta_n`` (n_slices, H, W) lit by ``sources_um`` (N, 3).
+
+    ``bandwidth_um`` is the FWHM of a Gaussian emission spectrum centred on ``optics.wavelength_um``
+    (0: monochromatic, coherent); the clean images are then the spectral sum over ``n_wavelengths``
+    Gauss–Hermite wavelengths (``n_wavelengths`` times the cost). Both are recorded in the settings.
+    """
+    wavelengths, weights = emission_spectrum(optics.wavelength_um, bandwidth_um, n_wavelengths)
     delta_n = np.asarray(delta_n, dtype=np.float32)
     if delta_n.ndim != 3 or delta_n.shape[0] != optics.n_slices:
         raise FDTInputError("delta_n", f"must be (n_slices={optics.n_slices}, H, W), got {delta_n.shape}", "match n_slices")
@@ -174,7 +196,8 @@ def simulate(
     shape = delta_n.shape[1:]
     plan = plan_for_sources(optics, shape, src)
     model = MultiSliceModel(optics, plan, device=device)
-    clean = render_images(model, delta_n, src, batch_size=batch_size)
+    spectrum = {} if len(wavelengths) == 1 else dict(wavelengths_um=wavelengths, weights=weights)
+    clean = render_images(model, delta_n, src, batch_size=batch_size, **spectrum)
     rng = np.random.default_rng(seed)
     images, brightness, scale = simulate_measurement(
         clean, photons=photons, read_noise=read_noise, brightness_spread=brightness_spread, rng=rng, noise=noise
@@ -187,7 +210,11 @@ def simulate(
     estimate[:, :2] += jitter_xy_um * rng.standard_normal((len(src), 2))
     estimate[:, 2] = np.maximum(estimate[:, 2] + jitter_depth_um * rng.standard_normal(len(src)), 0.1 * src[:, 2])
     settings = dict(photons=photons, read_noise=read_noise, brightness_spread=brightness_spread,
-                    jitter_xy_um=jitter_xy_um, jitter_depth_um=jitter_depth_um, noise=noise, seed=seed)
+                    jitter_xy_um=jitter_xy_um, jitter_depth_um=jitter_depth_um, noise=noise, seed=seed,
+                    bandwidth_um=float(bandwidth_um), n_wavelengths=int(n_wavelengths),
+                    emission_wavelengths_um=[float(v) for v in wavelengths],
+                    emission_weights=[float(v) for v in weights],
+                    coherence_length_um=_json_length(coherence_length_um(optics.wavelength_um, bandwidth_um, optics.n_background)))
     acq = Acquisition(images=images, optics=optics, sources_um=estimate, extra={"simulated": settings})
     ri = (optics.n_background + delta_n).astype(np.float32)
     return Simulation(acq, ri, src, brightness, scale, plan, settings)

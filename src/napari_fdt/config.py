@@ -1,0 +1,169 @@
+"""Every solver setting, in one JSON-serialisable configuration shared by the API, ``fdt`` and napari.
+
+``docs/solver.md`` documents each field. ``SolverConfig.from_dict`` rejects unknown keys (a typo would
+otherwise be silently ignored) and validates values, naming the field and the fix.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+from typing import Any
+
+from .errors import FDTInputError
+
+__all__ = ["StageConfig", "SolverConfig", "load_config", "COHERENCE_MODELS"]
+
+COHERENCE_MODELS = ("none", "mask", "spectral", "mask+spectral")
+
+
+@dataclass
+class StageConfig:
+    """One coarse-to-fine stage: lateral ``factor`` (stage pixel = factor × acquisition pixel) and ``iterations``."""
+
+    factor: int = 1
+    iterations: int = 100
+
+    def __post_init__(self) -> None:
+        if isinstance(self.factor, bool) or not isinstance(self.factor, int) or self.factor < 1:
+            raise FDTInputError("stages[].factor", f"must be an integer >= 1, got {self.factor!r}", "use 4, 2, 1 for three stages")
+        if isinstance(self.iterations, bool) or not isinstance(self.iterations, int) or self.iterations < 0:
+            raise FDTInputError("stages[].iterations", f"must be an integer >= 0, got {self.iterations!r}", "e.g. 100")
+
+
+def _default_stages() -> list[StageConfig]:
+    return [StageConfig(4, 80), StageConfig(2, 80), StageConfig(1, 80)]
+
+
+@dataclass
+class SolverConfig:
+    """Settings of a reconstruction. Learning rates are Adam step sizes in the parameters' own units."""
+
+    # coarse-to-fine
+    stages: list[StageConfig] = field(default_factory=_default_stages)
+    batch_size: int = 16
+    # RI grid
+    delta_n_max: float = 0.1
+    activation: str = "paper"
+    lr_ri: float = 0.05
+    # losses
+    l1_l2_total: float = 1.0
+    l1_ramp_start: float = 0.0
+    l1_ramp_end: float = 1.0
+    ssim_weight: float = 0.0
+    tv_xy_weight: float = 0.0
+    tv_z_weight: float = 0.0
+    # self-calibration
+    calibrate_sources: bool = True
+    calibrate_gain: bool = True
+    calibrate_source_depth: bool = True
+    calibrate_pixel_size: bool = False
+    calibrate_slice_spacing: bool = False
+    calibration_from_stage: int = 1
+    lr_sources_um: float = 0.02
+    lr_log_gain: float = 0.01
+    lr_global: float = 1e-3
+    source_depth_um: float | None = None
+    # partial coherence
+    coherence: str = "none"
+    mask_threshold: float = 0.5
+    bandwidth_um: float = 0.03
+    n_wavelengths: int = 3
+    # run
+    seed: int = 0
+    snapshot_every: int = 10
+
+    def __post_init__(self) -> None:
+        self.stages = [s if isinstance(s, StageConfig) else StageConfig(**_only(s, StageConfig, "stages[]")) for s in self.stages]
+        if not self.stages:
+            raise FDTInputError("stages", "is empty", "give at least one stage, e.g. [{\"factor\": 1, \"iterations\": 100}]")
+        for a, b in zip(self.stages, self.stages[1:]):
+            if a.factor % b.factor:
+                raise FDTInputError("stages", f"factor {a.factor} is followed by {b.factor}, which does not divide it",
+                                    "use decreasing factors that divide each other, e.g. 4, 2, 1")
+        _positive_int("batch_size", self.batch_size)
+        _positive_int("snapshot_every", self.snapshot_every)
+        _positive_int("n_wavelengths", self.n_wavelengths)
+        for name in ("delta_n_max", "lr_ri", "lr_sources_um", "lr_log_gain", "lr_global"):
+            _positive(name, getattr(self, name))
+        for name in ("l1_l2_total", "ssim_weight", "tv_xy_weight", "tv_z_weight", "bandwidth_um"):
+            _non_negative(name, getattr(self, name))
+        if not (0.0 <= self.l1_ramp_start <= self.l1_ramp_end <= 1.0):
+            raise FDTInputError("l1_ramp_start", "must satisfy 0 <= l1_ramp_start <= l1_ramp_end <= 1",
+                                "the L1 weight rises over this fraction of the run")
+        if self.activation not in ("paper", "signed"):
+            raise FDTInputError("activation", f"unknown activation {self.activation!r}", "choose paper or signed")
+        if self.coherence not in COHERENCE_MODELS:
+            raise FDTInputError("coherence", f"unknown model {self.coherence!r}", f"choose one of {', '.join(COHERENCE_MODELS)}")
+        if not (0.0 < self.mask_threshold < 1.0):
+            raise FDTInputError("mask_threshold", f"must be in (0, 1), got {self.mask_threshold}", "the paper binarises at about 0.5 of the maximum")
+        if self.source_depth_um is not None:
+            _positive("source_depth_um", self.source_depth_um)
+        if isinstance(self.calibration_from_stage, bool) or not isinstance(self.calibration_from_stage, int) or self.calibration_from_stage < 0:
+            raise FDTInputError("calibration_from_stage", f"must be an integer >= 0, got {self.calibration_from_stage!r}", "0 calibrates from the start")
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int):
+            raise FDTInputError("seed", f"must be an integer, got {self.seed!r}", "e.g. 0")
+
+    @property
+    def total_iterations(self) -> int:
+        return sum(s.iterations for s in self.stages)
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> "SolverConfig":
+        return cls(**_only(data, cls, "config"))
+
+    def save(self, path: str | Path) -> None:
+        from .io import write_json_atomic
+
+        write_json_atomic(path, self.to_dict(), overwrite=True)
+
+
+def _only(data: Any, klass, where: str) -> dict:
+    if not isinstance(data, dict):
+        raise FDTInputError(where, f"must be a JSON object, got {type(data).__name__}", "see docs/solver.md")
+    known = {f.name for f in fields(klass)}
+    unknown = sorted(set(data) - known)
+    if unknown:
+        raise FDTInputError(f"{where}.{unknown[0]}", "is not a setting", f"known settings: {', '.join(sorted(known))}")
+    return data
+
+
+def _positive_int(name: str, v: Any) -> None:
+    if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+        raise FDTInputError(name, f"must be an integer >= 1, got {v!r}", "give a positive whole number")
+
+
+def _positive(name: str, v: Any) -> None:
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
+        raise FDTInputError(name, f"must be a positive number, got {v!r}", "give a finite value > 0")
+
+
+def _non_negative(name: str, v: Any) -> None:
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
+        raise FDTInputError(name, f"must be a number >= 0, got {v!r}", "0 switches the term off")
+
+
+def load_config(path: str | Path) -> SolverConfig:
+    """Read a configuration file (JSON; also TOML when the name ends in .toml)."""
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise FDTInputError("config", f"cannot read {p}: {exc.strerror or exc}", "check the path") from None
+    try:
+        if p.suffix.lower() == ".toml":
+            try:
+                import tomllib
+            except ImportError:  # Python 3.10
+                raise FDTInputError("config", "TOML needs Python >= 3.11", "write the configuration as JSON") from None
+            data = tomllib.loads(text)
+        else:
+            data = json.loads(text)
+    except (ValueError, json.JSONDecodeError) as exc:
+        raise FDTInputError("config", f"{p} does not parse: {exc}", "write valid JSON (or TOML for .toml)") from None
+    return SolverConfig.from_dict(data)
