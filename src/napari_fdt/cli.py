@@ -1,4 +1,4 @@
-"""The ``fdt`` command line: ``simulate``, ``info`` and ``forward``; one core shared with the API and napari.
+"""The ``fdt`` command line: ``simulate``, ``info``, ``forward`` and ``reconstruct``; one core shared with the API and napari.
 
 Errors a user can cause print one line naming the field and the fix, and exit with status 2
 (no traceback). Geometry warnings print as ``warning: …`` lines before any long computation.
@@ -68,6 +68,20 @@ def build_parser() -> argparse.ArgumentParser:
 
     info = sub.add_parser("info", help="check an acquisition folder and show the forward model's grid")
     info.add_argument("acquisition", type=Path)
+
+    rec = sub.add_parser("reconstruct", help="reconstruct the RI volume of an acquisition")
+    rec.add_argument("acquisition", type=Path, help="acquisition folder")
+    rec.add_argument("--out", type=Path, required=True, help="RI volume to write (OME-TIFF); the report goes beside it as .json")
+    rec.add_argument("--config", type=Path, default=None, help="solver settings (JSON, see docs/solver.md)")
+    rec.add_argument("--device", default="auto", help="auto, cpu or cuda (default auto)")
+    rec.add_argument("--seed", type=int, default=None, help="random seed (overrides the config's)")
+    rec.add_argument("--truth", type=Path, default=None,
+                     help="ground-truth RI TIFF for metrics (ground_truth_sources_um.json beside it is used too)")
+    rec.add_argument("--checkpoint-dir", type=Path, default=None, help="write a checkpoint at the end of every stage here")
+    rec.add_argument("--resume", type=Path, default=None, help="continue from a checkpoint written by --checkpoint-dir")
+    rec.add_argument("--overwrite", action="store_true", help="replace existing output files")
+    rec.add_argument("--quiet", action="store_true", help="no progress bar")
+    rec.add_argument("--save-config", type=Path, default=None, help="write the full configuration used to this file and exit")
 
     fwd = sub.add_parser("forward", help="predict an acquisition's images from an RI volume and report the residual")
     fwd.add_argument("acquisition", type=Path)
@@ -192,6 +206,89 @@ def _cmd_forward(args: argparse.Namespace) -> int:
     return 0
 
 
+def _progress_line(snap) -> str:
+    width = 24
+    done = int(width * snap.progress)
+    loss = snap.losses.get("total")
+    loss_txt = f" loss {loss:.4g}" if loss is not None else ""
+    return (f"\rstage {snap.stage + 1}/{snap.n_stages} (x{snap.factor}) [{'#' * done}{'.' * (width - done)}] "
+            f"{100 * snap.progress:5.1f}% it {snap.global_iteration}/{snap.total_iterations}{loss_txt} "
+            f"elapsed {snap.elapsed_s:.0f}s left {snap.eta_s:.0f}s ")
+
+
+def _cmd_reconstruct(args: argparse.Namespace) -> int:
+    import json
+
+    from .config import SolverConfig, load_config
+    from .io import read_acquisition, read_volume_tiff
+    from .report import build_report, write_result
+    from .solver import Reconstructor
+
+    config = load_config(args.config) if args.config is not None else SolverConfig()
+    if args.seed is not None:
+        config.seed = args.seed
+        config.__post_init__()
+    if args.save_config is not None:
+        config.save(args.save_config)
+        print(f"wrote {args.save_config}")
+        return 0
+    acq = read_acquisition(args.acquisition)
+    out = Path(args.out)
+    json_out = out.with_name(out.name.split(".")[0] + ".json")
+    protected = {Path(args.acquisition).resolve() / "images.tif", Path(args.acquisition).resolve() / "acquisition.json"}
+    if args.truth is not None:
+        protected.add(Path(args.truth).resolve())
+    if out.resolve() in protected or json_out.resolve() in protected:
+        raise FDTInputError("out", f"{out} would overwrite an input", "write the result somewhere else")
+    for p in (out, json_out):
+        if p.exists() and not args.overwrite:
+            raise FDTInputError("out", f"{p} exists", "choose another --out or pass --overwrite")
+    truth = truth_src = None
+    if args.truth is not None:
+        truth, _ = read_volume_tiff(args.truth)
+        expected = (acq.optics.n_slices, *acq.image_shape)
+        if truth.shape != expected:
+            raise FDTInputError("truth", f"volume shape {truth.shape} does not match the acquisition's {expected}",
+                                "give the ground truth of this acquisition")
+        side = Path(args.truth).with_name("ground_truth_sources_um.json")
+        if side.exists():
+            truth_src = np.asarray(json.loads(side.read_text())["sources_um"], dtype=np.float64)
+    if args.resume is not None:
+        rec = Reconstructor.from_checkpoint(args.resume, acq, device=args.device)
+    else:
+        rec = Reconstructor(acq, config, device=args.device)
+    cancelled = False
+    try:
+        for snap in rec.run(checkpoint_dir=args.checkpoint_dir):
+            if not args.quiet:
+                print(_progress_line(snap), end="", file=sys.stderr, flush=True)
+                if snap.stage_complete:
+                    print(file=sys.stderr)
+    except KeyboardInterrupt:
+        cancelled = True
+        print(file=sys.stderr)
+        if rec.completed_stages == 0:
+            print("interrupted before the first stage completed: nothing written", file=sys.stderr)
+            return 130
+        print(f"interrupted: writing the last complete stage ({rec.completed_stages}/{len(rec.config.stages)})", file=sys.stderr)
+        rec.restore_last_complete()
+    report = build_report(rec, output=str(out), acquisition_path=str(args.acquisition), truth_ri=truth,
+                          truth_sources_um=truth_src, cancelled=cancelled)
+    write_result(rec, out, report, overwrite=args.overwrite)
+    st = ", ".join(f"x{r['factor']}: {r['iterations']} it, {r['seconds_per_iteration']:.3f} s/it" for r in report["stages"])
+    print(f"wrote {out} and {json_out}: {report['seconds_total']:.1f} s on {rec.device} ({st})")
+    fit = report.get("image_fit")
+    if fit:
+        print(f"image fit: relative error {fit['image_relative_error']:.4f}, PSNR {fit['image_psnr']:.1f} dB, SSIM {fit['image_ssim']:.3f}")
+    m = report.get("metrics", {})
+    if "relative_delta_n_error" in m:
+        print(f"against the truth: relative Δn error {m['relative_delta_n_error']:.3f}, RI RMSE {m['ri_rmse']:.2e}, "
+              f"normalised PSNR {m['paper_normalised']['psnr']:.1f} dB, SSIM {m['paper_normalised']['ssim']:.3f}")
+    if "sources" in m:
+        print(f"sources: lateral RMS error {m['sources']['lateral_rms_um']:.3f} µm (initial {m['sources_initial']['lateral_rms_um']:.3f} µm)")
+    return 130 if cancelled else 0
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``fdt``; returns the exit status."""
     parser = build_parser()
@@ -212,7 +309,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(warnings.formatwarning(message, category, filename, lineno, line), file=sys.stderr, end="")
 
     warnings.showwarning = show_warning
-    commands = {"simulate": _cmd_simulate, "info": _cmd_info, "forward": _cmd_forward}
+    commands = {"simulate": _cmd_simulate, "info": _cmd_info, "forward": _cmd_forward, "reconstruct": _cmd_reconstruct}
     try:
         return commands[args.command](args)
     except FDTInputError as exc:

@@ -34,7 +34,7 @@ class StageConfig:
 
 
 def _default_stages() -> list[StageConfig]:
-    return [StageConfig(4, 80), StageConfig(2, 80), StageConfig(1, 80)]
+    return [StageConfig(4, 40), StageConfig(2, 40), StageConfig(1, 160)]
 
 
 @dataclass

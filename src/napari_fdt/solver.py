@@ -333,10 +333,34 @@ class Reconstructor:
             snap.elapsed_s = self.elapsed_s
             self.completed_stages = si + 1
             self.last_complete = snap
+            self._last_complete_state = self._capture()
             self.final_losses = snap.losses
             if checkpoint_dir is not None:
                 self.save_checkpoint(Path(checkpoint_dir) / f"stage_{si}.pt")
             yield snap
+
+    def _capture(self) -> dict[str, Any]:
+        """Copies of the optimised state (small tensors), to return to after a cancel."""
+        return {
+            "x": self.volume.x.detach().clone(), "factor": self.volume_factor,
+            "sources": self.sources.detach().clone(), "log_gain": self.log_gain.detach().clone(),
+            "pixel_scale": self.pixel_scale.detach().clone(), "spacing_scale": self.spacing_scale.detach().clone(),
+            "depth_offset_um": self.depth_offset_um.detach().clone(), "elapsed_s": self.elapsed_s,
+            "stages": list(self.stages),
+        }
+
+    def restore_last_complete(self) -> None:
+        """Return to the state at the end of the last complete stage (after a cancel mid-stage)."""
+        state = getattr(self, "_last_complete_state", None)
+        if state is None:
+            raise RuntimeError("no stage has completed yet")
+        with torch.no_grad():
+            self.volume.x = state["x"].clone().requires_grad_()
+            self.volume_factor = state["factor"]
+            for name in ("sources", "log_gain", "pixel_scale", "spacing_scale", "depth_offset_um"):
+                getattr(self, name).copy_(state[name])
+        self.stages = list(state["stages"])
+        self.elapsed_s = state["elapsed_s"]
 
     # -- results ------------------------------------------------------------------------------
     def delta_n_full(self) -> np.ndarray:

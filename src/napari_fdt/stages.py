@@ -111,8 +111,8 @@ def build_stage(
     sources_um: np.ndarray,
     *,
     device: torch.device,
-    depth_slack_um: float = 5.0,
-    offset_slack_um: float = 2.0,
+    depth_slack_um: float = 2.0,
+    offset_slack_um: float = 1.0,
 ) -> Stage:
     """Set up one stage for the current source estimates (the window gets some slack for calibration moves)."""
     n_img, big_h, big_w = images_normalised.shape
