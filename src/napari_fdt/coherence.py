@@ -173,11 +173,11 @@ def coherence_masks(
         raise FDTInputError("smooth_um", f"must be >= 0, got {smooth_um!r}", "use None (λ/NA) or 0 for no blur")
     src = sources_um if isinstance(sources_um, torch.Tensor) else torch.as_tensor(np.asarray(sources_um, dtype=np.float64))
     src = src.detach().to(model.device, model.dtype).reshape(-1, 3)
-    h, w = model.plan.image_shape
+    h, w = model.image_shape
     with torch.no_grad():
         zero = torch.zeros((o.n_slices, h, w), device=model.device, dtype=model.dtype)
         img = spectral_images(model, zero, src, None, wavelengths_um, weights)
-        sigma_px = sigma_um / o.pixel_size_um
+        sigma_px = sigma_um / model.pixel_size_um
         if sigma_px > 0:
             img = _gaussian_blur(img, sigma_px)
         peak = img.amax(dim=(-2, -1), keepdim=True)

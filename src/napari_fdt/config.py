@@ -34,7 +34,7 @@ class StageConfig:
 
 
 def _default_stages() -> list[StageConfig]:
-    return [StageConfig(4, 40), StageConfig(2, 40), StageConfig(1, 160)]
+    return [StageConfig(4, 100), StageConfig(2, 100), StageConfig(1, 160)]
 
 
 @dataclass
@@ -43,6 +43,7 @@ class SolverConfig:
 
     # coarse-to-fine
     stages: list[StageConfig] = field(default_factory=_default_stages)
+    coarse_model: str = "envelope"
     batch_size: int = 16
     # RI grid
     delta_n_max: float = 0.1
@@ -93,6 +94,8 @@ class SolverConfig:
         if not (0.0 <= self.l1_ramp_start <= self.l1_ramp_end <= 1.0):
             raise FDTInputError("l1_ramp_start", "must satisfy 0 <= l1_ramp_start <= l1_ramp_end <= 1",
                                 "the L1 weight rises over this fraction of the run")
+        if self.coarse_model not in ("envelope", "multislice"):
+            raise FDTInputError("coarse_model", f"unknown model {self.coarse_model!r}", "choose envelope or multislice")
         if self.activation not in ("paper", "signed"):
             raise FDTInputError("activation", f"unknown activation {self.activation!r}", "choose paper or signed")
         if self.coherence not in COHERENCE_MODELS:

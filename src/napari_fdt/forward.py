@@ -82,6 +82,16 @@ class MultiSliceModel:
         self._centering = centering_sign(plan.padded_shape, device=self.device, dtype=dtype)
         self._default = self.kernels()
 
+    @property
+    def image_shape(self) -> tuple[int, int]:
+        """(H, W) of the images this model returns."""
+        return self.plan.image_shape
+
+    @property
+    def pixel_size_um(self) -> float:
+        """Sampling of the images, µm."""
+        return self.optics.pixel_size_um
+
     # -- kernels ------------------------------------------------------------------------------
     def kernels(
         self,

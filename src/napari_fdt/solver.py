@@ -83,6 +83,7 @@ class StageRecord:
     na: float
     iterations: int
     seconds: float = 0.0
+    model: str = "multislice"
 
     @property
     def seconds_per_iteration(self) -> float:
@@ -90,7 +91,7 @@ class StageRecord:
 
     def to_dict(self) -> dict[str, Any]:
         return {"stage": self.stage, "factor": self.factor, "field_factor": self.field_factor, "grid": list(self.grid), "window": list(self.window),
-                "na": self.na, "iterations": self.iterations, "seconds": self.seconds,
+                "na": self.na, "model": self.model, "iterations": self.iterations, "seconds": self.seconds,
                 "seconds_per_iteration": self.seconds_per_iteration}
 
 
@@ -185,7 +186,7 @@ class Reconstructor:
     def _overrides(self, stage: Stage) -> dict[str, torch.Tensor]:
         cfg = self.config
         out = {}
-        if cfg.calibrate_pixel_size:
+        if cfg.calibrate_pixel_size and not stage.envelope:
             out["pixel_size_um"] = stage.optics.pixel_size_um * self.pixel_scale
         if cfg.calibrate_slice_spacing:
             out["slice_spacing_um"] = stage.optics.slice_spacing_um * self.spacing_scale
@@ -246,10 +247,10 @@ class Reconstructor:
 
     # -- the loop -----------------------------------------------------------------------------
     def _stage_cost(self, factor: int) -> float:
-        """Relative cost of an iteration at a stage factor (window area; same for all wavelengths)."""
+        """Rough relative cost of an iteration at a stage factor (grid area the model works on)."""
         from .stages import field_factor
 
-        g = field_factor(self.acquisition.optics, factor)
+        g = factor if (factor > 1 and self.config.coarse_model == "envelope") else field_factor(self.acquisition.optics, factor)
         h, w = self.full_shape
         return (h / g) * (w / g)
 
@@ -285,7 +286,8 @@ class Reconstructor:
         for si in range(self.completed_stages, len(cfg.stages)):
             sc = cfg.stages[si]
             stage = build_stage(si, sc.factor, sc.iterations, o, self.images,
-                                self.calibrated_sources().detach().cpu().double().numpy(), device=self.device)
+                                self.calibrated_sources().detach().cpu().double().numpy(), device=self.device,
+                                coarse_model=cfg.coarse_model)
             h, w = stage.grid_shape
             if self.volume is None:
                 self.volume = RIVolume((o.n_slices, h, w), delta_n_max=cfg.delta_n_max, activation=cfg.activation,
@@ -293,7 +295,7 @@ class Reconstructor:
             elif self.volume_factor != sc.factor:
                 self.volume.resample(self.volume_factor, sc.factor, self.full_shape)
             self.volume_factor = sc.factor
-            mask = None
+            mask = stage.coverage
             if cfg.coherence in ("mask", "mask+spectral"):
                 cm = coherence_masks(stage.model, stage.stage_sources(self.calibrated_sources().detach()),
                                      threshold=cfg.mask_threshold, wavelengths_um=self.wavelengths, weights=self.weights)
@@ -303,7 +305,8 @@ class Reconstructor:
             self._set_trainable(si)
             vol_opt = torch.optim.Adam([self.volume.x], lr=cfg.lr_ri, betas=(0.9, 0.99))
             data_range = float(stage.images.max())
-            record = StageRecord(si, sc.factor, stage.field_factor, (o.n_slices, h, w), stage.plan.padded_shape, stage.optics.na, sc.iterations)
+            record = StageRecord(si, sc.factor, stage.field_factor, (o.n_slices, h, w), stage.window, stage.optics.na,
+                                 sc.iterations, model="envelope" if stage.envelope else "multislice")
             self.stages = [r for r in self.stages if r.stage != si] + [record]
             t0 = time.perf_counter()
             terms: dict = {}
@@ -427,7 +430,7 @@ class Reconstructor:
             rec._cal_opt.load_state_dict(state["cal_opt"])
         rec._batch_gen.set_state(state["batch_gen"])
         rec._order = list(state["order"])
-        rec.stages = [StageRecord(r["stage"], r["factor"], r["field_factor"], tuple(r["grid"]), tuple(r["window"]), r["na"], r["iterations"], r["seconds"])
+        rec.stages = [StageRecord(r["stage"], r["factor"], r["field_factor"], tuple(r["grid"]), tuple(r["window"]), r["na"], r["iterations"], r["seconds"], r["model"])
                       for r in state["stages"]]
         rec.history = list(state["history"])
         rec.elapsed_s = float(state["elapsed_s"])

@@ -24,7 +24,8 @@ import torch
 import torch.nn.functional as F
 
 from .forward import MultiSliceModel
-from .grid import DEFAULT_PUPIL_TAPER, GridPlan, plan_grid
+from .envelope import EnvelopeModel
+from .grid import DEFAULT_PUPIL_TAPER, plan_grid
 from .optics import Optics
 from .volume import upsample_to
 
@@ -77,16 +78,22 @@ class Stage:
     field_factor: int
     iterations: int
     optics: Optics
-    plan: GridPlan
-    model: MultiSliceModel
+    model: MultiSliceModel | EnvelopeModel
     images: torch.Tensor
     shift_um: tuple[float, float]
     grid_shape: tuple[int, int]
+    window: tuple[int, int]
+    coverage: torch.Tensor | None = None
 
     @property
     def image_shape(self) -> tuple[int, int]:
         """(h, w) of the field grid and of the stage's images."""
-        return self.plan.image_shape
+        return self.model.image_shape
+
+    @property
+    def envelope(self) -> bool:
+        """Whether the stage uses the coarse envelope model."""
+        return isinstance(self.model, EnvelopeModel)
 
     def stage_sources(self, sources_um: torch.Tensor) -> torch.Tensor:
         """Sources (B, 3) in the stage model's coordinates."""
@@ -113,13 +120,27 @@ def build_stage(
     device: torch.device,
     depth_slack_um: float = 2.0,
     offset_slack_um: float = 1.0,
+    coarse_model: str = "envelope",
 ) -> Stage:
-    """Set up one stage for the current source estimates (the window gets some slack for calibration moves)."""
-    n_img, big_h, big_w = images_normalised.shape
+    """Set up one stage for the current source estimates (the window gets some slack for calibration moves).
+
+    ``coarse_model="envelope"`` uses :class:`~napari_fdt.envelope.EnvelopeModel` on the stage grid for
+    factors > 1; ``"multislice"`` keeps the multi-slice model on the grid the pupil needs.
+    """
+    _, big_h, big_w = images_normalised.shape
+    dx = optics.pixel_size_um
+    if factor > 1 and coarse_model == "envelope":
+        h, w = big_h // factor, big_w // factor
+        shift = (_shift_um(big_w, factor, dx), _shift_um(big_h, factor, dx))
+        env = EnvelopeModel(optics, (h, w), factor, (0.0, 0.0), device=device)
+        imgs = block_average(images_normalised[:, : h * factor, : w * factor], factor).to(device)
+        stage = Stage(index, factor, factor, iterations, optics, env, imgs, shift, (h, w), env.padded)
+        src = torch.as_tensor(np.asarray(sources_um), dtype=env.dtype, device=device)
+        stage.coverage = env.coverage(stage.stage_sources(src))
+        return stage
     g = field_factor(optics, factor)
     h, w = big_h // g, big_w // g
     opt = stage_optics(optics, g)
-    dx = optics.pixel_size_um
     shift = (_shift_um(big_w, g, dx), _shift_um(big_h, g, dx))
     src = np.asarray(sources_um, dtype=np.float64)
     plan = plan_grid(
@@ -131,4 +152,4 @@ def build_stage(
     model = MultiSliceModel(opt, plan, device=device)
     imgs = block_average(images_normalised[:, : h * g, : w * g], g).to(device)
     grid = (big_h // factor, big_w // factor)
-    return Stage(index, factor, g, iterations, opt, plan, model, imgs, shift, grid)
+    return Stage(index, factor, g, iterations, opt, model, imgs, shift, grid, plan.padded_shape)
