@@ -126,7 +126,28 @@ def main() -> None:
                      f"{r['paper_ssim']:.3f} | {r['image_relative_error']:.4f} | {r['source_lateral_rms_um']:.3f} | {r['wall_s']:.0f} |")
     table = "\n".join(lines)
     print(table)
-    (args.out.with_suffix(".table.md")).write_text(table + "\n")
+    import datetime
+
+    page = [
+        "# Ablation: each component on and off",
+        "",
+        "Made by `python benchmarks/ablation.py --device cpu` (this page and `ablation.json`, which holds every number",
+        f"and the calibrated parameters). Run on {datetime.date.today().isoformat()}: {hardware['threads']} CPU threads,",
+        f"torch {hardware['torch']}, the project's 2-core CI-class machine. The shape follows the paper's Table S1.",
+        "",
+        "Data: the bundled sample's geometry (96×96 px of 0.33 µm, 8 slices of 2 µm holding the letters U, C, D, A",
+        "at Δn 0.05, 64 sources 40 µm deep, NA 0.8, 2000 photo-electrons per pixel, brightness spread 0.2, initial",
+        "positions jittered by 1 µm per axis). *coherent*: the bundled sample itself. *pixel size 2 % off*: the same",
+        "images with `pixel_size_um` given as 0.3366. *partially coherent*: the same scene simulated with a 40 nm",
+        "emission band (9 wavelengths). Every row is a full run with the default settings except the named change.",
+        "Metrics: relative Δn error ‖Δn − Δn_true‖/‖Δn_true‖; RI RMSE in absolute RI; the paper code's normalised",
+        "PSNR/SSIM; the relative error of all 64 predicted images against the measured ones (noise level 0.020);",
+        "the RMS lateral error of the calibrated source positions. Wall time includes set-up, not the evaluation.",
+        "",
+        table,
+        "",
+    ]
+    args.out.write_text("\n".join(page))
 
 
 if __name__ == "__main__":
