@@ -1,0 +1,161 @@
+"""Take the screenshots of docs/napari.md from the real plugin (so they stay current).
+
+    xvfb-run -a -s "-screen 0 1600x1000x24" .venv/bin/python docs/make_screenshots.py
+
+Opens the bundled letters sample in napari, docks both widgets, shows the sources, masks and a forward
+preview, runs a short reconstruction (stages 4x60, 2x60, 1x60: about 25 s on 2 CPU cores), and saves
+PNGs under docs/images/: the two widgets, the viewer during the run, the RI volume in 3D, and the
+predicted-versus-measured image. Needs napari with a Qt binding and an X display (Xvfb is fine).
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+
+import napari
+import numpy as np
+from PIL import Image
+from qtpy.QtGui import QImage
+from qtpy.QtWidgets import QApplication, QWidget
+
+from napari_fdt._widget_acquisition import AcquisitionWidget
+from napari_fdt._widget_reconstruction import ReconstructionWidget
+
+OUT = Path(__file__).resolve().parent / "images"
+STAGES = "4x60, 2x60, 1x60"
+
+
+def pump(seconds: float = 0.2) -> None:
+    """Let Qt draw (and the worker's updates arrive) for ``seconds``."""
+    end = time.perf_counter() + seconds
+    while time.perf_counter() < end:
+        QApplication.processEvents()
+        time.sleep(0.01)
+
+
+def save_png(rgba: np.ndarray, name: str, width: int, crop: bool = False) -> None:
+    """Save an RGBA array as a small PNG: cropped to its content (``crop``), at most ``width`` px, 256 colours."""
+    img = rgba[..., :3]
+    if crop:
+        lit = np.argwhere(img.max(axis=2) > 12)
+        if lit.size:
+            (y0, x0), (y1, x1) = lit.min(axis=0), lit.max(axis=0)
+            m = 12
+            img = img[max(0, y0 - m): y1 + m, max(0, x0 - m): x1 + m]
+    im = Image.fromarray(np.ascontiguousarray(img))
+    if im.width > width:
+        im = im.resize((width, round(im.height * width / im.width)), Image.LANCZOS)
+    im.quantize(256, method=Image.Quantize.MEDIANCUT).save(OUT / name, optimize=True)
+    print("wrote", OUT / name)
+
+
+def grab(widget, name: str, width: int = 400) -> None:
+    """Save a widget as it is drawn."""
+    qimg = widget.native.grab().toImage().convertToFormat(QImage.Format.Format_RGBA8888)
+    w, h = qimg.width(), qimg.height()
+    ptr = qimg.constBits()
+    ptr.setsize(qimg.sizeInBytes())
+    arr = np.frombuffer(ptr, np.uint8).reshape(h, qimg.bytesPerLine())[:, : 4 * w].reshape(h, w, 4).copy()
+    save_png(arr, name, width)
+
+
+def shot(viewer, name: str, width: int, canvas_only: bool = True, crop: bool = False) -> None:
+    """Save the canvas (or the whole window); cropped shots leave the scale bar out."""
+    for toast in viewer.window._qt_window.findChildren(QWidget):
+        if type(toast).__name__ == "NapariQtNotification":
+            toast.close()  # third-party deprecation toasts (e.g. about Qt5) are not part of the tutorial
+    pump(0.2)
+    viewer.scale_bar.visible = not crop
+    save_png(viewer.screenshot(canvas_only=canvas_only, flash=False), name, width, crop)
+    viewer.scale_bar.visible = True
+
+
+def view_3d(viewer, angles, center, zoom) -> None:
+    cam = viewer.camera
+    cam.angles = angles
+    cam.center = center
+    cam.zoom = zoom
+    pump(0.5)
+
+
+def main() -> int:
+    OUT.mkdir(parents=True, exist_ok=True)
+    viewer = napari.Viewer(title="napari-fdt")
+    viewer.window.resize(1500, 950)
+    viewer.open_sample("napari-fdt", "letters")
+    acq_layer = viewer.layers["letters"]
+    viewer.scale_bar.visible = True
+
+    acq_w = AcquisitionWidget(viewer)
+    viewer.window.add_dock_widget(acq_w, name="FDT acquisition", area="right")
+    rec_w = ReconstructionWidget(viewer)
+    viewer.window.add_dock_widget(rec_w, name="FDT reconstruction", area="right", tabify=True)
+    pump(0.5)
+
+    # Acquisition: sources from the file, masks, a forward preview of image 27
+    acq_w.sources_from_file()
+    acq_w.preview_masks()
+    acq_w.image_index.value = 27
+    acq_w.preview_image()
+    pump(0.5)
+    grab(acq_w, "acquisition_widget.png")
+    viewer.layers.selection = {acq_layer}
+    viewer.dims.set_point(0, 0.0)  # image 0: a corner source, its disc edge inside the image
+    for layer in viewer.layers:
+        layer.visible = layer.name in ("letters", "letters masks")
+    pump(0.3)
+    shot(viewer, "masks.png", 320, crop=True)
+
+    # Reconstruction: stream the RI volume
+    for layer in viewer.layers:
+        layer.visible = False
+    rec_w.stages.value = STAGES
+    rec_w.device.value = "cpu"
+    rec_w.start()
+    ri = viewer.layers["letters RI"]
+    ri.rendering = "mip"
+    viewer.dims.ndisplay = 3
+    viewer.layers["letters sources"].visible = True
+    view_3d(viewer, (-25, 35, 130), (-14, 0, 0), 9)
+    deadline = time.perf_counter() + 600
+    while "stage 3/3" not in rec_w.status.value and time.perf_counter() < deadline:
+        pump(0.1)
+    pump(1.0)
+    shot(viewer, "run_in_progress.png", 1000, canvas_only=False)
+    while rec_w.running and time.perf_counter() < deadline:
+        pump(0.2)
+    pump(0.5)
+    if rec_w.feedback.last_error:
+        print("reconstruction failed:", rec_w.feedback.last_error, file=sys.stderr)
+        return 1
+    grab(rec_w, "reconstruction_widget.png")
+
+    # The RI volume in 3D: alone, then with the sources 40 µm below it
+    ri.contrast_limits = (1.33, 1.38)
+    viewer.layers["letters sources"].visible = False
+    view_3d(viewer, (-30, 45, 160), (8, 0, 0), 14)
+    shot(viewer, "ri_3d.png", 480, crop=True)
+    viewer.layers["letters sources"].visible = True
+    view_3d(viewer, (-25, 35, 130), (-14, 0, 0), 9)
+    shot(viewer, "geometry_3d.png", 360, crop=True)
+    viewer.layers["letters sources"].visible = False
+    viewer.dims.ndisplay = 2
+    viewer.dims.set_point(0, 0.0)
+    pump(0.3)
+
+    # Predicted versus measured image 27
+    rec_w.show_comparison(27)
+    for layer in viewer.layers:
+        layer.visible = layer.name.endswith("predicted | measured")
+    viewer.reset_view()
+    pump(0.5)
+    shot(viewer, "predicted_vs_measured.png", 440, crop=True)
+    print("sizes (KB):", {p.name: round(p.stat().st_size / 1024) for p in sorted(OUT.glob("*.png"))})
+    viewer.close()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
