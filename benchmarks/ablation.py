@@ -23,14 +23,13 @@ import argparse
 import dataclasses
 import json
 import platform
-import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from napari_fdt import Optics, read_acquisition, read_volume_tiff, simulate, source_grid
+from napari_fdt import read_acquisition, read_volume_tiff, simulate, source_grid
 from napari_fdt.config import SolverConfig, StageConfig
 from napari_fdt.metrics import ri_metrics
 from napari_fdt.phantoms import text_phantom
@@ -99,19 +98,18 @@ def main() -> None:
     add(p, "with pixel-size calibration", wrong, dataclasses.replace(base, calibrate_pixel_size=True, lr_global=2e-3))
 
     meta = json.loads((SAMPLE / "acquisition.json").read_text())["simulated"]
-    with tempfile.TemporaryDirectory():
-        dn = text_phantom(acq.image_shape, o.n_slices, text="UCDAVIS", delta_n=0.05)
-        span = 0.8 * min(acq.image_shape) * o.pixel_size_um
-        sim = simulate(dn, o, source_grid(8, span, 40.0), seed=0, device=args.device, bandwidth_um=0.04, n_wavelengths=9,
-                       photons=meta["photons"], read_noise=meta["read_noise"], brightness_spread=meta["brightness_spread"])
-        pc_acq = sim.acquisition
-        pc_truth_src = sim.sources_um
-        assert np.allclose(pc_truth_src, truth_src)
-        q = "partially coherent"
-        add(q, "coherent model (no mask)", pc_acq, base)
-        add(q, "paper's masks", pc_acq, dataclasses.replace(base, coherence="mask"))
-        add(q, "spectral model (3 wavelengths, 40 nm)", pc_acq, dataclasses.replace(base, coherence="spectral", bandwidth_um=0.04, n_wavelengths=3))
-        add(q, "masks + spectral model", pc_acq, dataclasses.replace(base, coherence="mask+spectral", bandwidth_um=0.04, n_wavelengths=3))
+    dn = text_phantom(acq.image_shape, o.n_slices, text="UCDAVIS", delta_n=0.05)
+    span = 0.8 * min(acq.image_shape) * o.pixel_size_um
+    sim = simulate(dn, o, source_grid(8, span, 40.0), seed=0, device=args.device, bandwidth_um=0.04, n_wavelengths=9,
+                   photons=meta["photons"], read_noise=meta["read_noise"], brightness_spread=meta["brightness_spread"])
+    pc_acq = sim.acquisition
+    pc_truth_src = sim.sources_um
+    assert np.allclose(pc_truth_src, truth_src)
+    q = "partially coherent"
+    add(q, "coherent model (no mask)", pc_acq, base)
+    add(q, "paper's masks", pc_acq, dataclasses.replace(base, coherence="mask"))
+    add(q, "spectral model (3 wavelengths, 40 nm)", pc_acq, dataclasses.replace(base, coherence="spectral", bandwidth_um=0.04, n_wavelengths=3))
+    add(q, "masks + spectral model", pc_acq, dataclasses.replace(base, coherence="mask+spectral", bandwidth_um=0.04, n_wavelengths=3))
 
     hardware = {"device": args.device, "cpu": platform.processor() or platform.machine(), "threads": torch.get_num_threads(),
                 "torch": torch.__version__}

@@ -8,7 +8,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 import tifffile
-import torch
 
 from napari_fdt import Optics, simulate, source_grid
 from napari_fdt.cli import main

@@ -163,8 +163,6 @@ def _cmd_info(args: argparse.Namespace) -> int:
 
 
 def _cmd_forward(args: argparse.Namespace) -> int:
-    import torch
-
     from .forward import MultiSliceModel
     from .grid import plan_for_sources
     from .io import read_acquisition, read_volume_tiff, write_volume_tiff

@@ -15,7 +15,7 @@ resampling replaces); the calibration parameters keep one Adam optimiser for the
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
