@@ -190,3 +190,16 @@ def test_cli_reconstruct_writes_volume_and_report(tiny, tmp_path: Path, capsys) 
     assert "exists" in capsys.readouterr().err
     assert main([*args[:3], str(acq_dir / "images.tif"), *args[4:], "--overwrite"]) == 2
     assert "would overwrite an input" in capsys.readouterr().err
+
+
+def test_a_batch_that_cannot_fit_is_refused_before_running(tiny, monkeypatch) -> None:
+    import napari_fdt.memory as memory
+
+    monkeypatch.setattr(memory, "available_bytes", lambda device: 20 * 2**20)  # 20 MiB free; batch 9 needs ~26
+    with pytest.raises(FDTInputError) as exc:
+        Reconstructor(tiny.acquisition, _tiny_config(batch_size=9), device="cpu")
+    assert exc.value.field == "batch_size" and "GiB" in str(exc.value) and "lower batch_size to" in str(exc.value)
+    monkeypatch.setattr(memory, "available_bytes", lambda device: 1 * 2**20)  # not even one image
+    with pytest.raises(FDTInputError) as exc:
+        Reconstructor(tiny.acquisition, _tiny_config(batch_size=9), device="cpu")
+    assert "crop the images" in str(exc.value)

@@ -168,6 +168,41 @@ class Reconstructor:
             self.wavelengths, self.weights = None, None
         self.loss_weights = LossWeights(cfg.l1_l2_total, cfg.ssim_weight, cfg.tv_xy_weight, cfg.tv_z_weight,
                                         cfg.l1_ramp_start, cfg.l1_ramp_end)
+        self._check_memory(src)
+
+    def _check_memory(self, sources_um: np.ndarray) -> None:
+        """Refuse, before any allocation, a batch whose finest multi-slice stage would not fit in memory."""
+        from .grid import plan_grid
+        from .memory import available_bytes, training_bytes
+        from .stages import field_factor, stage_optics
+
+        cfg = self.config
+        o = self.acquisition.optics
+        free = available_bytes(self.device)
+        if free is None:
+            return
+        finest = min(s.factor for s in cfg.stages)
+        g = field_factor(o, finest)
+        h, w = self.full_shape[0] // g, self.full_shape[1] // g
+        plan = plan_grid(stage_optics(o, g), (h, w),
+                         (float(np.abs(sources_um[:, 1]).max()) + 1.0, float(np.abs(sources_um[:, 0]).max()) + 1.0),
+                         float(sources_um[:, 2].max()) + 2.0, warn=False)
+        k = len(self.wavelengths) if self.wavelengths else 1
+        batch = min(cfg.batch_size, self.acquisition.n_images)
+        need = training_bytes(plan.padded_shape, o.n_slices, batch, k)
+        if need <= 0.9 * free:
+            return
+        fits = int((0.9 * free) // max(1, training_bytes(plan.padded_shape, o.n_slices, 1, k)))
+        gib = 2.0**30
+        fix = (f"lower batch_size to {fits}" if fits >= 1 else
+               "crop the images, use fewer slices or fewer wavelengths, or a device with more memory")
+        raise FDTInputError(
+            "batch_size",
+            f"a batch of {batch} images needs about {need / gib:.1f} GiB on {self.device} "
+            f"({plan.padded_shape[0]}x{plan.padded_shape[1]} window, {o.n_slices} slices, {k} wavelength(s)); "
+            f"{free / gib:.1f} GiB are free",
+            fix,
+        )
 
     # -- parameters ---------------------------------------------------------------------------
     def calibrated_sources(self) -> torch.Tensor:
