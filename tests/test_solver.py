@@ -203,3 +203,17 @@ def test_a_batch_that_cannot_fit_is_refused_before_running(tiny, monkeypatch) ->
     with pytest.raises(FDTInputError) as exc:
         Reconstructor(tiny.acquisition, _tiny_config(batch_size=9), device="cpu")
     assert "crop the images" in str(exc.value)
+
+
+def test_blank_and_saturated_images_are_reported(tiny) -> None:
+    from napari_fdt.acquisition import Acquisition
+    from napari_fdt.errors import FDTWarning
+
+    acq = tiny.acquisition
+    imgs = acq.images.copy()
+    imgs[1] = 0
+    with pytest.warns(FDTWarning, match=r"1 of 9 images are blank .*: 1;"):
+        Reconstructor(Acquisition(images=imgs, optics=acq.optics, sources_um=acq.sources_um), _tiny_config(), device="cpu")
+    clipped = np.minimum(acq.images, np.float32(0.5 * acq.images.max()))
+    with pytest.warns(FDTWarning, match="saturated"):
+        Reconstructor(Acquisition(images=clipped, optics=acq.optics, sources_um=acq.sources_um), _tiny_config(), device="cpu")

@@ -141,6 +141,7 @@ class Reconstructor:
         if not mean > 0:
             raise FDTInputError("images", "are all zero (or their mean is not positive)", "check the acquisition")
         self.image_scale = mean
+        _warn_about_images(acquisition)
         self.images = torch.from_numpy(imgs / mean)
         self.full_shape = acquisition.image_shape
         dev, dt = self.device, self.dtype
@@ -470,6 +471,28 @@ class Reconstructor:
         rec.history = list(state["history"])
         rec.elapsed_s = float(state["elapsed_s"])
         return rec
+
+
+def _warn_about_images(acquisition: Acquisition) -> None:
+    """Warn (FDTWarning) about blank images and saturated pixels, which the intensity model cannot explain."""
+    import warnings
+
+    from .errors import FDTWarning
+
+    imgs = acquisition.images
+    n = imgs.shape[0]
+    blank = np.flatnonzero(imgs.reshape(n, -1).max(axis=1) <= 0)
+    if blank.size:
+        listed = ", ".join(map(str, blank[:10])) + (" …" if blank.size > 10 else "")
+        warnings.warn(f"images: {blank.size} of {n} images are blank (no positive pixel): {listed}; they carry no "
+                      "information and their gain goes to about 0: drop them from the acquisition", FDTWarning, stacklevel=3)
+    top = np.iinfo(imgs.dtype).max if imgs.dtype.kind == "u" else float(imgs.max())
+    if top > 0:
+        at_top = int(np.count_nonzero(imgs == top))
+        if at_top > max(10, 1e-3 * imgs.size):
+            warnings.warn(f"images: {at_top} pixels ({100 * at_top / imgs.size:.2f} %) sit at the maximum value {top:g}: "
+                          "saturated pixels break the intensity model; mask them or re-acquire with less exposure",
+                          FDTWarning, stacklevel=3)
 
 
 def reconstruct(acquisition: Acquisition, config: SolverConfig | None = None, *, device: str = "auto", **kwargs) -> Iterator[Snapshot]:
