@@ -77,6 +77,7 @@ class SolverConfig:
     snapshot_every: int = 10
 
     def __post_init__(self) -> None:
+        self._check_types()
         self.stages = [s if isinstance(s, StageConfig) else StageConfig(**_only(s, StageConfig, "stages[]")) for s in self.stages]
         if not self.stages:
             raise FDTInputError("stages", "is empty", "give at least one stage, e.g. [{\"factor\": 1, \"iterations\": 100}]")
@@ -108,6 +109,32 @@ class SolverConfig:
             raise FDTInputError("calibration_from_stage", f"must be an integer >= 0, got {self.calibration_from_stage!r}", "0 calibrates from the start")
         if isinstance(self.seed, bool) or not isinstance(self.seed, int):
             raise FDTInputError("seed", f"must be an integer, got {self.seed!r}", "e.g. 0")
+
+    def _check_types(self) -> None:
+        """Every field has the JSON type its default has (numbers may be int or float; source_depth_um may be null)."""
+        if not isinstance(self.stages, list):
+            raise FDTInputError("stages", f"must be a list of {{factor, iterations}} objects, got {self.stages!r}",
+                                "e.g. [{\"factor\": 2, \"iterations\": 50}, {\"factor\": 1, \"iterations\": 100}]")
+        for f in fields(self):
+            if f.name == "stages":
+                continue
+            value = getattr(self, f.name)
+            default = getattr(SolverConfig, f.name, None)
+            if f.name == "source_depth_um":
+                if value is None:
+                    continue
+                default = 1.0
+            if isinstance(default, bool):
+                ok = isinstance(value, bool)
+                want = "true or false"
+            elif isinstance(default, (int, float)):
+                ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+                want = "a number"
+            else:
+                ok = isinstance(value, str)
+                want = "a string"
+            if not ok:
+                raise FDTInputError(f.name, f"must be {want}, got {value!r}", "see docs/solver.md for each setting")
 
     @property
     def total_iterations(self) -> int:
