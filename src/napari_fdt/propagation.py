@@ -13,7 +13,7 @@ import math
 
 import torch
 
-__all__ = ["axial_frequency_offset", "propagation_kernel", "phase_screen", "pupil"]
+__all__ = ["axial_frequency_offset", "propagation_kernel", "phase_screen", "pupil", "raised_cosine"]
 
 #: Floor under square roots of squared frequencies, (cycles/µm)²: far below any grid frequency.
 _TINY = 1e-30
@@ -59,6 +59,13 @@ def phase_screen(delta_n: torch.Tensor, slice_spacing_um: float | torch.Tensor, 
     return torch.polar(torch.ones_like(phase), phase)
 
 
+def raised_cosine(f2: torch.Tensor, f_lo: float | torch.Tensor, f_hi: float | torch.Tensor) -> torch.Tensor:
+    """Raised-cosine window in |f|: 1 for |f| <= f_lo, ``(1 + cos(π·(|f| − f_lo)/(f_hi − f_lo)))/2`` up to f_hi, 0 beyond."""
+    f = torch.sqrt(torch.clamp(f2, min=_TINY))  # finite derivative at f = 0
+    t = torch.clamp((f - f_lo) / (f_hi - f_lo), 0.0, 1.0)
+    return 0.5 * (1.0 + torch.cos(math.pi * t))
+
+
 def pupil(
     f2: torch.Tensor, na: float | torch.Tensor, wavelength_um: float | torch.Tensor, taper: float = 0.0
 ) -> torch.Tensor:
@@ -70,6 +77,4 @@ def pupil(
     cutoff = na / wavelength_um
     if taper <= 0:
         return (f2 <= cutoff * cutoff).to(f2.dtype)
-    f = torch.sqrt(torch.clamp(f2, min=_TINY))
-    t = torch.clamp((f - (1.0 - taper) * cutoff) / (2.0 * taper * cutoff), 0.0, 1.0)
-    return 0.5 * (1.0 + torch.cos(math.pi * t))
+    return raised_cosine(f2, (1.0 - taper) * cutoff, (1.0 + taper) * cutoff)

@@ -18,16 +18,13 @@ import math
 
 import torch
 
-from .propagation import _TINY, axial_frequency_offset
+from .propagation import axial_frequency_offset, raised_cosine
 
 __all__ = ["band_limit", "point_source_spectrum", "centering_sign"]
 
 
-def band_limit(f2: torch.Tensor, f_lo: float, f_hi: float) -> torch.Tensor:
-    """Raised-cosine window in |f|: 1 for |f| <= f_lo, ``(1 + cos(π·(|f| − f_lo)/(f_hi − f_lo)))/2`` up to f_hi, 0 beyond."""
-    f = torch.sqrt(torch.clamp(f2, min=_TINY))  # finite derivative at f = 0
-    t = torch.clamp((f - f_lo) / (f_hi - f_lo), 0.0, 1.0)
-    return 0.5 * (1.0 + torch.cos(math.pi * t))
+#: The source's band limit B(|f|): the same raised cosine as the pupil's soft edge.
+band_limit = raised_cosine
 
 
 def centering_sign(padded_shape: tuple[int, int], *, device=None, dtype=torch.float32) -> torch.Tensor:
