@@ -61,7 +61,9 @@ def read_acquisition_layers(path: str | list[str]) -> list[LayerDataTuple]:
 
 
 def _report_beside(tif: Path) -> dict[str, Any] | None:
-    side = tif.with_name(tif.name.split(".")[0] + ".json")
+    from .io import report_path
+
+    side = report_path(tif)
     if not side.is_file():
         return None
     try:

@@ -15,14 +15,9 @@ import numpy as np
 
 from ._layers import META_REPORT
 from .errors import FDTInputError
+from .io import report_path  # re-exported: the writer puts the report where write_result does
 
 __all__ = ["write_ri", "report_path"]
-
-
-def report_path(out: str | Path) -> Path:
-    """The report next to a volume file: ``RI.ome.tif`` → ``RI.json`` (as :func:`napari_fdt.report.write_result`)."""
-    out = Path(out)
-    return out.with_name(out.name.split(".")[0] + ".json")
 
 
 def write_ri(path: str, data: Any, meta: dict[str, Any]) -> list[str]:

@@ -219,6 +219,7 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
 
     from .config import SolverConfig, load_config
     from .io import read_acquisition, read_volume_tiff
+    from .io import report_path
     from .report import build_report, write_result
     from .solver import Reconstructor
 
@@ -232,7 +233,7 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
         return 0
     acq = read_acquisition(args.acquisition)
     out = Path(args.out)
-    json_out = out.with_name(out.name.split(".")[0] + ".json")
+    json_out = report_path(out)
     protected = {Path(args.acquisition).resolve() / "images.tif", Path(args.acquisition).resolve() / "acquisition.json"}
     if args.truth is not None:
         protected.add(Path(args.truth).resolve())

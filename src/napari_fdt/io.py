@@ -38,6 +38,7 @@ __all__ = [
     "write_json_atomic",
     "write_volume_tiff",
     "read_volume_tiff",
+    "report_path",
 ]
 
 PathLike = Union[str, "os.PathLike[str]"]
@@ -155,6 +156,12 @@ def _atomic_output(
         _remove(tmp)
         raise
     _fsync(target.parent)
+
+
+def report_path(volume_path: PathLike) -> Path:
+    """The report beside a volume file: ``RI.tif`` / ``RI.ome.tif`` → ``RI.json``."""
+    p = Path(volume_path)
+    return p.with_name(p.name.split(".")[0] + ".json")
 
 
 def write_json_atomic(path: PathLike, obj: Any, *, overwrite: bool = False) -> Path:

@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from .io import write_json_atomic, write_volume_tiff
+from .io import report_path, write_json_atomic, write_volume_tiff
 from .metrics import image_metrics, ri_metrics
 from .simulate import iter_batches
 from .solver import Reconstructor
@@ -110,7 +110,7 @@ def write_result(rec: Reconstructor, out: str | Path, report: dict[str, Any], *,
     """Write ``out`` (OME-TIFF, absolute RI, float32, ZYX) and ``out``'s ``.json`` report, each atomically."""
     out = Path(out)
     o = rec.acquisition.optics
-    json_path = out.with_name(out.name.split(".")[0] + ".json")
+    json_path = report_path(out)
     write_volume_tiff(out, rec.ri_full(), (o.slice_spacing_um, o.pixel_size_um, o.pixel_size_um), overwrite=overwrite)
     write_json_atomic(json_path, report, overwrite=overwrite)
     return out, json_path
