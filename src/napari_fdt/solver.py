@@ -173,9 +173,8 @@ class Reconstructor:
 
     def _check_memory(self, sources_um: np.ndarray) -> None:
         """Refuse, before any allocation, a batch whose finest multi-slice stage would not fit in memory."""
-        from .grid import plan_grid
         from .memory import available_bytes, training_bytes
-        from .stages import field_factor, stage_optics
+        from .stages import multislice_plan
 
         cfg = self.config
         o = self.acquisition.optics
@@ -183,11 +182,7 @@ class Reconstructor:
         if free is None:
             return
         finest = min(s.factor for s in cfg.stages)
-        g = field_factor(o, finest)
-        h, w = self.full_shape[0] // g, self.full_shape[1] // g
-        plan = plan_grid(stage_optics(o, g), (h, w),
-                         (float(np.abs(sources_um[:, 1]).max()) + 1.0, float(np.abs(sources_um[:, 0]).max()) + 1.0),
-                         float(sources_um[:, 2].max()) + 2.0, warn=False)
+        _, _, _, plan = multislice_plan(o, finest, self.full_shape, sources_um)
         k = len(self.wavelengths) if self.wavelengths else 1
         batch = min(cfg.batch_size, self.acquisition.n_images)
         need = training_bytes(plan.padded_shape, o.n_slices, batch, k)

@@ -25,11 +25,11 @@ import torch.nn.functional as F
 
 from .forward import MultiSliceModel
 from .envelope import EnvelopeModel
-from .grid import DEFAULT_PUPIL_TAPER, plan_grid
+from .grid import DEFAULT_PUPIL_TAPER, GridPlan, plan_grid
 from .optics import Optics
 from .volume import upsample_to
 
-__all__ = ["Stage", "build_stage", "block_average", "stage_optics", "field_factor"]
+__all__ = ["Stage", "build_stage", "block_average", "stage_optics", "field_factor", "multislice_plan"]
 
 #: Fraction of the coarse grid's Nyquist frequency the stage pupil's outer edge may reach.
 NYQUIST_FILL = 0.95
@@ -109,6 +109,34 @@ def _shift_um(n_full: int, g: int, dx: float) -> float:
     return ((g - 1) / 2 - (n_full // 2) + (n_full // g // 2) * g) * dx
 
 
+def multislice_plan(
+    optics: Optics,
+    factor: int,
+    full_shape: tuple[int, int],
+    sources_um: np.ndarray,
+    *,
+    depth_slack_um: float = 2.0,
+    offset_slack_um: float = 1.0,
+) -> tuple[int, Optics, tuple[float, float], GridPlan]:
+    """Field factor, stage optics, origin shift (x, y) µm and window of a multi-slice stage.
+
+    The window is planned for the current sources plus some slack for the moves of calibration.
+    """
+    big_h, big_w = full_shape
+    dx = optics.pixel_size_um
+    g = field_factor(optics, factor)
+    opt = stage_optics(optics, g)
+    shift = (_shift_um(big_w, g, dx), _shift_um(big_h, g, dx))
+    src = np.asarray(sources_um, dtype=np.float64)
+    plan = plan_grid(
+        opt, (big_h // g, big_w // g),
+        (float(np.abs(src[:, 1] - shift[1]).max()) + offset_slack_um, float(np.abs(src[:, 0] - shift[0]).max()) + offset_slack_um),
+        float(src[:, 2].max()) + depth_slack_um,
+        warn=False,
+    )
+    return g, opt, shift, plan
+
+
 def build_stage(
     index: int,
     factor: int,
@@ -138,17 +166,9 @@ def build_stage(
         src = torch.as_tensor(np.asarray(sources_um), dtype=env.dtype, device=device)
         stage.coverage = env.coverage(stage.stage_sources(src))
         return stage
-    g = field_factor(optics, factor)
-    h, w = big_h // g, big_w // g
-    opt = stage_optics(optics, g)
-    shift = (_shift_um(big_w, g, dx), _shift_um(big_h, g, dx))
-    src = np.asarray(sources_um, dtype=np.float64)
-    plan = plan_grid(
-        opt, (h, w),
-        (float(np.abs(src[:, 1] - shift[1]).max()) + offset_slack_um, float(np.abs(src[:, 0] - shift[0]).max()) + offset_slack_um),
-        float(src[:, 2].max()) + depth_slack_um,
-        warn=False,
-    )
+    g, opt, shift, plan = multislice_plan(optics, factor, (big_h, big_w), sources_um,
+                                          depth_slack_um=depth_slack_um, offset_slack_um=offset_slack_um)
+    h, w = plan.image_shape
     model = MultiSliceModel(opt, plan, device=device)
     imgs = block_average(images_normalised[:, : h * g, : w * g], g).to(device)
     grid = (big_h // factor, big_w // factor)
