@@ -25,7 +25,8 @@ from ._layers import (
     stack_scale, stack_translate,
 )
 from ._widget_common import (
-    Feedback, acquisition_layer_choices, find_layer, no_layer, put_layer, set_sources, sources_for,
+    Feedback, acquisition_layer_choices, find_layer, follow_layers, no_layer, put_layer, refresh_layer_choice,
+    set_sources, sources_for,
 )
 from .acquisition import Acquisition
 from .optics import OPTICS_FIELDS, Optics
@@ -80,19 +81,14 @@ class AcquisitionWidget(Container):
         self.file_sources_button.changed.connect(self.sources_from_file)
         self.masks_button.changed.connect(self.preview_masks)
         self.preview_button.changed.connect(self.preview_image)
-        events = napari_viewer.layers.events
-        events.inserted.connect(self._refresh)
-        events.removed.connect(self._refresh)
-        self._refresh()
+        follow_layers(napari_viewer, self.layer, self._refresh)
 
     # -- layer selection ----------------------------------------------------------------------
     def _choices(self, _widget=None) -> list[tuple[str, object]]:
         return acquisition_layer_choices(self._viewer)
 
     def _refresh(self, _event=None) -> None:
-        self.layer.reset_choices()
-        if self.layer.value is None and self.layer.choices:
-            self.layer.value = self.layer.choices[0]
+        refresh_layer_choice(self.layer)
         if self.layer.value is not self._shown:
             self._on_layer_changed(self.layer.value)
 

@@ -43,6 +43,21 @@ def acquisition_layer_choices(viewer) -> list[tuple[str, Image]]:
             if isinstance(layer, Image) and (META_ACQUISITION in layer.metadata or layer.metadata.get(META_NEEDS_OPTICS))]
 
 
+def follow_layers(viewer, combo, refresh) -> None:
+    """Keep a layer combo box in step with the viewer: ``refresh`` runs now and whenever layers come or go."""
+    events = viewer.layers.events
+    events.inserted.connect(refresh)
+    events.removed.connect(refresh)
+    refresh()
+
+
+def refresh_layer_choice(combo) -> None:
+    """Re-read the combo's choices and select the first one when nothing is selected."""
+    combo.reset_choices()
+    if combo.value is None and combo.choices:
+        combo.value = combo.choices[0]
+
+
 def acquisition_of(layer: Image | None) -> Acquisition:
     """The layer's acquisition; :class:`FDTInputError` when there is no layer or its optics are not set."""
     if layer is None:

@@ -26,7 +26,10 @@ from ._layers import (
     volume_scale, volume_translate,
 )
 from ._settings import format_stages, merge_config
-from ._widget_common import Feedback, acquisition_layer_choices, acquisition_of, put_layer, set_sources, sources_for
+from ._widget_common import (
+    Feedback, acquisition_layer_choices, acquisition_of, follow_layers, put_layer, refresh_layer_choice, set_sources,
+    sources_for,
+)
 from .config import COHERENCE_MODELS, SolverConfig, load_config
 from .errors import FDTInputError
 
@@ -145,19 +148,14 @@ class ReconstructionWidget(Container):
         self.compare_button.changed.connect(lambda: self.show_comparison(int(self.compare_index.value)))
         self.coverage_button.changed.connect(self.show_coverage)
         self.layer.changed.connect(self._on_layer_changed)
-        events = napari_viewer.layers.events
-        events.inserted.connect(self._refresh)
-        events.removed.connect(self._refresh)
-        self._refresh()
+        follow_layers(napari_viewer, self.layer, self._refresh)
 
     # -- layers -------------------------------------------------------------------------------
     def _choices(self, _widget=None) -> list[tuple[str, object]]:
         return acquisition_layer_choices(self._viewer)
 
     def _refresh(self, _event=None) -> None:
-        self.layer.reset_choices()
-        if self.layer.value is None and self.layer.choices:
-            self.layer.value = self.layer.choices[0]
+        refresh_layer_choice(self.layer)
         self._on_layer_changed(self.layer.value)
 
     def _on_layer_changed(self, layer=None) -> None:
