@@ -14,9 +14,11 @@ from typing import Any
 
 from .errors import FDTInputError
 
-__all__ = ["StageConfig", "SolverConfig", "load_config", "COHERENCE_MODELS"]
+__all__ = ["StageConfig", "SolverConfig", "load_config", "COHERENCE_MODELS", "BACKWARD_MODES"]
 
 COHERENCE_MODELS = ("none", "mask", "spectral", "mask+spectral")
+#: How the multi-slice model forms gradients (:mod:`napari_fdt.slice_loop`); "autograd" is the plain reference.
+BACKWARD_MODES = ("auto", "stored", "reversible", "checkpoint", "autograd")
 
 
 @dataclass
@@ -75,6 +77,7 @@ class SolverConfig:
     # run
     seed: int = 0
     snapshot_every: int = 10
+    backward_mode: str = "auto"
 
     def __post_init__(self) -> None:
         self._check_types()
@@ -97,6 +100,9 @@ class SolverConfig:
                                 "the L1 weight rises over this fraction of the run")
         if self.coarse_model not in ("envelope", "multislice"):
             raise FDTInputError("coarse_model", f"unknown model {self.coarse_model!r}", "choose envelope or multislice")
+        if self.backward_mode not in BACKWARD_MODES:
+            raise FDTInputError("backward_mode", f"unknown mode {self.backward_mode!r}",
+                                f"choose one of {', '.join(BACKWARD_MODES)} (auto picks the fastest that fits in memory)")
         if self.activation not in ("paper", "signed"):
             raise FDTInputError("activation", f"unknown activation {self.activation!r}", "choose paper or signed")
         if self.coherence not in COHERENCE_MODELS:

@@ -16,7 +16,8 @@ import torch.nn.functional as F
 
 from .grid import GridPlan, frequency_grid
 from .optics import Optics
-from .propagation import phase_screen, propagation_kernel, pupil
+from .propagation import phase_screen, propagation_kernel, pupil, screen_phase
+from .slice_loop import MODES, choose_mode, loop_forward, slice_loop
 from .sources import band_limit, centering_sign, point_source_spectrum
 
 __all__ = ["MultiSliceModel", "Kernels", "resolve_device"]
@@ -65,6 +66,12 @@ class MultiSliceModel:
     plan: the window from :func:`napari_fdt.grid.plan_grid`.
     device: ``"auto"``, ``"cpu"``, ``"cuda"`` or a torch device.
     dtype: real dtype, ``torch.float32`` (complex64 fields, default) or ``torch.float64``.
+    backward_mode: how gradients of the slice loop are formed (:mod:`napari_fdt.slice_loop`):
+        ``"auto"`` (default: ``"stored"`` when one field per slice and image fits in
+        ``memory_budget_bytes``, else ``"reversible"`` for a unitary propagator, else ``"checkpoint"``),
+        one of those three, or ``"autograd"`` (plain autograd through every operation: the reference).
+    memory_budget_bytes: bytes the loop may keep in auto mode; None: 80 % of the device's free memory,
+        read once per batch size.
 
     Call it as ``model(delta_n, sources_um, gain)`` → images (B, H, W). The optical parameters
     ``pixel_size_um``, ``slice_spacing_um`` and ``wavelength_um`` may be overridden per call, with
@@ -72,9 +79,23 @@ class MultiSliceModel:
     the acquisition's own values are built once and cached.
     """
 
-    def __init__(self, optics: Optics, plan: GridPlan, *, device: str | torch.device | None = "auto", dtype: torch.dtype = torch.float32) -> None:
+    def __init__(
+        self,
+        optics: Optics,
+        plan: GridPlan,
+        *,
+        device: str | torch.device | None = "auto",
+        dtype: torch.dtype = torch.float32,
+        backward_mode: str = "auto",
+        memory_budget_bytes: int | None = None,
+    ) -> None:
         if dtype not in (torch.float32, torch.float64):
             raise ValueError("dtype must be torch.float32 or torch.float64 (fp16 phases are too coarse)")
+        if backward_mode not in ("auto", "autograd", *MODES):
+            raise ValueError(f"backward_mode must be 'auto', 'autograd' or one of {MODES}, got {backward_mode!r}")
+        self.backward_mode = backward_mode
+        self.memory_budget_bytes = memory_budget_bytes
+        self._auto_modes: dict[int, str] = {}
         self.optics = optics
         self.plan = plan
         self.device = resolve_device(device)
@@ -173,13 +194,38 @@ class MultiSliceModel:
         """
         k = self.kernels(pixel_size_um, slice_spacing_um, wavelength_um)
         dn = self.pad_volume(delta_n)
-        u = torch.fft.ifft2(self.source_spectrum(sources_um, k))
-        for i in range(dn.shape[0]):
-            if i:
-                u = torch.fft.ifft2(torch.fft.fft2(u) * k.slice_kernel)
-            u = u * phase_screen(dn[i], k.slice_spacing_um, k.wavelength_um)
+        v0 = torch.fft.ifft2(self.source_spectrum(sources_um, k))
+        if self.backward_mode == "autograd":
+            u = v0
+            for i in range(dn.shape[0]):
+                if i:
+                    u = torch.fft.ifft2(torch.fft.fft2(u) * k.slice_kernel)
+                u = u * phase_screen(dn[i], k.slice_spacing_um, k.wavelength_um)
+        else:
+            phi = screen_phase(dn, k.slice_spacing_um, k.wavelength_um)
+            if torch.is_grad_enabled() and (v0.requires_grad or phi.requires_grad or k.slice_kernel.requires_grad):
+                u = slice_loop(v0, phi, k.slice_kernel, self.loop_mode(v0.shape[0], k.slice_kernel))
+            else:  # inference: nothing to keep
+                u = loop_forward(v0, phi, k.slice_kernel)
         u = torch.fft.ifft2(torch.fft.fft2(u) * k.exit_kernel)
         return self.crop(u)
+
+    def loop_mode(self, batch: int, kernel: torch.Tensor | None = None) -> str:
+        """The backward mode used for a batch of ``batch`` images (see ``backward_mode``)."""
+        if self.backward_mode != "auto":
+            return self.backward_mode
+        if batch not in self._auto_modes:
+            from .memory import available_bytes
+
+            budget = self.memory_budget_bytes
+            if budget is None:
+                free = available_bytes(self.device)
+                budget = None if free is None else int(0.8 * free)
+            hp, wp = self.plan.padded_shape
+            field_bytes = hp * wp * (8 if self.dtype == torch.float32 else 16)
+            kern = self._default.slice_kernel if kernel is None else kernel
+            self._auto_modes[batch] = choose_mode(field_bytes, self.optics.n_slices, batch, kern, budget)
+        return self._auto_modes[batch]
 
     def __call__(
         self,
@@ -197,3 +243,4 @@ class MultiSliceModel:
         if gain is not None:
             intensity = intensity * gain.to(self.device, self.dtype).reshape(-1, 1, 1)
         return intensity
+

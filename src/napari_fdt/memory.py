@@ -1,29 +1,65 @@
 """Memory estimates, so that a run too large for the device is refused before anything is allocated.
 
-Training keeps, through autograd, a few complex fields per slice and image. Measured on CPU (peak
-resident memory of one forward + backward, torch 2.13, complex64): 12–32 bytes per window pixel, per
-slice, per image (allocator caching makes the figure vary); PHYSICS.md gives about 9 on CUDA. We use the
-upper figure, 32, so a refusal means the run would almost surely not fit.
+The slice loop keeps what its backward mode needs (:func:`napari_fdt.slice_loop.loop_bytes`: one
+complex field per slice and image in ``"stored"`` mode, a few per image in ``"reversible"`` mode,
+about 2·√N per image in ``"checkpoint"`` mode); the rest of one training iteration (source spectrum,
+exit propagation, intensity, loss and their gradients) keeps about :data:`GRAPH_FIELDS_PER_IMAGE`
+fields per image. Plain autograd (``backward_mode="autograd"``) keeps 12–32 bytes per window pixel,
+per slice, per image (measured on CPU, torch 2.13); we use the upper figure. Measured peaks against
+these estimates: ``docs/benchmarks.md``.
 """
 
 from __future__ import annotations
 
+import math
 import os
 
 import torch
 
-__all__ = ["BYTES_PER_PIXEL_SLICE_IMAGE", "training_bytes", "available_bytes"]
+__all__ = ["BYTES_PER_PIXEL_SLICE_IMAGE", "GRAPH_FIELDS_PER_IMAGE", "training_bytes", "leanest_mode",
+           "grid_is_unitary", "available_bytes"]
 
-#: Upper estimate of autograd memory, bytes per window pixel per slice per image (complex64).
+#: Upper estimate of plain-autograd memory, bytes per window pixel per slice per image (complex64).
 BYTES_PER_PIXEL_SLICE_IMAGE = 32
+#: Complex fields per image kept outside the slice loop during one iteration (upper estimate).
+GRAPH_FIELDS_PER_IMAGE = 10
 
 
-def training_bytes(padded_shape: tuple[int, int], n_slices: int, batch: int, n_wavelengths: int = 1) -> int:
-    """Estimated peak bytes of one training iteration of the multi-slice model (forward + backward)."""
+def grid_is_unitary(pixel_size_um: float, n_background: float, wavelength_um: float) -> bool:
+    """True when every frequency of a grid of this pixel size propagates (no evanescent corner):
+    the propagator then has modulus 1 everywhere and the reversible backward mode is exact."""
+    f_corner2 = 2.0 * (0.5 / pixel_size_um) ** 2
+    return f_corner2 < (n_background / wavelength_um) ** 2 * (1.0 - 1e-9)
+
+
+def leanest_mode(unitary: bool) -> str:
+    """The backward mode that needs least memory: reversible for a unitary propagator, else checkpoint."""
+    return "reversible" if unitary else "checkpoint"
+
+
+def training_bytes(
+    padded_shape: tuple[int, int],
+    n_slices: int,
+    batch: int,
+    n_wavelengths: int = 1,
+    mode: str = "stored",
+) -> int:
+    """Estimated peak bytes of one training iteration of the multi-slice model (forward + backward).
+
+    ``mode`` is the slice loop's backward mode (``"stored"``, ``"reversible"``, ``"checkpoint"`` or
+    ``"autograd"``); complex64 fields. Each wavelength of a spectral model keeps its own graph.
+    """
+    from .slice_loop import loop_bytes
+
     pixels = int(padded_shape[0]) * int(padded_shape[1])
-    per_image = BYTES_PER_PIXEL_SLICE_IMAGE * pixels * max(1, int(n_slices))
-    kernels = 64 * pixels  # cached kernels, window, pupil
-    return per_image * int(batch) * max(1, int(n_wavelengths)) + kernels
+    n = max(1, int(n_slices))
+    b = int(batch) * max(1, int(n_wavelengths))
+    field = 8 * pixels
+    if mode == "autograd":
+        per_image = BYTES_PER_PIXEL_SLICE_IMAGE * pixels * n
+        return per_image * b + 64 * pixels
+    volume = 5 * 4 * pixels * n  # Δn, phases, their gradients, Adam moments (float32)
+    return loop_bytes(mode, field, n, b) + GRAPH_FIELDS_PER_IMAGE * field * b + volume + 64 * pixels
 
 
 def available_bytes(device: torch.device) -> int | None:

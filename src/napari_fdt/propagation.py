@@ -13,7 +13,7 @@ import math
 
 import torch
 
-__all__ = ["axial_frequency_offset", "propagation_kernel", "phase_screen", "pupil", "raised_cosine"]
+__all__ = ["axial_frequency_offset", "propagation_kernel", "phase_screen", "screen_phase", "pupil", "raised_cosine"]
 
 #: Floor under square roots of squared frequencies, (cycles/µm)²: far below any grid frequency.
 _TINY = 1e-30
@@ -53,9 +53,14 @@ def propagation_kernel(
     return kernel
 
 
+def screen_phase(delta_n: torch.Tensor, slice_spacing_um: float | torch.Tensor, wavelength_um: float | torch.Tensor) -> torch.Tensor:
+    """Phase ``2π/λ·Δz·Δn`` (radians) of a thin slab of index contrast ``delta_n = n − n_b``."""
+    return (2.0 * math.pi / wavelength_um) * slice_spacing_um * delta_n
+
+
 def phase_screen(delta_n: torch.Tensor, slice_spacing_um: float | torch.Tensor, wavelength_um: float | torch.Tensor) -> torch.Tensor:
     """Transmission ``exp(+i·2π/λ·Δz·Δn)`` of a thin slab of index contrast ``delta_n = n − n_b``."""
-    phase = (2.0 * math.pi / wavelength_um) * slice_spacing_um * delta_n
+    phase = screen_phase(delta_n, slice_spacing_um, wavelength_um)
     return torch.polar(torch.ones_like(phase), phase)
 
 

@@ -173,7 +173,7 @@ class Reconstructor:
 
     def _check_memory(self, sources_um: np.ndarray) -> None:
         """Refuse, before any allocation, a batch whose finest multi-slice stage would not fit in memory."""
-        from .memory import available_bytes, training_bytes
+        from .memory import available_bytes, grid_is_unitary, leanest_mode, training_bytes
         from .stages import multislice_plan
 
         cfg = self.config
@@ -182,20 +182,24 @@ class Reconstructor:
         if free is None:
             return
         finest = min(s.factor for s in cfg.stages)
-        _, _, _, plan = multislice_plan(o, finest, self.full_shape, sources_um)
+        _, opt, _, plan = multislice_plan(o, finest, self.full_shape, sources_um)
         k = len(self.wavelengths) if self.wavelengths else 1
         batch = min(cfg.batch_size, self.acquisition.n_images)
-        need = training_bytes(plan.padded_shape, o.n_slices, batch, k)
+        mode = cfg.backward_mode
+        if mode == "auto":  # auto falls back to the leanest mode when one field per slice does not fit
+            mode = leanest_mode(grid_is_unitary(opt.pixel_size_um, o.n_background, o.wavelength_um))
+        need = training_bytes(plan.padded_shape, o.n_slices, batch, k, mode)
         if need <= 0.9 * free:
             return
-        fits = int((0.9 * free) // max(1, training_bytes(plan.padded_shape, o.n_slices, 1, k)))
+        fits = int((0.9 * free) // max(1, training_bytes(plan.padded_shape, o.n_slices, 1, k, mode)))
         gib = 2.0**30
         fix = (f"lower batch_size to {fits}" if fits >= 1 else
                "crop the images, use fewer slices or fewer wavelengths, or a device with more memory")
         raise FDTInputError(
             "batch_size",
             f"a batch of {batch} images needs about {need / gib:.1f} GiB on {self.device} "
-            f"({plan.padded_shape[0]}x{plan.padded_shape[1]} window, {o.n_slices} slices, {k} wavelength(s)); "
+            f"({plan.padded_shape[0]}x{plan.padded_shape[1]} window, {o.n_slices} slices, {k} wavelength(s), "
+            f"backward mode {mode}); "
             f"{free / gib:.1f} GiB are free",
             fix,
         )
@@ -249,7 +253,10 @@ class Reconstructor:
         while len(self._order) < b:
             self._order.extend(torch.randperm(n, generator=self._batch_gen).tolist())
         idx, self._order = self._order[:b], self._order[b:]
-        return torch.tensor(idx, device=self.device)
+        t = torch.tensor(idx)
+        if self.device.type == "cuda":  # pinned + non-blocking: no wait for the GPU's queue to drain
+            return t.pin_memory().to(self.device, non_blocking=True)
+        return t.to(self.device)
 
     def _predict(self, stage: Stage, dn: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
         src = stage.stage_sources(self.calibrated_sources()[idx])
@@ -318,7 +325,7 @@ class Reconstructor:
             sc = cfg.stages[si]
             stage = build_stage(si, sc.factor, sc.iterations, o, self.images,
                                 self.calibrated_sources().detach().cpu().double().numpy(), device=self.device,
-                                coarse_model=cfg.coarse_model)
+                                coarse_model=cfg.coarse_model, backward_mode=cfg.backward_mode)
             h, w = stage.grid_shape
             if self.volume is None:
                 self.volume = RIVolume((o.n_slices, h, w), delta_n_max=cfg.delta_n_max, activation=cfg.activation,
@@ -360,7 +367,10 @@ class Reconstructor:
                 if it == sc.iterations:
                     break
                 if it % cfg.snapshot_every == 0:
-                    yield self._snapshot(stage, it, global_it, terms, t0, False)
+                    snap = self._snapshot(stage, it, global_it, terms, t0, False)
+                    paused = time.perf_counter()
+                    yield snap
+                    t0 += time.perf_counter() - paused  # time spent by the consumer is not the solver's
             record.seconds = time.perf_counter() - t0
             snap = self._snapshot(stage, sc.iterations, global_it, terms, t0, True)
             self.elapsed_s += record.seconds

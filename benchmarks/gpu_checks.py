@@ -1,0 +1,149 @@
+"""Correctness on a CUDA device (CI has none): run on a GPU machine before quoting GPU figures.
+
+    python benchmarks/gpu_checks.py
+
+Checks, each against a reference in float64 on the CPU, on fresh random inputs:
+1. the fused Triton adjoint kernel against the torch version (outputs poisoned first: every element written);
+2. every backward mode of the slice loop on CUDA (float32) against plain autograd in float64;
+3. the model's images on CUDA against the CPU;
+4. a short reconstruction on CUDA against the same on the CPU.
+Prints one line per check with the measured relative error and exits non-zero if any exceeds its bound.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+
+import numpy as np
+import torch
+
+from napari_fdt import MultiSliceModel, Optics, plan_for_sources, source_grid
+from napari_fdt.grid import frequency_grid
+from napari_fdt.propagation import propagation_kernel
+
+FAILED = []
+
+
+def report(name: str, err: float, bound: float) -> None:
+    ok = math.isfinite(err) and err <= bound
+    print(f"{'ok  ' if ok else 'FAIL'} {name}: {err:.2e} (bound {bound:.0e})", flush=True)
+    if not ok:
+        FAILED.append(name)
+
+
+def rel(a: torch.Tensor, b: torch.Tensor) -> float:
+    a, b = a.detach().cpu().to(torch.complex128 if a.is_complex() else torch.float64), b.detach().cpu().to(torch.complex128 if b.is_complex() else torch.float64)
+    return float((a - b).norm() / b.norm())
+
+
+def check_triton(dev) -> None:
+    from napari_fdt import _triton_slice
+    from napari_fdt.slice_loop import _adjoint_screen
+
+    if not _triton_slice.available():
+        print("skip Triton kernel: Triton not importable here")
+        return
+    for trial, (b, h, w) in enumerate([(30, 512, 512), (3, 37, 50), (1, 1024, 1000)]):
+        g = torch.Generator(device=dev).manual_seed(trial)
+        gg = torch.randn((b, h, w), dtype=torch.complex64, device=dev, generator=g)
+        uu = torch.randn((b, h, w), dtype=torch.complex64, device=dev, generator=g)
+        ph = 3 * torch.randn((h, w), device=dev, generator=g)
+        ref_g, ref_u = gg.clone().cdouble(), uu.clone().cdouble()
+        ref_phi = (ref_g.imag * ref_u.real - ref_g.real * ref_u.imag).sum(0)
+        p = torch.polar(torch.ones_like(ph.double()), -ph.double())
+        ref_g, ref_v = ref_g * p, ref_u * p
+        g1 = gg.clone()
+        v1 = torch.full_like(uu, complex(float("nan"), float("nan")))
+        gp = _triton_slice.adjoint_screen(g1, uu, ph, v1)
+        report(f"triton adjoint {b}x{h}x{w}: grad phi", rel(gp, ref_phi), 1e-5)
+        report(f"triton adjoint {b}x{h}x{w}: g*conj(P)", rel(g1, ref_g), 1e-6)
+        report(f"triton adjoint {b}x{h}x{w}: u*conj(P) (poisoned output)", rel(v1, ref_v), 1e-6)
+        # in place on the same buffer (as the reversible mode calls it)
+        pair = torch.stack([uu, gg])
+        gp2 = _triton_slice.adjoint_screen(pair[1], pair[0], ph, pair[0])
+        report(f"triton adjoint {b}x{h}x{w}: in place", rel(pair[0], ref_v) + rel(gp2, ref_phi), 2e-5)
+        torch.cuda.synchronize()
+
+
+def check_modes(dev) -> None:
+    from napari_fdt.slice_loop import slice_loop
+
+    for shape, dx in (((256, 256), 0.33), ((96, 130), 0.15)):
+        g = torch.Generator().manual_seed(3)
+        n, b = 20, 6
+        v0 = torch.randn((b, *shape), generator=g, dtype=torch.complex128)
+        phi = 0.8 * torch.randn((n, *shape), generator=g, dtype=torch.float64)
+        fy, fx = frequency_grid(shape, dx, dtype=torch.float64)
+        kern = propagation_kernel(fy * fy + fx * fx, 1.5, 1.33, 0.6)
+        w = torch.randn((b, *shape), generator=g, dtype=torch.float64)
+
+        def grads(args, mode):
+            a, p, k = (t.clone().requires_grad_() for t in args)
+            u = slice_loop(a, p, k, mode) if mode else _ref(a, p, k)
+            ((u.real.square() + u.imag.square()) * w.to(u.real)).sum().backward()
+            return u, a.grad, p.grad, k.grad
+
+        ref = grads((v0, phi, kern), None)
+        unitary = dx >= 0.33
+        for mode in ("stored", "checkpoint") + (("reversible",) if unitary else ()):
+            out = grads(tuple(t.to(dev, torch.complex64 if t.is_complex() else torch.float32) for t in (v0, phi, kern)), mode)
+            for name, a, r in zip(("field", "grad v0", "grad phi", "grad K"), out, ref):
+                report(f"slice loop {mode} {shape} cuda fp32 vs cpu fp64 autograd: {name}", rel(a, r), 2e-4)
+
+
+def _ref(v0, phi, kern):
+    u = v0
+    for k in range(phi.shape[0]):
+        if k:
+            u = torch.fft.ifft2(torch.fft.fft2(u) * kern)
+        u = u * torch.exp(1j * phi[k])
+    return u
+
+
+def check_model(dev) -> None:
+    o = Optics(wavelength_um=0.6, n_background=1.33, na=0.65, pixel_size_um=0.33, n_slices=14, slice_spacing_um=1.5, image_plane_um=10.5)
+    src = source_grid(4, 40.0, 50.0)
+    plan = plan_for_sources(o, (128, 128), src, warn=False)
+    dn = 0.03 * np.random.default_rng(0).random((14, 128, 128)).astype(np.float32)
+    cpu = MultiSliceModel(o, plan, device="cpu", dtype=torch.float64)(torch.tensor(dn, dtype=torch.float64), torch.tensor(src))
+    gpu = MultiSliceModel(o, plan, device=dev)(torch.tensor(dn), torch.tensor(src, dtype=torch.float32))
+    report("model images cuda fp32 vs cpu fp64", rel(gpu, cpu), 1e-4)
+
+
+def check_reconstruction(dev) -> None:
+    from napari_fdt.config import SolverConfig, StageConfig
+    from napari_fdt.simulate import make_scene, simulate
+    from napari_fdt.solver import Reconstructor
+
+    o = Optics(wavelength_um=0.6, n_background=1.33, na=0.65, pixel_size_um=0.33, n_slices=6, slice_spacing_um=1.5, image_plane_um=4.5)
+    dn = make_scene("letters", (64, 64), o, delta_n=0.03, text="FD")
+    sim = simulate(dn, o, source_grid(5, 12.0, 30.0), device="cpu", seed=1)
+    cfg = SolverConfig(stages=[StageConfig(2, 20), StageConfig(1, 20)], batch_size=8, seed=3)
+    out = {}
+    for d in ("cpu", dev):
+        rec = Reconstructor(sim.acquisition, cfg, device=d)
+        for _ in rec.run():
+            pass
+        out[str(d)] = rec.delta_n_full()
+    a, b = out["cpu"], out[str(dev)]
+    err = float(np.linalg.norm(a - b) / np.linalg.norm(a))
+    report("40-iteration reconstruction cuda vs cpu (fp32 both; chaotic growth of rounding expected to stay small)", err, 2e-2)
+
+
+def main() -> None:
+    if not torch.cuda.is_available():
+        print("no CUDA device: nothing to check")
+        return
+    dev = torch.device("cuda")
+    print(torch.cuda.get_device_name(dev), torch.__version__)
+    check_triton(dev)
+    check_modes(dev)
+    check_model(dev)
+    check_reconstruction(dev)
+    print("FAILED: " + ", ".join(FAILED) if FAILED else "all GPU checks passed")
+    sys.exit(1 if FAILED else 0)
+
+
+if __name__ == "__main__":
+    main()
