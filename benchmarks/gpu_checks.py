@@ -120,15 +120,18 @@ def check_reconstruction(dev) -> None:
     dn = make_scene("letters", (64, 64), o, delta_n=0.03, text="FD")
     sim = simulate(dn, o, source_grid(5, 12.0, 30.0), device="cpu", seed=1)
     cfg = SolverConfig(stages=[StageConfig(2, 20), StageConfig(1, 20)], batch_size=8, seed=3)
+    from napari_fdt.metrics import relative_delta_n_error
+
     out = {}
     for d in ("cpu", dev):
         rec = Reconstructor(sim.acquisition, cfg, device=d)
         for _ in rec.run():
             pass
-        out[str(d)] = rec.delta_n_full()
-    a, b = out["cpu"], out[str(dev)]
-    err = float(np.linalg.norm(a - b) / np.linalg.norm(a))
-    report("40-iteration reconstruction cuda vs cpu (fp32 both; chaotic growth of rounding expected to stay small)", err, 2e-2)
+        out[str(d)] = relative_delta_n_error(rec.delta_n_full(), dn)
+    # Adam normalises each voxel's step by its gradient's size, so where gradients are rounding noise the
+    # two devices take different (full-size) steps: the volumes differ voxel by voxel, their accuracy must not.
+    print(f"     relative Δn error: cpu {out['cpu']:.4f}, cuda {out[str(dev)]:.4f}")
+    report("40-iteration reconstruction: |error on cuda − error on cpu|", abs(out["cpu"] - out[str(dev)]), 0.02)
 
 
 def main() -> None:

@@ -95,12 +95,16 @@ def run_scene(name, acq, truth, cfg, device, eval_every):
             pm = paper_normalised_metrics(pred, truth)
             curve.append({"wall_s": t_solver, "stage": snap.stage, "factor": snap.factor, "iteration": snap.global_iteration,
                           "relative_delta_n_error": relative_delta_n_error(pred, truth),
+                          "delta_n_mean": float(pred.mean()), "delta_n_max": float(pred.max()),
+                          "delta_n_p999": float(np.quantile(pred, 0.999)),
+                          "slice_means": [float(v) for v in pred.mean(axis=(1, 2))],
                           "paper_psnr": pm["psnr"], "paper_ssim": pm["ssim"],
                           "loss": sum(v for k, v in snap.losses.items() if k in ("l1", "l2")),
                           "losses": snap.losses, "stage_complete": snap.stage_complete})
             c = curve[-1]
             print(f"  {name}: {c['wall_s']:7.2f} s  stage {c['stage']} it {c['iteration']:5d}  rel err {c['relative_delta_n_error']:.3f}  "
-                  f"PSNR {c['paper_psnr']:.2f}  SSIM {c['paper_ssim']:.3f}", flush=True)
+                  f"PSNR {c['paper_psnr']:.2f}  SSIM {c['paper_ssim']:.3f}  Δn mean {c['delta_n_mean']:.5f} p99.9 {c['delta_n_p999']:.4f} "
+                  f"max {c['delta_n_max']:.4f}", flush=True)
     peak = torch.cuda.max_memory_allocated(device) / 2**30 if device.type == "cuda" else None
     return {
         "scene": name, "image": list(acq.image_shape), "n_slices": acq.optics.n_slices, "n_images": acq.n_images,
@@ -108,6 +112,7 @@ def run_scene(name, acq, truth, cfg, device, eval_every):
         "stages": [r.to_dict() for r in rec.stages],
         "curve": curve,
         "final": curve[-1] if curve else None,
+        "_delta_n": pred,
     }
 
 
@@ -139,6 +144,7 @@ def main() -> None:
             raise SystemExit(f"unknown scene {name}")
         print(f"{name}: data ready in {time.perf_counter() - t:.1f} s ({acq.n_images} images {acq.image_shape}, {acq.optics.n_slices} slices)", flush=True)
         res = run_scene(name, acq, truth, cfg, device, args.eval_every)
+        res.pop("_delta_n", None)
         out["scenes"].append(res)
         path.write_text(json.dumps(out, indent=1, default=float))  # after every scene: a cut-off run keeps what it did
         f = res["final"]

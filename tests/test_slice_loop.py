@@ -96,8 +96,8 @@ def test_unitarity_and_mode_choice():
     assert loop_bytes("reversible", fb, 96, 30) < loop_bytes("checkpoint", fb, 96, 30) < stored
     # memory of the reversible mode does not grow with the number of slices
     assert loop_bytes("reversible", fb, 8, 30) == loop_bytes("reversible", fb, 960, 30)
-    assert choose_mode(fb, 96, 30, unit, None) == "stored"
-    assert choose_mode(fb, 96, 30, unit, stored) == "stored"
+    assert choose_mode(fb, 96, 30, True, None) == "stored"
+    assert choose_mode(fb, 96, 30, True, stored) == "stored"
     assert choose_mode(fb, 96, 30, unit, stored - 1) == "reversible"
     assert choose_mode(fb, 96, 30, damped, stored - 1) == "checkpoint"
 

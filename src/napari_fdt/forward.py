@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
+from .errors import FDTInputError
 from .grid import GridPlan, frequency_grid
 from .optics import Optics
 from .propagation import phase_screen, propagation_kernel, pupil, screen_phase
@@ -96,6 +97,15 @@ class MultiSliceModel:
         self.backward_mode = backward_mode
         self.memory_budget_bytes = memory_budget_bytes
         self._auto_modes: dict[int, str] = {}
+        from .memory import grid_is_unitary
+
+        # reversible needs |K| = 1 on the whole grid; 2 % slack in the pixel size leaves room for calibration
+        self._unitary = grid_is_unitary(optics.pixel_size_um, optics.n_background, optics.wavelength_um)
+        if backward_mode == "reversible" and not self._unitary:
+            raise FDTInputError(
+                "backward_mode", f"'reversible' needs a grid without evanescent frequencies; pixels of "
+                f"{optics.pixel_size_um} µm at λ {optics.wavelength_um} µm, n_b {optics.n_background} have some",
+                "use 'auto' or 'checkpoint' (or pixels of at least λ/(√2·n_b)·1.02)")
         self.optics = optics
         self.plan = plan
         self.device = resolve_device(device)
@@ -204,13 +214,13 @@ class MultiSliceModel:
         else:
             phi = screen_phase(dn, k.slice_spacing_um, k.wavelength_um)
             if torch.is_grad_enabled() and (v0.requires_grad or phi.requires_grad or k.slice_kernel.requires_grad):
-                u = slice_loop(v0, phi, k.slice_kernel, self.loop_mode(v0.shape[0], k.slice_kernel))
+                u = slice_loop(v0, phi, k.slice_kernel, self.loop_mode(v0.shape[0]), check=False)
             else:  # inference: nothing to keep
                 u = loop_forward(v0, phi, k.slice_kernel)
         u = torch.fft.ifft2(torch.fft.fft2(u) * k.exit_kernel)
         return self.crop(u)
 
-    def loop_mode(self, batch: int, kernel: torch.Tensor | None = None) -> str:
+    def loop_mode(self, batch: int) -> str:
         """The backward mode used for a batch of ``batch`` images (see ``backward_mode``)."""
         if self.backward_mode != "auto":
             return self.backward_mode
@@ -223,8 +233,7 @@ class MultiSliceModel:
                 budget = None if free is None else int(0.8 * free)
             hp, wp = self.plan.padded_shape
             field_bytes = hp * wp * (8 if self.dtype == torch.float32 else 16)
-            kern = self._default.slice_kernel if kernel is None else kernel
-            self._auto_modes[batch] = choose_mode(field_bytes, self.optics.n_slices, batch, kern, budget)
+            self._auto_modes[batch] = choose_mode(field_bytes, self.optics.n_slices, batch, self._unitary, budget)
         return self._auto_modes[batch]
 
     def __call__(

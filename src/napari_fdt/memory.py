@@ -25,10 +25,11 @@ BYTES_PER_PIXEL_SLICE_IMAGE = 32
 GRAPH_FIELDS_PER_IMAGE = 10
 
 
-def grid_is_unitary(pixel_size_um: float, n_background: float, wavelength_um: float) -> bool:
+def grid_is_unitary(pixel_size_um: float, n_background: float, wavelength_um: float, slack: float = 0.02) -> bool:
     """True when every frequency of a grid of this pixel size propagates (no evanescent corner):
-    the propagator then has modulus 1 everywhere and the reversible backward mode is exact."""
-    f_corner2 = 2.0 * (0.5 / pixel_size_um) ** 2
+    the propagator then has modulus 1 everywhere and the reversible backward mode is exact.
+    ``slack``: the pixel may shrink by this fraction (self-calibration) and the answer still hold."""
+    f_corner2 = 2.0 * (0.5 / (pixel_size_um * (1.0 - slack))) ** 2
     return f_corner2 < (n_background / wavelength_um) ** 2 * (1.0 - 1e-9)
 
 

@@ -67,15 +67,16 @@ def loop_bytes(mode: str, field_bytes: int, n_slices: int, batch: int) -> int:
     raise ValueError(f"unknown mode {mode!r}; one of {MODES}")
 
 
-def choose_mode(field_bytes: int, n_slices: int, batch: int, kernel: torch.Tensor, budget_bytes: int | None) -> str:
+def choose_mode(field_bytes: int, n_slices: int, batch: int, unitary: bool | torch.Tensor, budget_bytes: int | None) -> str:
     """The cheapest backward mode that fits ``budget_bytes`` (None: no limit → ``"stored"``).
 
+    ``unitary``: whether the propagator has modulus 1 everywhere (or the kernel itself, to test).
     Order of preference: stored (least work), reversible (only for a unitary kernel), checkpoint.
     When none fits, the one that needs least (the caller's memory check refuses the run earlier).
     """
     if budget_bytes is None or loop_bytes("stored", field_bytes, n_slices, batch) <= budget_bytes:
         return "stored"
-    if is_unitary(kernel):
+    if unitary if isinstance(unitary, bool) else is_unitary(unitary):
         return "reversible"
     return "checkpoint"
 
@@ -102,6 +103,19 @@ def _adjoint_screen(g: torch.Tensor, u: torch.Tensor, phi_k: torch.Tensor, v_out
     return grad_phi
 
 
+def _scaled(kernel: torch.Tensor) -> torch.Tensor:
+    """``K / (Hp·Wp)``: with it, ``ifft2(K·fft2(u)) = ifft2(fft2(u)·K/N, norm="forward")``, which saves
+    the separate scaling pass PyTorch's normalised inverse FFT makes over the whole batch."""
+    return kernel / (kernel.shape[-1] * kernel.shape[-2])
+
+
+def _propagate(u: torch.Tensor, scaled_kernel: torch.Tensor) -> torch.Tensor:
+    """``ifft2(K·fft2(u))`` over the last two axes, given ``K/N`` (:func:`_scaled`); a new tensor."""
+    spec = torch.fft.fft2(u)
+    spec.mul_(scaled_kernel)
+    return torch.fft.ifft2(spec, norm="forward")
+
+
 def _forward(v0: torch.Tensor, phi: torch.Tensor, kernel: torch.Tensor, keep: list[int] | None) -> tuple[torch.Tensor, dict[int, torch.Tensor]]:
     """Run the loop; return ``u_{N−1}`` and the fields ``u_k`` for k in ``keep`` (all if keep is None)."""
     n = phi.shape[0]
@@ -109,10 +123,9 @@ def _forward(v0: torch.Tensor, phi: torch.Tensor, kernel: torch.Tensor, keep: li
     u = v0 * _screen(phi[0])
     if keep is None or 0 in keep:
         kept[0] = u
+    scaled = _scaled(kernel)
     for k in range(1, n):
-        spec = torch.fft.fft2(u)
-        spec.mul_(kernel)
-        u = torch.fft.ifft2(spec)
+        u = _propagate(u, scaled)
         u.mul_(_screen(phi[k]))
         if keep is None or k in keep:
             kept[k] = u
@@ -152,7 +165,8 @@ class _SliceLoop(torch.autograd.Function):
         g = grad_out.clone()
         grad_phi = torch.empty_like(phi) if need_phi else None
         grad_k = torch.zeros_like(kernel) if need_k else None
-        conj_k = kernel.conj()
+        conj_k = _scaled(kernel.conj())
+        scaled = _scaled(kernel)
         mode = ctx.mode
         seg = _segment(n)
         cache: dict[int, torch.Tensor] = {}
@@ -165,9 +179,7 @@ class _SliceLoop(torch.autograd.Function):
                 u_s = kept[start]
                 cache[start] = u_s
                 for i in range(start + 1, j + 1):
-                    spec_ = torch.fft.fft2(u_s)
-                    spec_.mul_(kernel)
-                    u_s = torch.fft.ifft2(spec_)
+                    u_s = _propagate(u_s, scaled)
                     u_s.mul_(_screen(phi[i]))
                     cache[i] = u_s
             return cache[j] if keep_in_cache else cache.pop(j)
@@ -191,7 +203,7 @@ class _SliceLoop(torch.autograd.Function):
                     # conj(fft2(u_{k−1})) = K·conj(fft2(v_k)); adjoint of ifft2 is fft2/Hp·Wp.
                     grad_k += kernel * (spec[0].conj() * spec[1]).sum(0) / npix
                 spec.mul_(conj_k)
-                pair = torch.fft.ifft2(spec)
+                pair = torch.fft.ifft2(spec, norm="forward")
                 u, g = pair[0], pair[1]
                 continue
             u_k = kept[k] if mode == "stored" else _recomputed(k)
@@ -207,11 +219,11 @@ class _SliceLoop(torch.autograd.Function):
                 grad_k += (torch.fft.fft2(prev).conj() * spec).sum(0) / npix
                 del prev
             spec.mul_(conj_k)
-            g = torch.fft.ifft2(spec)
+            g = torch.fft.ifft2(spec, norm="forward")
         return (g if need_v0 else None), grad_phi, grad_k, None
 
 
-def slice_loop(v0: torch.Tensor, phi: torch.Tensor, kernel: torch.Tensor, mode: str = "stored") -> torch.Tensor:
+def slice_loop(v0: torch.Tensor, phi: torch.Tensor, kernel: torch.Tensor, mode: str = "stored", *, check: bool = True) -> torch.Tensor:
     """``u_{N−1}`` of the loop above, differentiable in ``v0``, ``phi`` and ``kernel``.
 
     Parameters
@@ -220,9 +232,14 @@ def slice_loop(v0: torch.Tensor, phi: torch.Tensor, kernel: torch.Tensor, mode: 
     phi: (N, Hp, Wp) real, phase of each screen in radians (``2π/λ·Δz·Δn``).
     kernel: (Hp, Wp) complex, the propagator over one slice (``fft2`` frequency order).
     mode: ``"stored"``, ``"reversible"`` or ``"checkpoint"`` (see the module docstring).
+    check: verify that the kernel is unitary for ``"reversible"`` (one device synchronisation; callers
+        that know it, like :class:`~napari_fdt.forward.MultiSliceModel`, pass False).
     """
     if mode not in MODES:
         raise ValueError(f"unknown backward mode {mode!r}; one of {MODES}")
     if phi.ndim != 3 or v0.ndim != 3 or tuple(v0.shape[-2:]) != tuple(phi.shape[-2:]) or tuple(kernel.shape) != tuple(phi.shape[-2:]):
         raise ValueError(f"shapes do not match: v0 {tuple(v0.shape)}, phi {tuple(phi.shape)}, kernel {tuple(kernel.shape)}")
+    if check and mode == "reversible" and not is_unitary(kernel):
+        raise ValueError("the reversible mode needs a kernel of modulus 1 everywhere (no evanescent or damped "
+                         "frequencies); use 'stored' or 'checkpoint'")
     return _SliceLoop.apply(v0, phi, kernel, mode)

@@ -1,0 +1,73 @@
+"""Settings on the authors' demo geometry (issue 5): which solver settings reach which accuracy how fast.
+
+    python benchmarks/demo_variants.py --device cuda [--variants default,tv,...] [--iterations 200,200,400]
+
+Simulates the demo scene of ``benchmarks/suite.py`` once, then runs each variant (a dict of
+``SolverConfig`` overrides) with the same data and seed, printing relative Δn error, the authors'
+normalised PSNR/SSIM and Δn statistics every 100 iterations. Writes
+``benchmarks/results/demo_variants_<device>.json``; ``--save-volumes DIR`` also stores each final Δn (float16 .npy).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).parent))
+from suite import _letters_scene, run_scene  # noqa: E402
+
+from napari_fdt import resolve_device  # noqa: E402
+from napari_fdt.config import SolverConfig, StageConfig  # noqa: E402
+
+VARIANTS = {
+    "default": {},
+    "tv": {"tv_xy_weight": 10.0, "tv_z_weight": 5.0},
+    "tv_strong": {"tv_xy_weight": 50.0, "tv_z_weight": 25.0},
+    "dnmax05": {"delta_n_max": 0.05},
+    "lr02": {"lr_ri": 0.02},
+    "multislice_coarse": {"coarse_model": "multislice"},
+    "signed": {"activation": "signed"},
+}
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--device", default="auto")
+    p.add_argument("--variants", default="default,tv,tv_strong,dnmax05,lr02")
+    p.add_argument("--iterations", default="200,200,400")
+    p.add_argument("--extra", default="{}", help="JSON dict of extra variants")
+    p.add_argument("--save-volumes", type=Path, default=None)
+    p.add_argument("--out", type=Path, default=None)
+    a = p.parse_args()
+    device = resolve_device(a.device)
+    variants = dict(VARIANTS, **json.loads(a.extra))
+    its = [int(v) for v in a.iterations.split(",")]
+    t = time.perf_counter()
+    acq, truth = _letters_scene(512, 14, 39, 84.0, 100, device, text="UCDAVIS")
+    print(f"demo data in {time.perf_counter() - t:.1f} s", flush=True)
+    results = {"hardware": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu", "command": "python " + " ".join(sys.argv), "runs": []}
+    for name in a.variants.split(","):
+        cfg = SolverConfig(stages=[StageConfig(f, n) for f, n in zip((4, 2, 1), its)], batch_size=30, snapshot_every=25, **variants[name])
+        res = run_scene(f"demo/{name}", acq, truth, cfg, device, eval_every=100)
+        res["variant"] = name
+        results["runs"].append(res)
+        f = res["final"]
+        print(f"== {name}: {res['wall_s']:.1f} s  rel {f['relative_delta_n_error']:.3f}  PSNR {f['paper_psnr']:.2f}  SSIM {f['paper_ssim']:.3f}", flush=True)
+        if a.save_volumes is not None:
+            a.save_volumes.mkdir(parents=True, exist_ok=True)
+            np.save(a.save_volumes / f"{name}.npy", res.pop("_delta_n").astype(np.float16))
+        res.pop("_delta_n", None)
+    out = a.out or Path(__file__).parent / "results" / f"demo_variants_{device.type}.json"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(results, indent=1, default=float))
+    print(f"wrote {out}")
+
+
+if __name__ == "__main__":
+    main()

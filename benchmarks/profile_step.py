@@ -1,0 +1,126 @@
+"""Where the time of one training step goes on a GPU: primitive costs and a kernel-level profile.
+
+    python benchmarks/profile_step.py [--side 1024 --slices 24 --batch 30] [--solver-demo]
+
+Prints (1) the two ceilings: a device-to-device copy of one batch of fields (bytes read + written) and
+one batched fft2 of it; (2) each elementwise primitive of the slice loop; (3) the top CUDA kernels of
+one full step in each backward mode (torch.profiler). ``--solver-demo`` also profiles one iteration of
+each stage of the solver on the demo geometry. Notes and predictions: ``docs/benchmarks.md``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import statistics
+import sys
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).parent))
+from step_speed import _inputs, _package_step  # noqa: E402
+
+
+def bench(fn, repeats=30):
+    for _ in range(3):
+        fn()
+    torch.cuda.synchronize()
+    ts = []
+    for _ in range(repeats):
+        a, b = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
+        a.record()
+        fn()
+        b.record()
+        b.synchronize()
+        ts.append(a.elapsed_time(b))
+    return statistics.median(ts)
+
+
+def primitives(side, n, batch):
+    from napari_fdt import _triton_slice
+    v0, dn, target, kernel, exit_kernel = _inputs(side, n, batch, torch.device("cuda"))
+    u = v0.clone()
+    gbytes = u.numel() * 8 / 1e9
+    rows = [("clone (copy)", bench(lambda: u.clone()), 2 * gbytes)]
+    rows.append(("fft2", bench(lambda: torch.fft.fft2(u)), 2 * gbytes))
+    rows.append(("ifft2", bench(lambda: torch.fft.ifft2(u)), 2 * gbytes))
+    rows.append(("fft2(dim=-1) only", bench(lambda: torch.fft.fft(u, dim=-1)), 2 * gbytes))
+    rows.append(("u.mul_(K) broadcast", bench(lambda: u.mul_(kernel)), 2 * gbytes))
+    phi = dn[0] * 10
+    rows.append(("polar(1, phi) (one screen)", bench(lambda: torch.polar(torch.ones_like(phi), phi)), phi.numel() * 12 / 1e9))
+    g = v0.clone()
+    if _triton_slice.available():
+        rows.append(("triton adjoint (g, u → g, Σ)", bench(lambda: _triton_slice.adjoint_screen(g, u, phi, None)), 3 * gbytes))
+        pair = torch.stack([u, g])
+        rows.append(("triton adjoint + v (reversible)", bench(lambda: _triton_slice.adjoint_screen(pair[1], pair[0], phi, pair[0])), 4 * gbytes))
+    rows.append(("torch adjoint Σ Im(g conj u)", bench(lambda: (g.imag * u.real - g.real * u.imag).sum(0)), 2 * gbytes))
+    print(f"\nprimitives on ({batch}, {side}, {side}) complex64 = {gbytes:.3f} GB per batch of fields")
+    print("| op | ms | GB moved (ideal) | GB/s |")
+    print("|---|---|---|---|")
+    for name, ms, gb in rows:
+        print(f"| {name} | {ms:.3f} | {gb:.3f} | {gb / (ms / 1e3):.0f} |")
+
+
+def profile_modes(side, n, batch):
+    from torch.profiler import ProfilerActivity, profile
+    v0, dn0, target, kernel, exit_kernel = _inputs(side, n, batch, torch.device("cuda"))
+    for mode in ("stored", "reversible"):
+        st = _package_step(mode)
+        dn = dn0.clone().requires_grad_()
+
+        def fn():
+            dn.grad = None
+            st(v0, dn, kernel, exit_kernel, target).backward()
+        ms = bench(fn, 10)
+        with profile(activities=[ProfilerActivity.CUDA, ProfilerActivity.CPU]) as prof:
+            fn()
+            torch.cuda.synchronize()
+        print(f"\n=== step {mode}: {ms:.1f} ms ({side}², {n} slices, batch {batch}) ===")
+        print(prof.key_averages().table(sort_by="cuda_time_total", row_limit=14, max_name_column_width=60))
+
+
+def profile_solver_demo():
+    """One profiled iteration of each stage of the solver on the demo geometry (reduced image count)."""
+    import time
+
+    from torch.profiler import ProfilerActivity, profile
+
+    from napari_fdt.config import SolverConfig, StageConfig
+    from suite import _letters_scene
+    from napari_fdt.solver import Reconstructor
+
+    acq, dn = _letters_scene(512, 14, 13, 84.0, 100, torch.device("cuda"), text="UCDAVIS")
+    for factor in (4, 2, 1):
+        cfg = SolverConfig(stages=[StageConfig(factor, 40)], batch_size=30, snapshot_every=1000)
+        rec = Reconstructor(acq, cfg, device="cuda")
+        gen = rec.run()
+        t = time.perf_counter()
+        with profile(activities=[ProfilerActivity.CUDA, ProfilerActivity.CPU]) as prof:
+            for _ in gen:
+                pass
+            torch.cuda.synchronize()
+        dt = time.perf_counter() - t
+        print(f"\n=== solver stage factor {factor}: 40 iterations in {dt:.2f} s (incl. set-up); per stage record "
+              f"{rec.stages[0].seconds_per_iteration * 1e3:.1f} ms/it ===")
+        print(prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=12, max_name_column_width=50))
+        print(prof.key_averages().table(sort_by="cuda_time_total", row_limit=10, max_name_column_width=50))
+
+
+def main():
+    p = argparse.ArgumentParser()
+    p.add_argument("--side", type=int, default=1024)
+    p.add_argument("--slices", type=int, default=24)
+    p.add_argument("--batch", type=int, default=30)
+    p.add_argument("--solver-demo", action="store_true")
+    p.add_argument("--no-modes", action="store_true")
+    a = p.parse_args()
+    primitives(a.side, a.slices, a.batch)
+    if not a.no_modes:
+        profile_modes(a.side, a.slices, a.batch)
+    if a.solver_demo:
+        profile_solver_demo()
+
+
+if __name__ == "__main__":
+    main()
