@@ -23,16 +23,23 @@ BACKWARD_MODES = ("auto", "stored", "reversible", "checkpoint", "autograd")
 
 @dataclass
 class StageConfig:
-    """One coarse-to-fine stage: lateral ``factor`` (stage pixel = factor × acquisition pixel) and ``iterations``."""
+    """One coarse-to-fine stage: lateral ``factor`` (stage pixel = factor × acquisition pixel), ``iterations``
+    and optionally its own ``batch_size`` (None: the configuration's). A coarse stage's images are
+    ``factor²`` times smaller: on a GPU, where a small step costs its kernel launches rather than its
+    arithmetic, a larger batch there uses more data for about the same time per iteration."""
 
     factor: int = 1
     iterations: int = 100
+    batch_size: int | None = None
 
     def __post_init__(self) -> None:
         if isinstance(self.factor, bool) or not isinstance(self.factor, int) or self.factor < 1:
             raise FDTInputError("stages[].factor", f"must be an integer >= 1, got {self.factor!r}", "use 4, 2, 1 for three stages")
         if isinstance(self.iterations, bool) or not isinstance(self.iterations, int) or self.iterations < 0:
             raise FDTInputError("stages[].iterations", f"must be an integer >= 0, got {self.iterations!r}", "e.g. 100")
+        if self.batch_size is not None and (isinstance(self.batch_size, bool) or not isinstance(self.batch_size, int) or self.batch_size < 1):
+            raise FDTInputError("stages[].batch_size", f"must be an integer >= 1 or null, got {self.batch_size!r}",
+                                "leave it out to use the configuration's batch_size")
 
 
 def _default_stages() -> list[StageConfig]:
@@ -141,6 +148,11 @@ class SolverConfig:
                 want = "a string"
             if not ok:
                 raise FDTInputError(f.name, f"must be {want}, got {value!r}", "see docs/solver.md for each setting")
+
+    def stage_batch(self, stage_index: int) -> int:
+        """Batch size of a stage: its own ``batch_size``, else the configuration's."""
+        b = self.stages[stage_index].batch_size
+        return self.batch_size if b is None else b
 
     @property
     def total_iterations(self) -> int:

@@ -181,10 +181,10 @@ class Reconstructor:
         free = available_bytes(self.device)
         if free is None:
             return
-        finest = min(s.factor for s in cfg.stages)
-        _, opt, _, plan = multislice_plan(o, finest, self.full_shape, sources_um)
+        finest_index = min(range(len(cfg.stages)), key=lambda i: cfg.stages[i].factor)
+        _, opt, _, plan = multislice_plan(o, cfg.stages[finest_index].factor, self.full_shape, sources_um)
         k = len(self.wavelengths) if self.wavelengths else 1
-        batch = min(cfg.batch_size, self.acquisition.n_images)
+        batch = min(cfg.stage_batch(finest_index), self.acquisition.n_images)
         mode = cfg.backward_mode
         if mode == "auto":  # auto falls back to the leanest mode when one field per slice does not fit
             mode = leanest_mode(grid_is_unitary(opt.pixel_size_um, o.n_background, o.wavelength_um))
@@ -247,9 +247,9 @@ class Reconstructor:
                 betas=(0.9, 0.99),
             )
 
-    def _next_batch(self) -> torch.Tensor:
+    def _next_batch(self, batch_size: int) -> torch.Tensor:
         n = self.acquisition.n_images
-        b = min(self.config.batch_size, n)
+        b = min(batch_size, n)
         while len(self._order) < b:
             self._order.extend(torch.randperm(n, generator=self._batch_gen).tolist())
         idx, self._order = self._order[:b], self._order[b:]
@@ -342,6 +342,7 @@ class Reconstructor:
                 self._init_gains(stage, mask)
             self._set_trainable(si)
             vol_opt = torch.optim.Adam([self.volume.x], lr=cfg.lr_ri, betas=(0.9, 0.99))
+            stage_batch = cfg.stage_batch(si)
             data_range = float(stage.images.max())
             record = StageRecord(si, sc.factor, stage.field_factor, (o.n_slices, h, w), stage.window, stage.optics.na,
                                  sc.iterations, model="envelope" if stage.envelope else "multislice")
@@ -352,7 +353,7 @@ class Reconstructor:
                 if should_stop is not None and should_stop():
                     self.elapsed_s += time.perf_counter() - t0
                     return
-                idx = self._next_batch()
+                idx = self._next_batch(stage_batch)
                 dn = self.volume.delta_n()
                 pred = self._predict(stage, dn, idx)
                 m = None if mask is None else mask[idx]
