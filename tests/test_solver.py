@@ -226,3 +226,37 @@ def test_blank_and_saturated_images_are_reported(tiny) -> None:
     clipped = np.minimum(acq.images, np.float32(0.5 * acq.images.max()))
     with pytest.warns(FDTWarning, match="saturated"):
         Reconstructor(Acquisition(images=clipped, optics=acq.optics, sources_um=acq.sources_um), _tiny_config(), device="cpu")
+
+
+def test_a_stage_may_have_its_own_batch_size(tiny) -> None:
+    cfg = _tiny_config(stages=[StageConfig(2, 3, batch_size=7), StageConfig(1, 2)], batch_size=4)
+    rec = Reconstructor(tiny.acquisition, cfg, device="cpu")
+    sizes = []
+    real = rec._next_batch
+
+    def spy(b):
+        idx = real(b)
+        sizes.append(len(idx))
+        return idx
+
+    rec._next_batch = spy
+    for _ in rec.run():
+        pass
+    assert sizes == [7, 7, 7, 4, 4]
+    with pytest.raises(FDTInputError) as exc:
+        StageConfig(1, 10, batch_size=0)
+    assert exc.value.field == "stages[].batch_size"
+    # round trip through the configuration file format
+    assert SolverConfig.from_dict(cfg.to_dict()).stage_batch(0) == 7
+
+
+def test_coarse_model_auto_resolves_per_device(tiny) -> None:
+    from napari_fdt.config import resolve_coarse_model
+
+    assert resolve_coarse_model("auto", "cpu") == "envelope" and resolve_coarse_model("auto", "cuda") == "multislice"
+    assert resolve_coarse_model("multislice", "cpu") == "multislice"
+    rec = Reconstructor(tiny.acquisition, _tiny_config(), device="cpu")
+    assert rec.coarse_model == "envelope"
+    with pytest.raises(FDTInputError) as exc:
+        SolverConfig(coarse_model="fast")
+    assert exc.value.field == "coarse_model"

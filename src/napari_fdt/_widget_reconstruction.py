@@ -81,7 +81,8 @@ class ReconstructionWidget(Container):
         self.layer = ComboBox(label="acquisition", choices=self._choices)
         self.stages = LineEdit(label="stages", value=format_stages(d.stages),
                                tooltip="factor x iterations per stage, coarse to fine, e.g. 4x100, 2x100, 1x160")
-        self.coarse_model = ComboBox(label="coarse model", choices=["envelope", "multislice"], value=d.coarse_model)
+        self.coarse_model = ComboBox(label="coarse model", choices=["auto", "envelope", "multislice"], value=d.coarse_model,
+                                     tooltip="auto: envelope on CPU, multi-slice on GPU (faster there)")
         self.batch_size = SpinBox(label="batch size", value=d.batch_size, min=0, max=100000)
         self.l1_l2_total = FloatSpinBox(label="L1 + L2 weight", value=d.l1_l2_total, min=0, max=1e6, step=0.01)
         self.ssim_weight = FloatSpinBox(label="SSIM weight", value=d.ssim_weight, min=0, max=1e6, step=0.01)

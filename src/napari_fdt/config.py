@@ -14,9 +14,12 @@ from typing import Any
 
 from .errors import FDTInputError
 
-__all__ = ["StageConfig", "SolverConfig", "load_config", "COHERENCE_MODELS", "BACKWARD_MODES"]
+__all__ = ["StageConfig", "SolverConfig", "load_config", "COHERENCE_MODELS", "BACKWARD_MODES", "COARSE_MODELS", "resolve_coarse_model"]
 
 COHERENCE_MODELS = ("none", "mask", "spectral", "mask+spectral")
+#: Model of the coarse stages; "auto": the envelope model on a CPU (12× cheaper than multi-slice there),
+#: multi-slice on a GPU (where the envelope model's many small kernels made it slower; docs/benchmarks.md).
+COARSE_MODELS = ("auto", "envelope", "multislice")
 #: How the multi-slice model forms gradients (:mod:`napari_fdt.slice_loop`); "autograd" is the plain reference.
 BACKWARD_MODES = ("auto", "stored", "reversible", "checkpoint", "autograd")
 
@@ -52,7 +55,7 @@ class SolverConfig:
 
     # coarse-to-fine
     stages: list[StageConfig] = field(default_factory=_default_stages)
-    coarse_model: str = "envelope"
+    coarse_model: str = "auto"
     batch_size: int = 16
     # RI grid
     delta_n_max: float = 0.1
@@ -105,8 +108,8 @@ class SolverConfig:
         if not (0.0 <= self.l1_ramp_start <= self.l1_ramp_end <= 1.0):
             raise FDTInputError("l1_ramp_start", "must satisfy 0 <= l1_ramp_start <= l1_ramp_end <= 1",
                                 "the L1 weight rises over this fraction of the run")
-        if self.coarse_model not in ("envelope", "multislice"):
-            raise FDTInputError("coarse_model", f"unknown model {self.coarse_model!r}", "choose envelope or multislice")
+        if self.coarse_model not in COARSE_MODELS:
+            raise FDTInputError("coarse_model", f"unknown model {self.coarse_model!r}", f"choose one of {', '.join(COARSE_MODELS)}")
         if self.backward_mode not in BACKWARD_MODES:
             raise FDTInputError("backward_mode", f"unknown mode {self.backward_mode!r}",
                                 f"choose one of {', '.join(BACKWARD_MODES)} (auto picks the fastest that fits in memory)")
@@ -169,6 +172,13 @@ class SolverConfig:
         from .io import write_json_atomic
 
         write_json_atomic(path, self.to_dict(), overwrite=True)
+
+
+def resolve_coarse_model(coarse_model: str, device_type: str) -> str:
+    """``"auto"`` → ``"multislice"`` on CUDA, ``"envelope"`` elsewhere; other values pass through."""
+    if coarse_model != "auto":
+        return coarse_model
+    return "multislice" if device_type == "cuda" else "envelope"
 
 
 def _only(data: Any, klass, where: str) -> dict:

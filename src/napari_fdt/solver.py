@@ -120,6 +120,10 @@ class Reconstructor:
         self.device = resolve_device(device)
         self.dtype = torch.float32
         cfg = self.config
+        from .config import resolve_coarse_model
+
+        #: the coarse stages' model after resolving "auto" for this device
+        self.coarse_model = resolve_coarse_model(cfg.coarse_model, self.device.type)
         o = acquisition.optics
         n_img = acquisition.n_images
         if initial_sources_um is None:
@@ -288,7 +292,7 @@ class Reconstructor:
         """Rough relative cost of an iteration at a stage factor (grid area the model works on)."""
         from .stages import field_factor
 
-        g = factor if (factor > 1 and self.config.coarse_model == "envelope") else field_factor(self.acquisition.optics, factor)
+        g = factor if (factor > 1 and self.coarse_model == "envelope") else field_factor(self.acquisition.optics, factor)
         h, w = self.full_shape
         return (h / g) * (w / g)
 
@@ -325,7 +329,7 @@ class Reconstructor:
             sc = cfg.stages[si]
             stage = build_stage(si, sc.factor, sc.iterations, o, self.images,
                                 self.calibrated_sources().detach().cpu().double().numpy(), device=self.device,
-                                coarse_model=cfg.coarse_model, backward_mode=cfg.backward_mode)
+                                coarse_model=self.coarse_model, backward_mode=cfg.backward_mode)
             h, w = stage.grid_shape
             if self.volume is None:
                 self.volume = RIVolume((o.n_slices, h, w), delta_n_max=cfg.delta_n_max, activation=cfg.activation,
