@@ -4,6 +4,8 @@ Run it in place of ``-m napari_fdt`` (e.g. as torchrun's script). Python audit h
 writing (tifffile, JSON, temporary files), every rename (the atomic replace of each output and checkpoint)
 and every mkdir; those whose path lies under ``$FDT_AUDIT_WATCH`` are written, one per line, to
 ``$FDT_AUDIT_DIR/rank$RANK.txt`` when the process exits.
+
+``FDT_TEST_FAIL=R:K`` makes rank R raise at its K-th prediction (a rank failing mid-run).
 """
 
 import atexit
@@ -49,6 +51,24 @@ def _write_log() -> None:
         fh.write("".join(line + "\n" for line in seen))
 
 
+def _fail_on_request() -> None:
+    rank, _, call = os.environ.get("FDT_TEST_FAIL", "").partition(":")
+    if not call or os.environ.get("RANK") != rank:
+        return
+    from napari_fdt.solver import Reconstructor
+
+    predict, calls = Reconstructor._predict, [0]
+
+    def failing(self, *args):
+        calls[0] += 1
+        if calls[0] == int(call):
+            raise RuntimeError(f"injected failure on rank {rank}")
+        return predict(self, *args)
+
+    Reconstructor._predict = failing
+
+
+_fail_on_request()
 atexit.register(_write_log)
 sys.addaudithook(_hook)
 sys.argv = ["napari_fdt", *sys.argv[1:]]

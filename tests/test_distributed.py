@@ -253,6 +253,21 @@ def _run_group(cmd: list[str], env: dict[str, str], timeout: float) -> subproces
     return subprocess.CompletedProcess(cmd, proc.returncode, out, err)
 
 
+def _torchrun(root: Path, audit: Path, out: Path, *extra: str, fail: str = "") -> subprocess.CompletedProcess:
+    """``torchrun --standalone --nproc-per-node 2 audited_fdt.py reconstruct`` of the scene in ``root``."""
+    env = dict(os.environ)
+    src = str(Path(napari_fdt.__file__).resolve().parents[1])  # the package under test, also in the workers
+    env["PYTHONPATH"] = os.pathsep.join([src, env.get("PYTHONPATH", "")])
+    env.update(FDT_AUDIT_WATCH=str(root), FDT_AUDIT_DIR=str(audit), FDT_DIST_TIMEOUT_S="60", OMP_NUM_THREADS="1",
+               FDT_TEST_FAIL=fail)
+    for name in ("WORLD_SIZE", "RANK", "LOCAL_RANK", "MASTER_ADDR", "MASTER_PORT", "FDT_DIST_BACKEND"):
+        env.pop(name, None)
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2",
+           str(TESTS / "audited_fdt.py"), "reconstruct", str(root / "acq"), "--config", str(root / "cfg.json"),
+           "--device", "cpu", "--out", str(out), *extra]
+    return _run_group(cmd, env, timeout=180)
+
+
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory):
     """One scene (32×32 px, 4 slices, 9 images), reconstructed by one process and by two gloo ranks."""
@@ -262,20 +277,11 @@ def runs(tmp_path_factory):
     sim = simulate(text_phantom((32, 32), 4, text="UC", delta_n=0.05), o, source_grid(3, 8.0, 15.0), seed=1, device="cpu")
     write_acquisition(sim.acquisition, root / "acq")
     _config().save(root / "cfg.json")
-    common = [str(root / "acq"), "--config", str(root / "cfg.json"), "--device", "cpu"]
-    assert main(["reconstruct", *common, "--out", str(root / "one" / "RI.tif"), "--quiet"]) == 0
-
-    out_dir, audit = root / "two", tmp_path_factory.mktemp("audit")  # the audit logs lie outside the watched folder
-    env = dict(os.environ)
-    src = str(Path(napari_fdt.__file__).resolve().parents[1])  # the package under test, also in the workers
-    env["PYTHONPATH"] = os.pathsep.join([src, env.get("PYTHONPATH", "")])
-    env.update(FDT_AUDIT_WATCH=str(root), FDT_AUDIT_DIR=str(audit), FDT_DIST_TIMEOUT_S="60", OMP_NUM_THREADS="1")
-    for name in ("WORLD_SIZE", "RANK", "LOCAL_RANK", "MASTER_ADDR", "MASTER_PORT", "FDT_DIST_BACKEND"):
-        env.pop(name, None)
-    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2",
-           str(TESTS / "audited_fdt.py"), "reconstruct", *common, "--out", str(out_dir / "RI.tif"),
-           "--checkpoint-dir", str(out_dir / "checkpoints")]
-    proc = _run_group(cmd, env, timeout=180)
+    assert main(["reconstruct", str(root / "acq"), "--config", str(root / "cfg.json"), "--device", "cpu",
+                 "--out", str(root / "one" / "RI.tif"), "--quiet"]) == 0
+    audit = tmp_path_factory.mktemp("audit")  # the audit logs lie outside the watched folder
+    out_dir = root / "two"
+    proc = _torchrun(root, audit, out_dir / "RI.tif", "--checkpoint-dir", str(out_dir / "checkpoints"))
     assert proc.returncode == 0, proc.stdout + proc.stderr
     return root, sim, proc, audit
 
@@ -328,3 +334,12 @@ def test_a_distributed_checkpoint_resumes_in_one_process(runs, tmp_path: Path) -
     assert np.abs(dn3 - dn1).max() <= DN_TOL
     assert np.abs(src3 - src1).max() <= SOURCES_TOL_UM
     assert np.abs(gain3 / gain1 - 1).max() <= GAIN_RTOL
+
+
+def test_a_rank_failing_mid_run_ends_the_launch_without_output(runs, tmp_path: Path) -> None:
+    """Rank 1 raises at its third prediction: rank 0, waiting in the gradient sum, fails too (no hang), nothing is written."""
+    root, _, _, _ = runs
+    proc = _torchrun(root, tmp_path, root / "failed" / "RI.tif", "--quiet", fail="1:3")
+    assert proc.returncode != 0
+    assert "injected failure on rank 1" in proc.stderr
+    assert not (root / "failed").exists()
