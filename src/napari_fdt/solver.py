@@ -299,6 +299,7 @@ class Reconstructor:
 
     def _snapshot(self, stage: Stage, it: int, global_it: int, terms: dict, stage_t0: float, complete: bool) -> Snapshot:
         cfg = self.config
+        terms = self._gather(terms, optimiser_state=complete)
         now = time.perf_counter()
         elapsed = self.elapsed_s + (now - stage_t0)
         per_it = (now - stage_t0) / max(it, 1)
@@ -384,9 +385,8 @@ class Reconstructor:
                 if it == sc.iterations:
                     break
                 if it % cfg.snapshot_every == 0:
-                    yield self._snapshot(stage, it, global_it, self._gather(terms), t0, False)
+                    yield self._snapshot(stage, it, global_it, terms, t0, False)
             record.seconds = time.perf_counter() - t0
-            terms = self._gather(terms, optimiser_state=True)
             snap = self._snapshot(stage, sc.iterations, global_it, terms, t0, True)
             self.elapsed_s += record.seconds
             snap.elapsed_s = self.elapsed_s
