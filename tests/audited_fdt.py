@@ -3,7 +3,8 @@
 Run it in place of ``-m napari_fdt`` (e.g. as torchrun's script). Python audit hooks see every ``open`` for
 writing (tifffile, JSON, temporary files), every rename (the atomic replace of each output and checkpoint)
 and every mkdir; those whose path lies under ``$FDT_AUDIT_WATCH`` are written, one per line, to
-``$FDT_AUDIT_DIR/rank$RANK.txt`` when the process exits.
+``$FDT_AUDIT_DIR/rank$RANK.txt`` when the process exits; the number of images this rank took of each batch
+goes to ``rank$RANK_batches.txt``.
 
 ``FDT_TEST_FAIL=R:K`` makes rank R raise at its K-th prediction (a rank failing mid-run).
 """
@@ -17,6 +18,7 @@ WATCH = os.path.realpath(os.environ["FDT_AUDIT_WATCH"])
 LOG = os.path.join(os.environ["FDT_AUDIT_DIR"], f"rank{os.environ.get('RANK', 'none')}.txt")
 WRITE_FLAGS = os.O_WRONLY | os.O_RDWR | os.O_CREAT | os.O_APPEND | os.O_TRUNC
 seen: list[str] = []
+local_sizes: list[int] = []
 
 
 def _under_watch(path) -> str | None:
@@ -49,6 +51,21 @@ def _hook(event: str, args: tuple) -> None:
 def _write_log() -> None:
     with open(LOG, "w", encoding="utf-8") as fh:
         fh.write("".join(line + "\n" for line in seen))
+    with open(LOG.replace(".txt", "_batches.txt"), "w", encoding="utf-8") as fh:
+        fh.write(" ".join(map(str, local_sizes)))
+
+
+def _count_local_batches() -> None:
+    from napari_fdt.distributed import Group
+
+    local = Group.local
+
+    def counted(self, indices):
+        out = local(self, indices)
+        local_sizes.append(len(out))
+        return out
+
+    Group.local = counted
 
 
 def _fail_on_request() -> None:
@@ -69,6 +86,7 @@ def _fail_on_request() -> None:
 
 
 _fail_on_request()
+_count_local_batches()
 atexit.register(_write_log)
 sys.addaudithook(_hook)
 sys.argv = ["napari_fdt", *sys.argv[1:]]
