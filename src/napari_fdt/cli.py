@@ -82,6 +82,9 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--overwrite", action="store_true", help="replace existing output files")
     rec.add_argument("--quiet", action="store_true", help="no progress bar")
     rec.add_argument("--save-config", type=Path, default=None, help="write the full configuration used to this file and exit")
+    rec.add_argument("--dist-backend", choices=("auto", "nccl", "gloo"), default="auto",
+                     help="under torchrun: the torch.distributed backend (default auto: NCCL when each rank has a GPU "
+                          "of its own, else gloo; env FDT_DIST_BACKEND); docs/distributed.md")
 
     fwd = sub.add_parser("forward", help="predict an acquisition's images from an RI volume and report the residual")
     fwd.add_argument("acquisition", type=Path)
@@ -217,19 +220,24 @@ def _progress_line(snap) -> str:
 def _cmd_reconstruct(args: argparse.Namespace) -> int:
     import json
 
+    from . import distributed
     from .config import SolverConfig, load_config
     from .io import read_acquisition, read_volume_tiff
     from .io import report_path
-    from .report import build_report, write_result
-    from .solver import Reconstructor
 
     config = load_config(args.config) if args.config is not None else SolverConfig()
     if args.seed is not None:
         config.seed = args.seed
         config.__post_init__()
+    # Under torchrun every rank runs this; everything up to the process group is checked on all ranks alike,
+    # and only rank 0 writes or prints progress.
+    _, rank, _, _ = distributed.world_from_env()
+    if rank != 0:
+        warnings.simplefilter("ignore", FDTWarning)  # rank 0 prints them once
     if args.save_config is not None:
-        config.save(args.save_config)
-        print(f"wrote {args.save_config}")
+        if rank == 0:
+            config.save(args.save_config)
+            print(f"wrote {args.save_config}")
         return 0
     acq = read_acquisition(args.acquisition)
     out = Path(args.out)
@@ -252,25 +260,42 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
         side = Path(args.truth).with_name("ground_truth_sources_um.json")
         if side.exists():
             truth_src = np.asarray(json.loads(side.read_text())["sources_um"], dtype=np.float64)
+    group = distributed.setup(args.device, args.dist_backend)
+    try:
+        return _run_and_write(args, config, acq, out, json_out, truth, truth_src, group)
+    finally:
+        distributed.teardown(group)
+
+
+def _run_and_write(args, config, acq, out: Path, json_out: Path, truth, truth_src, group) -> int:
+    from .report import build_report, write_result
+    from .solver import Reconstructor
+
+    device = args.device if group is None else group.device
     if args.resume is not None:
-        rec = Reconstructor.from_checkpoint(args.resume, acq, device=args.device)
+        rec = Reconstructor.from_checkpoint(args.resume, acq, device=device, group=group)
     else:
-        rec = Reconstructor(acq, config, device=args.device)
+        rec = Reconstructor(acq, config, device=device, group=group)
+    writer = group is None or group.is_writer
     cancelled = False
     try:
         for snap in rec.run(checkpoint_dir=args.checkpoint_dir):
-            if not args.quiet:
+            if not args.quiet and writer:
                 print(_progress_line(snap), end="", file=sys.stderr, flush=True)
                 if snap.stage_complete:
                     print(file=sys.stderr)
     except KeyboardInterrupt:
         cancelled = True
+        if not writer:
+            return 130
         print(file=sys.stderr)
         if rec.completed_stages == 0:
             print("interrupted before the first stage completed: nothing written", file=sys.stderr)
             return 130
         print(f"interrupted: writing the last complete stage ({rec.completed_stages}/{len(rec.config.stages)})", file=sys.stderr)
         rec.restore_last_complete()
+    if not writer:
+        return 0
     report = build_report(rec, output=str(out), acquisition_path=str(args.acquisition), truth_ri=truth,
                           truth_sources_um=truth_src, cancelled=cancelled)
     write_result(rec, out, report, overwrite=args.overwrite)

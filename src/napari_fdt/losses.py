@@ -25,6 +25,7 @@ import torch.nn.functional as F
 from .errors import FDTInputError
 
 __all__ = [
+    "BatchShare",
     "LossWeights",
     "as_floats",
     "gaussian_window",
@@ -52,13 +53,19 @@ def _check_same_shape(pred: torch.Tensor, target: torch.Tensor) -> None:
         )
 
 
-def _weighted_mean(values: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
+def _weighted_mean(
+    values: torch.Tensor, mask: torch.Tensor | None, denominator: torch.Tensor | float | None = None
+) -> torch.Tensor:
     """Mean of ``values``, or ``Σ m·values / Σ m`` with the mask broadcast to ``values``.
 
-    An all-zero mask gives 0 (without a device synchronisation: the guard is a ``torch.where``).
+    ``denominator`` replaces the count (``values.numel()``, or ``Σ m``): part of a batch normalised by the
+    whole batch (:class:`BatchShare`). A zero denominator gives 0 (without a device synchronisation: the
+    guard is a ``torch.where``).
     """
     if mask is None:
-        return values.mean()
+        if denominator is None:
+            return values.mean()
+        return _guarded_ratio(values.sum(), denominator)
     mask = torch.as_tensor(mask, device=values.device)
     if mask.dtype == torch.bool or not mask.is_floating_point():
         mask = mask.to(values.dtype)
@@ -76,14 +83,23 @@ def _weighted_mean(values: torch.Tensor, mask: torch.Tensor | None) -> torch.Ten
         )
     weights = mask.expand(values.shape)
     num = (weights * values).sum()
-    den = weights.sum()
+    return _guarded_ratio(num, weights.sum() if denominator is None else denominator)
+
+
+def _guarded_ratio(num: torch.Tensor, den: torch.Tensor | float) -> torch.Tensor:
+    """``num / den``, 0 where ``den`` is not positive."""
+    den = torch.as_tensor(den, dtype=num.dtype, device=num.device)
     positive = den > 0
     safe_den = torch.where(positive, den, torch.ones_like(den))
     return torch.where(positive, num / safe_den, torch.zeros_like(num))
 
 
 def l1_loss(
-    pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None = None
+    pred: torch.Tensor,
+    target: torch.Tensor,
+    mask: torch.Tensor | None = None,
+    *,
+    denominator: torch.Tensor | float | None = None,
 ) -> torch.Tensor:
     """Mean absolute error.
 
@@ -94,6 +110,10 @@ def l1_loss(
     mask:
         Optional weights in [0, 1] broadcastable to ``pred.shape`` (e.g. ``(H, W)`` for all images,
         or ``(B, H, W)``). Values are not checked (checking would synchronise with the device).
+    denominator:
+        Optional count to divide by instead of the number of elements (or ``Σ m``): for a part of a
+        batch, the count of the whole batch, so that the parts' losses add up to the batch's
+        (:class:`BatchShare`).
 
     Returns
     -------
@@ -102,11 +122,15 @@ def l1_loss(
     ``Σ m = 0``.
     """
     _check_same_shape(pred, target)
-    return _weighted_mean((pred - target).abs(), mask)
+    return _weighted_mean((pred - target).abs(), mask, denominator)
 
 
 def l2_loss(
-    pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None = None
+    pred: torch.Tensor,
+    target: torch.Tensor,
+    mask: torch.Tensor | None = None,
+    *,
+    denominator: torch.Tensor | float | None = None,
 ) -> torch.Tensor:
     """Mean squared error; same conventions as :func:`l1_loss` with ``(pred − target)²``.
 
@@ -115,7 +139,7 @@ def l2_loss(
     0-dim tensor: ``mean (pred − target)²``, or ``Σ m·(pred − target)² / Σ m`` (0 when ``Σ m = 0``).
     """
     _check_same_shape(pred, target)
-    return _weighted_mean((pred - target).square(), mask)
+    return _weighted_mean((pred - target).square(), mask, denominator)
 
 
 # --------------------------------------------------------------------------------------------
@@ -224,12 +248,18 @@ def ssim(
     return (num / den).mean(dim=(-2, -1))
 
 
-def ssim_loss(pred: torch.Tensor, target: torch.Tensor, *, data_range: float) -> torch.Tensor:
+def ssim_loss(
+    pred: torch.Tensor, target: torch.Tensor, *, data_range: float, n_images: int | None = None
+) -> torch.Tensor:
     """``1 − mean(ssim(pred, target))`` over the images: 0-dim tensor (0 for identical images).
 
-    ``pred``, ``target``: ``(B, H, W)`` or ``(H, W)``; see :func:`ssim`.
+    ``pred``, ``target``: ``(B, H, W)`` or ``(H, W)``; see :func:`ssim`. ``n_images``: for a part of a
+    batch, the number of images of the whole batch; the result is then ``Σ (1 − ssim) / n_images`` over
+    this part's images (0 for an empty part), and the parts add up to the batch's value.
     """
-    return 1 - ssim(pred, target, data_range=data_range).mean()
+    if n_images is None:
+        return 1 - ssim(pred, target, data_range=data_range).mean()
+    return (1 - ssim(pred, target, data_range=data_range)).sum() / n_images
 
 
 # --------------------------------------------------------------------------------------------
@@ -313,6 +343,41 @@ def l1_l2_weights(
 
 
 @dataclass(frozen=True)
+class BatchShare:
+    """One process's part of a batch that several processes share (data-parallel reconstruction).
+
+    With a share, :func:`total_loss` normalises the data terms by the *whole* batch, so that the parts'
+    losses, and hence their gradients, add up to the loss of the whole batch: L1 and L2 divide this
+    part's (masked) sum by ``weight_sum``, the sum of the mask over the whole batch (its number of
+    pixels when there is no mask); ``1 − SSIM`` is this part's sum over its images divided by
+    ``n_images``; the regularisers, which act on the volume all parts share, enter the loss of the one
+    part with ``regularisers`` true and are only reported by the others.
+    """
+
+    n_images: int
+    weight_sum: torch.Tensor | float
+    regularisers: bool
+
+    @classmethod
+    def of_batch(
+        cls, batch_mask: torch.Tensor | None, batch_shape: tuple[int, ...], regularisers: bool
+    ) -> "BatchShare":
+        """The share of a part of the batch of images ``batch_shape`` = (B, H, W) whose mask is ``batch_mask``.
+
+        ``weight_sum`` is computed as :func:`l1_loss` computes ``Σ m`` for the whole batch, so one part
+        holding the whole batch reproduces it.
+        """
+        if batch_mask is None:
+            weight_sum: torch.Tensor | float = float(math.prod(batch_shape))
+        else:
+            m = torch.as_tensor(batch_mask)
+            if m.dtype == torch.bool or not m.is_floating_point():
+                m = m.to(torch.get_default_dtype())
+            weight_sum = m.expand(batch_shape).sum()
+        return cls(int(batch_shape[0]), weight_sum, bool(regularisers))
+
+
+@dataclass(frozen=True)
 class LossWeights:
     """Weights of the loss terms (all ≥ 0 and finite).
 
@@ -367,6 +432,7 @@ def total_loss(
     *,
     mask: torch.Tensor | None = None,
     data_range: float,
+    share: BatchShare | None = None,
 ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """The paper's combined loss.
 
@@ -390,6 +456,11 @@ def total_loss(
         (the paper's Hadamard product).
     data_range:
         Dynamic range of the images for SSIM (> 0).
+    share:
+        None for a whole batch. For one process's part of a batch (``pred`` may then hold no image),
+        the :class:`BatchShare` that normalises the data terms by the whole batch and says whether
+        this part carries the regularisers; summed over the parts, ``total`` and the data terms are
+        the whole batch's values. A part without the regularisers still reports them in ``terms``.
 
     Returns
     -------
@@ -407,24 +478,28 @@ def total_loss(
     weighted: list[torch.Tensor] = []
     terms: dict[str, torch.Tensor] = {}
 
-    def add(name: str, weight: float, value: torch.Tensor) -> None:
+    def add(name: str, weight: float, value: torch.Tensor, in_loss: bool = True) -> None:
         terms[name] = value.detach()
-        weighted.append(weight * value)
+        if in_loss:
+            weighted.append(weight * value)
 
+    den = None if share is None else share.weight_sum
+    n_images = None if share is None else share.n_images
     if alpha > 0:
-        add("l1", alpha, l1_loss(pred, target, mask))
+        add("l1", alpha, l1_loss(pred, target, mask, denominator=den))
     if beta > 0:
-        add("l2", beta, l2_loss(pred, target, mask))
+        add("l2", beta, l2_loss(pred, target, mask, denominator=den))
     if weights.ssim > 0:
         if mask is not None:
             m = torch.as_tensor(mask, device=pred.device).to(pred.dtype)
-            add("ssim_loss", weights.ssim, ssim_loss(pred * m, target * m, data_range=data_range))
+            add("ssim_loss", weights.ssim, ssim_loss(pred * m, target * m, data_range=data_range, n_images=n_images))
         else:
-            add("ssim_loss", weights.ssim, ssim_loss(pred, target, data_range=data_range))
+            add("ssim_loss", weights.ssim, ssim_loss(pred, target, data_range=data_range, n_images=n_images))
+    regularise = share is None or share.regularisers
     if weights.tv_xy > 0:
-        add("tv_xy", weights.tv_xy, tv_xy(volume))
+        add("tv_xy", weights.tv_xy, tv_xy(volume), regularise)
     if weights.tv_z > 0:
-        add("tv_z", weights.tv_z, tv_z(volume))
+        add("tv_z", weights.tv_z, tv_z(volume), regularise)
 
     if weighted:
         total = weighted[0]

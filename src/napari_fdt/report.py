@@ -93,6 +93,8 @@ def build_report(
         "seconds_total": rec.elapsed_s,
         "final_losses": rec.final_losses,
     }
+    if rec.group is not None:
+        report["distributed"] = rec.group.describe()
     if evaluate and rec.volume is not None:
         _, report["image_fit"] = evaluate_images(rec)
     metrics: dict[str, Any] = {}

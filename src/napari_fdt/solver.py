@@ -10,6 +10,10 @@ log-gain per image, and (from ``calibration_from_stage``) the lateral position o
 offset of the source plane's depth, and optionally the pixel size and slice spacing as global scales.
 The RI grid has its own Adam optimiser, rebuilt at each stage (its moments belong to voxels that the
 resampling replaces); the calibration parameters keep one Adam optimiser for the whole run.
+
+Given a :class:`~napari_fdt.distributed.Group` (``group=``), the run is one rank of a data-parallel
+reconstruction (``docs/distributed.md``): each rank computes the images it owns of every batch, the
+gradients of the shared parameters are summed over ranks, and the result equals the single-process one.
 """
 
 from __future__ import annotations
@@ -17,7 +21,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import TYPE_CHECKING, Any, Callable, Iterator
 
 import numpy as np
 import torch
@@ -27,9 +31,12 @@ from .coherence import coherence_masks, emission_spectrum, spectral_images
 from .config import SolverConfig
 from .errors import FDTInputError
 from .forward import resolve_device
-from .losses import LossWeights, as_floats, total_loss
+from .losses import BatchShare, LossWeights, as_floats, total_loss
 from .stages import Stage, build_stage
 from .volume import RIVolume, upsample_to
+
+if TYPE_CHECKING:
+    from .distributed import Group
 
 __all__ = ["Snapshot", "StageRecord", "Reconstructor", "reconstruct"]
 
@@ -105,6 +112,9 @@ class Reconstructor:
     device: ``"auto"``, ``"cpu"`` or ``"cuda"``.
     initial_sources_um: (N, 3) start positions; default the acquisition's ``sources_um``, else the
         2D-Gaussian fit of :mod:`napari_fdt.source_fit` (with ``config.source_depth_um`` if given).
+    group: this process's rank in a data-parallel run (:func:`napari_fdt.distributed.setup`), None for
+        one process. Every rank must then iterate :meth:`run` in step (it holds collectives); only rank 0
+        writes checkpoints.
     """
 
     def __init__(
@@ -114,8 +124,10 @@ class Reconstructor:
         *,
         device: str | torch.device = "auto",
         initial_sources_um: np.ndarray | None = None,
+        group: Group | None = None,
     ) -> None:
         self.acquisition = acquisition
+        self.group = group
         self.config = config or SolverConfig()
         self.device = resolve_device(device)
         self.dtype = torch.float32
@@ -298,6 +310,7 @@ class Reconstructor:
 
     def _snapshot(self, stage: Stage, it: int, global_it: int, terms: dict, stage_t0: float, complete: bool) -> Snapshot:
         cfg = self.config
+        terms = self._gather(terms, optimiser_state=complete)
         now = time.perf_counter()
         elapsed = self.elapsed_s + (now - stage_t0)
         per_it = (now - stage_t0) / max(it, 1)
@@ -325,6 +338,7 @@ class Reconstructor:
         o = self.acquisition.optics
         torch.manual_seed(cfg.seed + self.completed_stages)
         global_it = sum(s.iterations for s in cfg.stages[: self.completed_stages])
+        self._share_per_source_rows()
         for si in range(self.completed_stages, len(cfg.stages)):
             sc = cfg.stages[si]
             stage = build_stage(si, sc.factor, sc.iterations, o, self.images,
@@ -354,18 +368,29 @@ class Reconstructor:
             t0 = time.perf_counter()
             terms: dict = {}
             for it in range(1, sc.iterations + 1):
-                if should_stop is not None and should_stop():
+                if should_stop is not None and (self.group.any(should_stop()) if self.group else should_stop()):
                     self.elapsed_s += time.perf_counter() - t0
                     return
                 idx = self._next_batch(stage_batch)
                 dn = self.volume.delta_n()
-                pred = self._predict(stage, dn, idx)
+                share = None
+                if self.group is not None:  # this rank's images of the batch, normalised by the whole batch
+                    share = BatchShare.of_batch(None if mask is None else mask[idx], (len(idx), *stage.images.shape[1:]),
+                                                regularisers=self.group.is_writer)
+                    idx = self.group.local(idx)
+                # A rank with no image in this batch predicts none (and still joins the gradient sum).
+                pred = self._predict(stage, dn, idx) if len(idx) else stage.images[idx]
                 m = None if mask is None else mask[idx]
                 progress = global_it / max(1, cfg.total_iterations)
-                loss, terms = total_loss(pred, stage.images[idx], dn, self.loss_weights, progress, mask=m, data_range=data_range)
+                loss, terms = total_loss(pred, stage.images[idx], dn, self.loss_weights, progress, mask=m,
+                                         data_range=data_range, share=share)
                 vol_opt.zero_grad(set_to_none=True)
                 self._cal_opt.zero_grad(set_to_none=True)
-                loss.backward()
+                if loss.requires_grad:
+                    loss.backward()
+                if self.group is not None:
+                    self.group.reduce_gradients([self.volume.x, self.pixel_scale, self.spacing_scale, self.depth_offset_um],
+                                                [self.sources, self.log_gain])
                 vol_opt.step()
                 self._cal_opt.step()
                 global_it += 1
@@ -384,9 +409,30 @@ class Reconstructor:
             self.last_complete = snap
             self._last_complete_state = self._capture()
             self.final_losses = snap.losses
-            if checkpoint_dir is not None:
+            if checkpoint_dir is not None and (self.group is None or self.group.is_writer):
                 self.save_checkpoint(Path(checkpoint_dir) / f"stage_{si}.pt")
             yield snap
+
+    def _share_per_source_rows(self, optimiser_state: bool = False) -> None:
+        """Distributed: every rank gets each image's source and gain rows (and their Adam moments) from its owner."""
+        if self.group is None:
+            return
+        tensors = [self.sources, self.log_gain]
+        if optimiser_state and self._cal_opt is not None:
+            for p in (self.sources, self.log_gain):
+                state = self._cal_opt.state.get(p, {})
+                tensors += [state.get("exp_avg"), state.get("exp_avg_sq")]
+        self.group.share_rows(tensors)
+
+    def _gather(self, terms: dict, optimiser_state: bool = False) -> dict:
+        """Distributed: the whole batch's loss terms and every image's rows on every rank (a collective).
+
+        The data terms and the total are sums of the ranks' parts; the regularisers are the same on all.
+        """
+        if self.group is None:
+            return terms
+        self._share_per_source_rows(optimiser_state)
+        return self.group.sum_terms(terms, ("l1", "l2", "ssim_loss", "total")) if terms else terms
 
     def _capture(self) -> dict[str, Any]:
         """Copies of the optimised state (small tensors), to return to after a cancel."""
@@ -449,7 +495,8 @@ class Reconstructor:
         return path
 
     @classmethod
-    def from_checkpoint(cls, path: str | Path, acquisition: Acquisition, *, device: str | torch.device = "auto") -> "Reconstructor":
+    def from_checkpoint(cls, path: str | Path, acquisition: Acquisition, *, device: str | torch.device = "auto",
+                        group: Group | None = None) -> "Reconstructor":
         """Resume: the next :meth:`run` continues with the first stage the checkpoint had not completed."""
         try:
             state = torch.load(Path(path), map_location="cpu", weights_only=False)
@@ -459,7 +506,8 @@ class Reconstructor:
             raise FDTInputError("resume", f"{path} is not a napari-fdt checkpoint", "point --resume at a stage_*.pt file")
         if state["n_images"] != acquisition.n_images or tuple(state["image_shape"]) != acquisition.image_shape:
             raise FDTInputError("resume", "the checkpoint belongs to an acquisition of another size", "resume with the same acquisition")
-        rec = cls(acquisition, SolverConfig.from_dict(state["config"]), device=device, initial_sources_um=state["initial_sources_um"])
+        rec = cls(acquisition, SolverConfig.from_dict(state["config"]), device=device, initial_sources_um=state["initial_sources_um"],
+                  group=group)
         with torch.no_grad():
             rec.sources.copy_(state["sources"])
             rec.log_gain.copy_(state["log_gain"])
