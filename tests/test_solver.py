@@ -199,13 +199,14 @@ def test_a_batch_that_cannot_fit_is_refused_before_running(tiny, monkeypatch) ->
     o = tiny.acquisition.optics
     _, opt, _, plan = multislice_plan(o, 1, tiny.acquisition.image_shape, tiny.acquisition.sources_um)
     mode = memory.leanest_mode(memory.grid_is_unitary(opt.pixel_size_um, o.n_background, o.wavelength_um))
-    need9 = memory.training_bytes(plan.padded_shape, o.n_slices, 9, 1, mode)
+    images = 4 * tiny.acquisition.n_images * tiny.acquisition.image_shape[0] * tiny.acquisition.image_shape[1]
+    need9 = memory.training_bytes(plan.padded_shape, o.n_slices, 9, 1, mode) + images
     need1 = memory.training_bytes(plan.padded_shape, o.n_slices, 1, 1, mode)
     assert need9 > 4 * need1
     monkeypatch.setattr(memory, "available_bytes", lambda device: need9 // 2)  # about half of batch 9 fits
     with pytest.raises(FDTInputError) as exc:
         Reconstructor(tiny.acquisition, _tiny_config(batch_size=9), device="cpu")
-    fits = int(0.9 * (need9 // 2) // need1)
+    fits = int((0.9 * (need9 // 2) - images) // need1)
     assert exc.value.field == "batch_size" and "GiB" in str(exc.value) and f"lower batch_size to {fits}" in str(exc.value)
     assert mode in str(exc.value)
     monkeypatch.setattr(memory, "available_bytes", lambda device: need1 // 2)  # not even one image

@@ -204,10 +204,12 @@ class Reconstructor:
         mode = cfg.backward_mode
         if mode == "auto":  # auto falls back to the leanest mode when one field per slice does not fit
             mode = leanest_mode(grid_is_unitary(opt.pixel_size_um, o.n_background, o.wavelength_um))
-        need = training_bytes(plan.padded_shape, o.n_slices, batch, k, mode)
+        # the finest stage's images live on the device too (float32, all of them)
+        images = 4 * self.acquisition.n_images * self.full_shape[0] * self.full_shape[1]
+        need = training_bytes(plan.padded_shape, o.n_slices, batch, k, mode) + images
         if need <= 0.9 * free:
             return
-        fits = int((0.9 * free) // max(1, training_bytes(plan.padded_shape, o.n_slices, 1, k, mode)))
+        fits = int((0.9 * free - images) // max(1, training_bytes(plan.padded_shape, o.n_slices, 1, k, mode)))
         gib = 2.0**30
         fix = (f"lower batch_size to {fits}" if fits >= 1 else
                "crop the images, use fewer slices or fewer wavelengths, or a device with more memory")
