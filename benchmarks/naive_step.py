@@ -11,14 +11,20 @@ from __future__ import annotations
 import torch
 
 
+def naive_loop(v0: torch.Tensor, phi: torch.Tensor, kernel: torch.Tensor) -> torch.Tensor:
+    """The slice loop in plain autograd: screens of phase ``phi`` (N, H, W), propagator ``kernel`` between them."""
+    u = v0
+    for k in range(phi.shape[0]):
+        if k:
+            u = torch.fft.ifft2(torch.fft.fft2(u) * kernel)
+        u = u * torch.exp(1j * phi[k])
+    return u
+
+
 def naive_step(v0: torch.Tensor, delta_n: torch.Tensor, kernel: torch.Tensor, exit_kernel: torch.Tensor,
                target: torch.Tensor, phase_per_dn: float) -> torch.Tensor:
     """Loss of one batch, differentiable in ``delta_n`` (N, H, W); ``v0`` (B, H, W) the incoming fields."""
-    u = v0
-    for k in range(delta_n.shape[0]):
-        if k:
-            u = torch.fft.ifft2(torch.fft.fft2(u) * kernel)
-        u = u * torch.exp(1j * phase_per_dn * delta_n[k])
+    u = naive_loop(v0, phase_per_dn * delta_n, kernel)
     u = torch.fft.ifft2(torch.fft.fft2(u) * exit_kernel)
     intensity = u.real ** 2 + u.imag ** 2
     return ((intensity - target) ** 2).mean()

@@ -19,22 +19,15 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).parent))
-from step_speed import _inputs, _package_step  # noqa: E402
+from step_speed import _inputs, _package_step, _timer  # noqa: E402
 
 
 def bench(fn, repeats=30):
+    """Median milliseconds of ``fn`` on the GPU after 3 warm-up calls (CUDA events)."""
     for _ in range(3):
         fn()
     torch.cuda.synchronize()
-    ts = []
-    for _ in range(repeats):
-        a, b = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
-        a.record()
-        fn()
-        b.record()
-        b.synchronize()
-        ts.append(a.elapsed_time(b))
-    return statistics.median(ts)
+    return 1e3 * statistics.median(_timer(torch.device("cuda"))(fn, repeats))
 
 
 def primitives(side, n, batch):

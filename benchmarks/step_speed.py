@@ -63,6 +63,23 @@ def _timer(device):
     return run
 
 
+def _measure(name, fn, device, run, repeats, base_bytes):
+    """Warm up, record the peak memory of one call above ``base_bytes``, then time ``repeats`` calls."""
+    try:
+        fn()
+        fn()
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+            torch.cuda.reset_peak_memory_stats(device)
+        fn()
+        peak = (torch.cuda.max_memory_allocated(device) - base_bytes) / 2**30 if device.type == "cuda" else None
+        times = run(fn, repeats)
+        return {"variant": name, "median_s": statistics.median(times), "all_s": times, "peak_gib": peak}
+    except torch.OutOfMemoryError:
+        torch.cuda.empty_cache()
+        return {"variant": name, "median_s": None, "error": "out of memory"}
+
+
 def _inputs(side, n_slices, batch, device, seed=0):
     g = torch.Generator().manual_seed(seed)
     v0 = torch.randn((batch, side, side), generator=g, dtype=torch.complex64).to(device)
@@ -104,19 +121,7 @@ def bench_size(side, n_slices, batch, device, repeats, modes, graphs=True, naive
         def fn():
             dn.grad = None
             loss_fn(dn).backward()
-        try:
-            fn()
-            fn()
-            if device.type == "cuda":
-                torch.cuda.synchronize(device)
-                torch.cuda.reset_peak_memory_stats(device)
-            fn()
-            peak = (torch.cuda.max_memory_allocated(device) - base) / 2**30 if device.type == "cuda" else None
-            times = run(fn, repeats)
-            rows.append({"variant": name, "median_s": statistics.median(times), "all_s": times, "peak_gib": peak})
-        except torch.OutOfMemoryError:
-            rows.append({"variant": name, "median_s": None, "error": "out of memory"})
-            torch.cuda.empty_cache()
+        rows.append(_measure(name, fn, device, run, repeats, base))
         del dn
         if device.type == "cuda" and graphs and name.startswith("package"):
             rows.append(_graphed(name, loss_fn, dn0, device, run, repeats))
@@ -168,20 +173,8 @@ def bench_model(side, n_slices, batch, device, repeats, modes):
         def fn():
             dn.grad = None
             (model(dn, s) - target).square().mean().backward()
-        try:
-            fn()
-            fn()
-            if device.type == "cuda":
-                torch.cuda.synchronize(device)
-                torch.cuda.reset_peak_memory_stats(device)
-            base = torch.cuda.memory_allocated(device) if device.type == "cuda" else 0
-            fn()
-            peak = (torch.cuda.max_memory_allocated(device) - base) / 2**30 if device.type == "cuda" else None
-            times = run(fn, repeats)
-            rows.append({"variant": f"MultiSliceModel {m}", "median_s": statistics.median(times), "all_s": times, "peak_gib": peak})
-        except torch.OutOfMemoryError:
-            rows.append({"variant": f"MultiSliceModel {m}", "median_s": None, "error": "out of memory"})
-            torch.cuda.empty_cache()
+        base = torch.cuda.memory_allocated(device) if device.type == "cuda" else 0
+        rows.append(_measure(f"MultiSliceModel {m}", fn, device, run, repeats, base))
     return {"image": [side, side], "window": list(plan.padded_shape), "n_slices": n_slices, "batch": batch,
             "fov_um": fov, "rows": rows}
 
