@@ -106,6 +106,23 @@ def make_delta_n(case: Case, optics: Optics) -> np.ndarray:
     return dn.astype(np.float32)
 
 
+def window_error(optics: Optics, plan, dn: np.ndarray, src: np.ndarray, factor: float = 2.0) -> tuple[float, int]:
+    """Relative L2 difference (float64) of the images on ``plan``'s window and on one ``factor`` times as wide."""
+    import dataclasses
+
+    from napari_fdt.grid import next_fast_even
+
+    h, w = plan.image_shape
+    hp, wp = (next_fast_even(int(factor * s)) for s in plan.padded_shape)
+    wide = dataclasses.replace(plan, padded_shape=(hp, wp), offset=(hp // 2 - h // 2, wp // 2 - w // 2))
+    out = []
+    for p in (plan, wide):
+        m = MultiSliceModel(optics, p, device="cpu", dtype=torch.float64)
+        with torch.no_grad():
+            out.append(m(torch.from_numpy(dn).double(), torch.from_numpy(src).double()))
+    return _rel_l2(out[0], out[1]), hp
+
+
 def _rel_l2(a: torch.Tensor, b: torch.Tensor) -> float:
     return float(torch.linalg.vector_norm(a.double() - b.double()) / torch.linalg.vector_norm(b.double()))
 
@@ -114,7 +131,7 @@ def _finite(*xs) -> bool:
     return all(bool(torch.isfinite(torch.as_tensor(x)).all()) for x in xs)
 
 
-def run_case(case: Case, *, reconstruct: bool = True) -> dict:
+def run_case(case: Case, *, reconstruct: bool = True, window_check: bool = False) -> dict:
     """Measure one case; returns a dict of results (never raises for the numerical part)."""
     t0 = time.perf_counter()
     optics = Optics(**{**BASE, **case.optics})
@@ -138,6 +155,8 @@ def run_case(case: Case, *, reconstruct: bool = True) -> dict:
     res["forward_finite"] = _finite(imgs[torch.float32]) and _finite(imgs[torch.float64])
     res["f32_vs_f64"] = _rel_l2(imgs[torch.float32], imgs[torch.float64])
     res["image_max"] = float(imgs[torch.float64].max())
+    # the planned window against one twice as wide (float64): what wrap-around costs
+    res["window_error"], res["wide_window"] = window_error(optics, plan, dn, src) if window_check else (float("nan"), 0)
 
     # (b) gradient of a scalar loss in float32 w.r.t. Δn and the source positions
     m = MultiSliceModel(optics, plan, device="cpu", dtype=torch.float32)
@@ -207,17 +226,19 @@ def markdown(results: list[dict]) -> str:
         "sources a 2×2 grid spanning 6 µm, 20 µm deep; Δn one soft bead (0.02, radius 3 µm) unless stated. "
         "Forward: images of all sources, float32 vs float64 (relative L2). Gradient: float32, loss "
         "‖I − 1.05·I₆₄‖²/‖1.05·I₆₄‖² w.r.t. Δn and source positions. Reconstruction: noise-free simulated "
-        "acquisition, `SolverConfig(stages=[StageConfig(2, 3), StageConfig(1, 3)], batch_size=4)`, CPU.",
+        "acquisition, `SolverConfig(stages=[StageConfig(2, 3), StageConfig(1, 3)], batch_size=4)`, CPU. "
+        "Window error: float64 images on the planned window against a window twice as wide (relative L2): what "
+        "the periodic copies of the sources cost.",
         "",
-        "| case | geometry | window | warnings (FDTWarning) | finite | f32 vs f64 | grad finite | reconstruction | time (s) |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| case | geometry | window | window error | warnings (FDTWarning) | finite | f32 vs f64 | grad finite | reconstruction | time (s) |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in results:
         geom = f"{r['shape'][0]}×{r['shape'][1]} px of {r['dx']:g} µm, {r['n_slices']} slices, {r['n_sources']} src; {r['description']}"
         warn = "; ".join(w.split(":")[0] + (": evanescent" if "evanescent" in w else "") for w in r["warnings"]) or "none"
         rec = str(r["recon"]).replace("|", "/").replace("\n", " ")
         lines.append(
-            f"| {r['name']} | {geom} | {r['window'][0]}×{r['window'][1]} | {warn} | {'yes' if r['finite'] else 'NO'} | "
+            f"| {r['name']} | {geom} | {r['window'][0]}×{r['window'][1]} | {r['window_error']:.1e} | {warn} | {'yes' if r['finite'] else 'NO'} | "
             f"{r['f32_vs_f64']:.1e} | {'yes' if r['grad_finite'] else 'NO'} | {rec} | {r['seconds']:.2f} |"
         )
     by = {r["name"]: r for r in results}
@@ -230,6 +251,18 @@ def markdown(results: list[dict]) -> str:
                      f"({by['deep_sources']['f32_vs_f64']:.1e} at 300 µm; a separate `run_case` sweep on a 16×16 image gave "
                      "3.0e-6 at 20, 8.4e-6 at 100, 1.8e-5 at 300 and 5.1e-5 at 600 µm): the propagation phase 2π·n_b·d/λ (≈ 4200 rad at 300 µm) is held in complex64. "
                      "Still far below shot noise at these depths; the solver itself always runs in float32.")
+    worst = max(results, key=lambda r: r["window_error"] if r["window_error"] == r["window_error"] else -1.0)
+    if worst["window_error"] == worst["window_error"]:
+        lines.append(f"- Window error at most {worst['window_error']:.1e} ({worst['name']}). Before the pupil-tail term of "
+                     "the window rule (docs/physics.md §4) the baseline's window was 64×64 and its images were 2.6 % off "
+                     "a 6× wider window: the periodic copies' defocused discs ended 9 µm beyond the image, inside the "
+                     "diffraction tails of the pupil's soft edge (they decay over λ/(2·0.03·NA) = 20 µm).")
+    if "deep_sources" in by and by["deep_sources"]["window_error"] == by["deep_sources"]["window_error"]:
+        lines.append(f"- deep_sources: nothing to warn about. The 384×384 window holds the sources' light "
+                     f"(window error {by['deep_sources']['window_error']:.1e} with the Δn 0.02 bead, 1.2e-3 on a "
+                     "homogeneous medium) and float32 costs only the error above; a strongly scattering sample "
+                     "converges more slowly with the window (Δn 0.1 bead: 1.4 % at 384², 0.6 % at 480², 0.15 % at 768²), "
+                     "within the shot noise of a 2000-photon image.")
     lines += [
         "- No hard case emits an FDTWarning except fine_pixel (evanescent band). Edge/outside sources, 300 µm depth, "
         "64 slices, an in-volume focal plane and Δn 0.1 are all silent: the planner sizes the window instead.",
@@ -257,7 +290,7 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(1)
     results = []
     for case in CASES:
-        r = run_case(case, reconstruct=not args.no_reconstruct)
+        r = run_case(case, reconstruct=not args.no_reconstruct, window_check=True)
         print(f"{r['name']:22s} window {r['window']} finite {r['finite']} f32/f64 {r['f32_vs_f64']:.2e} "
               f"grad {r['grad_finite']} {r['seconds']:.2f}s warn {len(r['warnings'])} recon: {r['recon']}", flush=True)
         results.append(r)
