@@ -147,6 +147,11 @@ def plan_grid(
             f"na/n_background = {optics.na / n_b:.3f} leaves no room for a smooth band limit below {MAX_SINE}",
             f"na must be at most {(MAX_SINE - 0.02) * n_b / (1.0 + pupil_taper):.3f} for n_background {n_b:g}",
         )
+    if max(h, w) + 2 > MAX_PADDED_SIDE:
+        raise FDTInputError(
+            "images", f"images of {h}x{w} px need a window wider than {MAX_PADDED_SIDE} px",
+            f"crop or bin the images to at most {MAX_PADDED_SIDE // 2} px per side (the window also holds the light cone)",
+        )
     tan_lo = s_lo / math.sqrt(1.0 - s_lo**2)
     thickness = optics.thickness_um
     margin = thickness * tan_lo

@@ -288,6 +288,24 @@ def _images_path(folder: Path, metadata: dict[str, Any]) -> tuple[str, Path]:
     return name, image_path
 
 
+def _check_fits_in_memory(name: str, shape: tuple[int, int, int], dtype: Any) -> None:
+    """Refuse, from the TIFF's header alone, a stack that could not be held in memory (twice: read and a float copy)."""
+    import torch
+
+    from .memory import available_bytes
+
+    n, h, w = shape
+    need = 2 * n * h * w * max(np.dtype(dtype).itemsize, 4)  # the pixels, and the float32 copy every run makes
+    free = available_bytes(torch.device("cpu"))
+    if free is not None and need > 0.9 * free:
+        gib = 2.0**30
+        raise FDTInputError(
+            "images", f"{name} holds {n} images of {h} x {w} px ({np.dtype(dtype)}): about {need / gib:.1f} GiB with "
+            f"the float32 copy, and {free / gib:.1f} GiB of memory are free",
+            "crop or bin the images, or reconstruct a subset of them",
+        )
+
+
 def _read_image_stack(image_path: Path, name: str, sources: np.ndarray | None) -> np.ndarray:
     """Pixels of the first TIFF series; shape, pixel type and source count checked before loading."""
     try:
@@ -299,9 +317,10 @@ def _read_image_stack(image_path: Path, name: str, sources: np.ndarray | None) -
                 raise FDTInputError(
                     "images", f"{name} holds colour (RGB) images, axes {series.axes}, shape {series.shape}", _TIFF_FIX
                 )
-            n, _, _ = check_image_layout(series.shape, series.dtype)
+            n, h, w = check_image_layout(series.shape, series.dtype)
             if sources is not None:
                 check_sources(sources, n)
+            _check_fits_in_memory(name, (n, h, w), series.dtype)
             return series.asarray()
     except (FDTInputError, MemoryError):
         raise
