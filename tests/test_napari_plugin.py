@@ -504,3 +504,96 @@ def test_closing_the_viewer_stops_background_actions(make_napari_viewer, qtbot, 
     qtbot.waitUntil(lambda: not task.worker.is_running, timeout=5000)
     qtbot.wait(50)
     assert shown == []  # its result was dropped, not added to a closed viewer
+
+
+# -- corrupted input through napari: the core's message, and the plugin stays usable ------------------------
+
+
+def _corrupt(folder, kind: str) -> str:
+    """Corrupt an acquisition folder in place; returns the start of the message the core gives."""
+    meta = json.loads((folder / "acquisition.json").read_text())
+    if kind == "na":
+        meta["na"] = 1.4
+        (folder / "acquisition.json").write_text(json.dumps(meta))
+        return "na: numerical aperture 1.4 is not below n_background 1.33"
+    if kind == "sources":
+        meta["sources_um"] = meta["sources_um"][:-1]
+        (folder / "acquisition.json").write_text(json.dumps(meta))
+        return "sources_um: holds 8 source positions but there are 9 images"
+    if kind == "json":
+        (folder / "acquisition.json").write_text(json.dumps(meta)[:-3])
+        return "acquisition.json: is not valid JSON"
+    raw = (folder / "images.tif").read_bytes()
+    if kind == "truncated":
+        (folder / "images.tif").write_bytes(raw[: len(raw) // 2])
+        return "images: images.tif is not a readable TIFF"
+    if kind == "png":
+        (folder / "images.tif").write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(64))
+        return "images: images.tif is not a readable TIFF: not a TIFF file"
+    import tifffile
+
+    images = tifffile.imread(folder / "images.tif").astype(np.float32)
+    images[3, 5, 7] = np.nan
+    tifffile.imwrite(folder / "images.tif", images)
+    return "images: 1 non-finite pixels (NaN or Inf), first at image 3, row 5, col 7"
+
+
+@pytest.mark.parametrize("kind", ["na", "sources", "json", "truncated", "png", "nan"])
+def test_a_corrupted_acquisition_shows_the_core_message_and_napari_goes_on(make_napari_viewer, tiny_sim, tmp_path,
+                                                                          kind) -> None:
+    bad = write_acquisition(tiny_sim.acquisition, tmp_path / "bad")
+    expected = _corrupt(bad, kind)
+    viewer = make_napari_viewer()
+    a = _docked(viewer, AcquisitionWidget(viewer))
+    with pytest.raises(Exception) as exc:
+        viewer.open(str(bad), plugin=PLUGIN)
+    assert expected in str(exc.value) and "Traceback" not in str(exc.value)
+    assert len(viewer.layers) == 0 and a.layer.value is None
+    # still usable: a good acquisition opens, the widget takes it and acts on it
+    good = write_acquisition(tiny_sim.acquisition, tmp_path / "good")
+    layer = _open(viewer, good)
+    assert a.layer.value is layer
+    a.sources_from_file()
+    assert a.feedback.last_error is None
+    assert [lay.data.shape for lay in viewer.layers if isinstance(lay, Points)] == [(9, 3)]
+
+
+def test_any_optics_typed_into_the_widget_is_applied_or_explained(make_napari_viewer, tiny_dir) -> None:
+    """A small hypothesis run over the optics fields (including 0, negative and NA ≥ n_b): each value set is applied
+    (and stored on the layer as typed) or refused with a message naming one field; valid optics apply afterwards."""
+    from hypothesis import HealthCheck, given, settings
+    from hypothesis import strategies as st
+
+    from napari_fdt.optics import OPTICS_FIELDS
+
+    viewer = make_napari_viewer()
+    layer = _open(viewer, tiny_dir)
+    w = _docked(viewer, AcquisitionWidget(viewer))
+    good = {name: getattr(w, name).value for name in OPTICS_FIELDS}
+
+    values = st.fixed_dictionaries({
+        "wavelength_um": st.sampled_from([0.0, 0.3, 0.635, 50.0]), "n_background": st.sampled_from([0.0, 0.5, 1.0, 1.33, 3.0]),
+        "na": st.sampled_from([0.0, 0.5, 0.8, 1.33, 2.0]), "pixel_size_um": st.sampled_from([0.0, 0.01, 0.33, 5.0]),
+        "n_slices": st.sampled_from([0, 1, 4, 300]), "slice_spacing_um": st.sampled_from([0.0, 0.05, 2.0]),
+        "image_plane_um": st.sampled_from([-1e4, 0.0, 3.0]),
+    })
+
+    @settings(max_examples=15, deadline=None, suppress_health_check=list(HealthCheck), database=None)
+    @given(values)
+    def check(typed: dict) -> None:
+        for name, value in typed.items():
+            getattr(w, name).value = value
+        w.apply_optics()
+        if w.feedback.last_error is None:
+            applied = layer.metadata[META_ACQUISITION].optics.to_dict()
+            assert all(applied[k] == pytest.approx(v) for k, v in typed.items())
+        else:
+            field = w.feedback.last_error.split(":")[0]
+            assert field in OPTICS_FIELDS, w.feedback.last_error
+            assert w.feedback.label.value.startswith(f"error: {field}: ")
+        for name, value in good.items():
+            getattr(w, name).value = value
+        w.apply_optics()
+        assert w.feedback.last_error is None, w.feedback.label.value
+
+    check()
