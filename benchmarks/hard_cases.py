@@ -72,6 +72,8 @@ CASES: list[Case] = [
     Case("high_contrast", "Δn 0.1 over 20 µm (20 slices of a 10 µm-wide block)",
          optics=dict(n_slices=20), scene="slab", delta_n=0.1, slab_slices=(0, 20)),
     Case("thick_volume", "64 slices of 1 µm", optics=dict(n_slices=64)),
+    Case("oblique_slab", "Δn 0.02 through all 8 slices (a 10 µm block): the thin screens miss 1/cos θ − 1 of its phase "
+         "for oblique light (6 % at this NA's edge ray; see Obliquity below)", scene="slab", slab_slices=(0, 8)),
     Case("odd_nonsquare", "37×50 grid", shape=(37, 50)),
     Case("fine_pixel", "pixel 0.2 µm < λ/(2·n_b) = 0.226 µm (evanescent band on the grid)",
          optics=dict(pixel_size_um=0.2), shape=(40, 40)),
@@ -106,6 +108,23 @@ def make_delta_n(case: Case, optics: Optics) -> np.ndarray:
     return dn.astype(np.float32)
 
 
+def window_error(optics: Optics, plan, dn: np.ndarray, src: np.ndarray, factor: float = 2.0) -> tuple[float, int]:
+    """Relative L2 difference (float64) of the images on ``plan``'s window and on one ``factor`` times as wide."""
+    import dataclasses
+
+    from napari_fdt.grid import next_fast_even
+
+    h, w = plan.image_shape
+    hp, wp = (next_fast_even(int(factor * s)) for s in plan.padded_shape)
+    wide = dataclasses.replace(plan, padded_shape=(hp, wp), offset=(hp // 2 - h // 2, wp // 2 - w // 2))
+    out = []
+    for p in (plan, wide):
+        m = MultiSliceModel(optics, p, device="cpu", dtype=torch.float64)
+        with torch.no_grad():
+            out.append(m(torch.from_numpy(dn).double(), torch.from_numpy(src).double()))
+    return _rel_l2(out[0], out[1]), hp
+
+
 def _rel_l2(a: torch.Tensor, b: torch.Tensor) -> float:
     return float(torch.linalg.vector_norm(a.double() - b.double()) / torch.linalg.vector_norm(b.double()))
 
@@ -114,7 +133,7 @@ def _finite(*xs) -> bool:
     return all(bool(torch.isfinite(torch.as_tensor(x)).all()) for x in xs)
 
 
-def run_case(case: Case, *, reconstruct: bool = True) -> dict:
+def run_case(case: Case, *, reconstruct: bool = True, window_check: bool = False) -> dict:
     """Measure one case; returns a dict of results (never raises for the numerical part)."""
     t0 = time.perf_counter()
     optics = Optics(**{**BASE, **case.optics})
@@ -138,6 +157,8 @@ def run_case(case: Case, *, reconstruct: bool = True) -> dict:
     res["forward_finite"] = _finite(imgs[torch.float32]) and _finite(imgs[torch.float64])
     res["f32_vs_f64"] = _rel_l2(imgs[torch.float32], imgs[torch.float64])
     res["image_max"] = float(imgs[torch.float64].max())
+    # the planned window against one twice as wide (float64): what wrap-around costs
+    res["window_error"], res["wide_window"] = window_error(optics, plan, dn, src) if window_check else (float("nan"), 0)
 
     # (b) gradient of a scalar loss in float32 w.r.t. Δn and the source positions
     m = MultiSliceModel(optics, plan, device="cpu", dtype=torch.float32)
@@ -197,7 +218,7 @@ def _reconstruct(case: Case, optics: Optics, dn: np.ndarray, src: np.ndarray) ->
             f"log-gain min {float(rc.log_gain.detach().min()):.3g}")
 
 
-def markdown(results: list[dict]) -> str:
+def markdown(results: list[dict], obliquity: list[dict] | None = None) -> str:
     lines = [
         "# Hard cases: numerical stability",
         "",
@@ -207,17 +228,19 @@ def markdown(results: list[dict]) -> str:
         "sources a 2×2 grid spanning 6 µm, 20 µm deep; Δn one soft bead (0.02, radius 3 µm) unless stated. "
         "Forward: images of all sources, float32 vs float64 (relative L2). Gradient: float32, loss "
         "‖I − 1.05·I₆₄‖²/‖1.05·I₆₄‖² w.r.t. Δn and source positions. Reconstruction: noise-free simulated "
-        "acquisition, `SolverConfig(stages=[StageConfig(2, 3), StageConfig(1, 3)], batch_size=4)`, CPU.",
+        "acquisition, `SolverConfig(stages=[StageConfig(2, 3), StageConfig(1, 3)], batch_size=4)`, CPU. "
+        "Window error: float64 images on the planned window against a window twice as wide (relative L2): what "
+        "the periodic copies of the sources cost.",
         "",
-        "| case | geometry | window | warnings (FDTWarning) | finite | f32 vs f64 | grad finite | reconstruction | time (s) |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| case | geometry | window | window error | warnings (FDTWarning) | finite | f32 vs f64 | grad finite | reconstruction | time (s) |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in results:
         geom = f"{r['shape'][0]}×{r['shape'][1]} px of {r['dx']:g} µm, {r['n_slices']} slices, {r['n_sources']} src; {r['description']}"
         warn = "; ".join(w.split(":")[0] + (": evanescent" if "evanescent" in w else "") for w in r["warnings"]) or "none"
         rec = str(r["recon"]).replace("|", "/").replace("\n", " ")
         lines.append(
-            f"| {r['name']} | {geom} | {r['window'][0]}×{r['window'][1]} | {warn} | {'yes' if r['finite'] else 'NO'} | "
+            f"| {r['name']} | {geom} | {r['window'][0]}×{r['window'][1]} | {r['window_error']:.1e} | {warn} | {'yes' if r['finite'] else 'NO'} | "
             f"{r['f32_vs_f64']:.1e} | {'yes' if r['grad_finite'] else 'NO'} | {rec} | {r['seconds']:.2f} |"
         )
     by = {r["name"]: r for r in results}
@@ -230,6 +253,18 @@ def markdown(results: list[dict]) -> str:
                      f"({by['deep_sources']['f32_vs_f64']:.1e} at 300 µm; a separate `run_case` sweep on a 16×16 image gave "
                      "3.0e-6 at 20, 8.4e-6 at 100, 1.8e-5 at 300 and 5.1e-5 at 600 µm): the propagation phase 2π·n_b·d/λ (≈ 4200 rad at 300 µm) is held in complex64. "
                      "Still far below shot noise at these depths; the solver itself always runs in float32.")
+    worst = max(results, key=lambda r: r["window_error"] if r["window_error"] == r["window_error"] else -1.0)
+    if worst["window_error"] == worst["window_error"]:
+        lines.append(f"- Window error at most {worst['window_error']:.1e} ({worst['name']}). Before the pupil-tail term of "
+                     "the window rule (docs/physics.md §4) the baseline's window was 64×64 and its images were 2.6 % off "
+                     "a 6× wider window: the periodic copies' defocused discs ended 9 µm beyond the image, inside the "
+                     "diffraction tails of the pupil's soft edge (they decay over λ/(2·0.03·NA) = 20 µm).")
+    if "deep_sources" in by and by["deep_sources"]["window_error"] == by["deep_sources"]["window_error"]:
+        lines.append(f"- deep_sources: nothing to warn about. The 384×384 window holds the sources' light "
+                     f"(window error {by['deep_sources']['window_error']:.1e} with the Δn 0.02 bead, 1.2e-3 on a "
+                     "homogeneous medium) and float32 costs only the error above; a strongly scattering sample "
+                     "converges more slowly with the window (Δn 0.1 bead: 1.4 % at 384², 0.6 % at 480², 0.15 % at 768²), "
+                     "within the shot noise of a 2000-photon image.")
     lines += [
         "- No hard case emits an FDTWarning except fine_pixel (evanescent band). Edge/outside sources, 300 µm depth, "
         "64 slices, an in-volume focal plane and Δn 0.1 are all silent: the planner sizes the window instead.",
@@ -242,6 +277,16 @@ def markdown(results: list[dict]) -> str:
         "sources the source fit rejects the same data with FDTInputError (\"1 of 4 images are blank\"): inconsistent "
         "but finite.",
     ]
+    if obliquity:
+        lines += ["", "## Obliquity of the thin screen (`python benchmarks/obliquity.py`, docs/physics.md §6)", "",
+                  "A uniform slab (Δn 0.02, T 8 µm) filling the window; the screens give every plane-wave component "
+                  "2π·T·Δn/λ, the exact slab 2π·T·(sqrt((n_b+Δn)²/λ² − f²) − sqrt(n_b²/λ² − f²)). Image: a source 20 µm "
+                  "below, the whole defocused disc, relative L2 after a least-squares gain.", "",
+                  "| NA | phase error at the edge ray (any slice count) | image error | after refitting the depth | "
+                  "with per-source 1/cos θ screens |", "|---|---|---|---|---|"]
+        for r in obliquity:
+            lines.append(f"| {r['na']:g} | {100 * r['error']:.1f} % | {100 * r['model']:.2f} % | "
+                         f"{100 * r['model_refit']:.2f} % ({r['refit_depth_shift_um']:+.2f} µm) | {100 * r['ray_secant']:.2f} % |")
     lines += ["", "Full warning texts:", ""]
     for r in results:
         for w in r["warnings"]:
@@ -253,15 +298,27 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", default=str(ROOT / "docs" / "hard_cases.md"))
     ap.add_argument("--no-reconstruct", action="store_true")
+    ap.add_argument("--no-obliquity", action="store_true", help="skip the obliquity table (about 30 s)")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     results = []
     for case in CASES:
-        r = run_case(case, reconstruct=not args.no_reconstruct)
+        r = run_case(case, reconstruct=not args.no_reconstruct, window_check=True)
         print(f"{r['name']:22s} window {r['window']} finite {r['finite']} f32/f64 {r['f32_vs_f64']:.2e} "
               f"grad {r['grad_finite']} {r['seconds']:.2f}s warn {len(r['warnings'])} recon: {r['recon']}", flush=True)
         results.append(r)
-    Path(args.out).write_text(markdown(results), encoding="utf-8")
+    obliquity = []
+    if not args.no_obliquity:
+        import importlib.util
+
+        spec = importlib.util.spec_from_file_location("_fdt_obliquity", Path(__file__).with_name("obliquity.py"))
+        ob = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(ob)
+        for na in (0.45, 0.8):
+            r = {**ob.measure_plane_wave(na, 8, 0.02), **ob.measure_image(na, 8, 0.02)}
+            print(f"obliquity NA {na}: phase error {r['error']:.3f}, image {r['model']:.4f}", flush=True)
+            obliquity.append(r)
+    Path(args.out).write_text(markdown(results, obliquity), encoding="utf-8")
     print(f"wrote {args.out}")
     return 0
 

@@ -72,6 +72,13 @@ def shot(viewer, name: str, width: int, canvas_only: bool = True, crop: bool = F
     viewer.scale_bar.visible = True
 
 
+def wait_tasks(widget, timeout_s: float = 120.0) -> None:
+    """Until the widget's background actions (previews, comparison) have shown their result."""
+    deadline = time.perf_counter() + timeout_s
+    while not widget.tasks.idle and time.perf_counter() < deadline:
+        pump(0.1)
+
+
 def view_3d(viewer, angles, center, zoom) -> None:
     cam = viewer.camera
     cam.angles = angles
@@ -99,6 +106,7 @@ def main() -> int:
     acq_w.preview_masks()
     acq_w.image_index.value = 27
     acq_w.preview_image()
+    wait_tasks(acq_w)
     pump(0.5)
     grab(acq_w, "acquisition_widget.png")
     viewer.layers.selection = {acq_layer}
@@ -147,6 +155,7 @@ def main() -> int:
 
     # Predicted versus measured image 27
     rec_w.show_comparison(27)
+    wait_tasks(rec_w)
     for layer in viewer.layers:
         layer.visible = layer.name.endswith("predicted | measured")
     viewer.reset_view()

@@ -65,19 +65,25 @@ def _is_235_smooth(n: int) -> bool:
 
 
 def window_size(n: int, dx: float, p: float, a: float, depth_max: float, thickness: float,
-                tan_hi: float) -> int:
+                tan_hi: float, pupil_reach: float = 0.0) -> int:
     """Window pixels along one axis (physics.md §4, "The window").
 
     ``need = max(n·dx + 2p, (n//2)·dx + dx + p + a + (d_max + T)·tan_hi)``, then the smallest
-    even 2-3-5-smooth integer ≥ ``max(n + 2, ceil(need/dx − 1e-9))``.
+    even 2-3-5-smooth integer ≥ ``max(n + 2, ceil(need/dx − 1e-9))``; then, for the pupil's tails, the
+    smallest such integer ≥ that and ≥ ``ceil(((n//2)·dx + dx + a + pupil_reach)/dx − 1e-9)``.
     """
     need = max(n * dx + 2.0 * p,
                (n // 2) * dx + dx + p + a + (depth_max + thickness) * tan_hi)
-    m = max(n + 2, int(math.ceil(need / dx - 1e-9)))
-    while m % 2 or not _is_235_smooth(m):
-        m += 1
+    m = _fast_even(max(n + 2, int(math.ceil(need / dx - 1e-9))))
     if m > 16384:
         raise ValueError(f"window of {m} pixels is wider than 16384")
+    tail = (n // 2) * dx + dx + a + pupil_reach
+    return min(16384, _fast_even(max(m, int(math.ceil(tail / dx - 1e-9)))))
+
+
+def _fast_even(m: int) -> int:
+    while m % 2 or not _is_235_smooth(m):
+        m += 1
     return m
 
 
@@ -90,6 +96,7 @@ def plan_window(optics: dict, shape: tuple[int, int], sources_um: np.ndarray) ->
     dx = float(optics["pixel_size_um"])
     n_b = float(optics["n_background"])
     na = float(optics["na"])
+    lam = float(optics["wavelength_um"])
     T = int(optics["n_slices"]) * float(optics["slice_spacing_um"])
     s_lo, s_hi = _sines(na, n_b)
     tan_lo = s_lo / math.sqrt(1.0 - s_lo ** 2)
@@ -99,8 +106,12 @@ def plan_window(optics: dict, shape: tuple[int, int], sources_um: np.ndarray) ->
     a_x = float(np.max(np.abs(src[:, 0])))
     a_y = float(np.max(np.abs(src[:, 1])))
     d_max = float(np.max(src[:, 2]))
-    Hp = window_size(H, dx, p, a_y, d_max, T, tan_hi)
-    Wp = window_size(W, dx, p, a_x, d_max, T, tan_hi)
+    # physics.md §4: the periodic copies' defocused discs at the focal plane (distance h_c from the sources)
+    # end u = λ/(2·ε·NA) beyond the image (ε the pupil's taper).
+    h_c = abs(d_max + T - float(optics.get("image_plane_um", 0.0)))
+    pupil_reach = h_c * tan_lo + lam / (2.0 * PUPIL_TAPER * na)
+    Hp = window_size(H, dx, p, a_y, d_max, T, tan_hi, pupil_reach)
+    Wp = window_size(W, dx, p, a_x, d_max, T, tan_hi, pupil_reach)
     return {"Hp": Hp, "Wp": Wp, "offset_y": Hp // 2 - H // 2, "offset_x": Wp // 2 - W // 2}
 
 

@@ -76,7 +76,7 @@ def test_deep_window_holds_the_cone(results):
 
 
 def test_reconstructions_ran(results):
-    for name in ("baseline", "deep_sources", "edge_sources", "outside_sources", "high_contrast", "thick_volume",
+    for name in ("baseline", "deep_sources", "edge_sources", "outside_sources", "high_contrast", "thick_volume", "oblique_slab",
                  "odd_nonsquare", "fine_pixel", "image_plane_inside", "single_image", "saturated", "one_zero_image"):
         assert str(results[name]["recon"]).startswith("ok"), (name, results[name]["recon"])
 

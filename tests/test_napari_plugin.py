@@ -23,7 +23,7 @@ if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.env
 from napari.layers import Image, Points  # noqa: E402
 from napari.utils.notifications import notification_manager  # noqa: E402
 
-from napari_fdt import Acquisition, Optics, simulate, source_grid, write_acquisition  # noqa: E402
+from napari_fdt import Acquisition, FDTWarning, Optics, simulate, source_grid, write_acquisition  # noqa: E402
 from napari_fdt._layers import META_ACQUISITION, META_KIND, META_REPORT  # noqa: E402
 from napari_fdt._widget_acquisition import AcquisitionWidget  # noqa: E402
 from napari_fdt._widget_reconstruction import ReconstructionWidget  # noqa: E402
@@ -79,6 +79,11 @@ def _wait_done(qtbot, widget, timeout_ms=120_000):
     qtbot.waitUntil(lambda: not widget.running and widget._worker is None, timeout=timeout_ms)
 
 
+def _wait_tasks(qtbot, widget, timeout_ms=60_000):
+    """Until the widget's background actions (fit, previews, save, comparison) have ended and shown their result."""
+    qtbot.waitUntil(lambda: widget.tasks.idle, timeout=timeout_ms)
+
+
 def test_reader_gives_scaled_layer_with_metadata(make_napari_viewer, tiny_dir) -> None:
     viewer = make_napari_viewer()
     layer = _open(viewer, tiny_dir)
@@ -109,13 +114,14 @@ def test_sample_data_loads(make_napari_viewer) -> None:
     assert np.allclose(viewer.layers["letters ground truth RI"].scale, (2.0, 0.33, 0.33))
 
 
-def test_fit_sources_adds_an_editable_points_layer(make_napari_viewer, tiny_dir) -> None:
+def test_fit_sources_adds_an_editable_points_layer(make_napari_viewer, qtbot, tiny_dir) -> None:
     viewer = make_napari_viewer()
     layer = _open(viewer, tiny_dir)
     w = _docked(viewer, AcquisitionWidget(viewer))
     assert w.layer.value is layer and w.n_slices.value == 4 and w.na.value == pytest.approx(0.8)
     w.depth_um.value = 15.0
     w.fit_button.clicked.emit()
+    _wait_tasks(qtbot, w)
     points = [lay for lay in viewer.layers if isinstance(lay, Points)]
     assert len(points) == 1 and points[0].data.shape == (9, 3)
     assert np.allclose(points[0].data[:, 0], -15.0)  # z = −depth, µm
@@ -124,9 +130,11 @@ def test_fit_sources_adds_an_editable_points_layer(make_napari_viewer, tiny_dir)
     w.masks_button.clicked.emit()
     w.image_index.value = 4
     w.preview_button.clicked.emit()
+    _wait_tasks(qtbot, w)
     kinds = {lay.metadata.get(META_KIND) for lay in viewer.layers}
     assert {"masks", "preview"} <= kinds, w.feedback.label.value
-    assert viewer.layers[-1].data.shape == (32, 66)
+    by_kind = {lay.metadata.get(META_KIND): lay for lay in viewer.layers}
+    assert by_kind["preview"].data.shape == (32, 66) and by_kind["masks"].data.shape == (9, 32, 32)
 
 
 def test_invalid_optics_show_the_core_message_and_the_widget_stays_usable(make_napari_viewer, tiny_dir, notifications) -> None:
@@ -192,9 +200,16 @@ def test_reconstruction_streams_every_stage_and_saves(make_napari_viewer, qtbot,
     vol, voxel = read_volume_tiff(out)
     assert np.allclose(vol, ri.data) and np.allclose(voxel, (2.0, 0.33, 0.33))
     assert json.loads(report.read_text())["completed_stages"] == 2
+    # the Save RI button writes in a worker thread, disabled meanwhile
+    assert w.save_result_in_background(tmp_path / "bg.ome.tif") is not None and not w.save_button.enabled
+    _wait_tasks(qtbot, w)
+    assert np.array_equal(read_volume_tiff(tmp_path / "bg.ome.tif")[0], vol) and w.save_button.enabled
+    assert json.loads((tmp_path / "bg.json").read_text())["output"] == str(tmp_path / "bg.ome.tif")
     w.show_comparison(2)
+    _wait_tasks(qtbot, w)
     assert viewer.layers[-1].metadata[META_KIND] == "comparison" and viewer.layers[-1].data.shape == (32, 66)
     w.show_coverage()
+    _wait_tasks(qtbot, w)
     cov = viewer.layers[-1]
     assert cov.metadata[META_KIND] == "coverage" and cov.data.shape == (4, 32, 32) and cov.data.max() >= 1
     # the plugin's napari writer: the volume with its voxel size, and the report
@@ -356,3 +371,229 @@ def test_widgets_dock_through_the_plugin_manifest(make_napari_viewer) -> None:
     _, rec = viewer.window.add_plugin_dock_widget(PLUGIN, "FDT reconstruction")
     assert isinstance(acq, AcquisitionWidget) and isinstance(rec, ReconstructionWidget)
     assert rec.device.choices[:2] == ("auto", "cpu")
+
+
+# -- background actions: off the GUI thread, one result, errors shown ---------------------------------------
+
+
+@pytest.fixture()
+def held_fit(monkeypatch):
+    """``initial_sources`` that waits for ``release`` before fitting, and records the thread it ran in."""
+    import threading
+
+    import napari_fdt.source_fit as source_fit
+
+    real = source_fit.initial_sources
+    state = {"release": threading.Event(), "entered": threading.Event(), "threads": [], "real": real}
+
+    def held(*args, **kwargs):
+        state["threads"].append(threading.current_thread())
+        state["entered"].set()
+        assert state["release"].wait(timeout=60.0), "the test never released the fit"
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(source_fit, "initial_sources", held)
+    return state
+
+
+def test_fit_sources_runs_in_a_worker_and_the_gui_stays_live(make_napari_viewer, qtbot, tiny_dir, tiny_sim, held_fit,
+                                                             notifications) -> None:
+    import threading
+
+    from qtpy.QtCore import QTimer
+
+    viewer = make_napari_viewer()
+    _open(viewer, tiny_dir)
+    w = _docked(viewer, AcquisitionWidget(viewer))
+    w.depth_um.value = 15.0
+    worker = w.fit_sources()
+    # the call came back while the fit is held in its thread: the button is off, no result yet
+    assert worker is not None and held_fit["entered"].wait(10.0)
+    assert held_fit["threads"][0] is not threading.main_thread()
+    assert not w.fit_button.enabled and w.tasks.is_running("fit sources")
+    assert not any(isinstance(lay, Points) for lay in viewer.layers)
+    assert "fitting the sources" in w.feedback.label.value
+    # the GUI thread's event loop runs a timer while the fit is still held
+    ticks = []
+    timer = QTimer()
+    timer.setInterval(10)
+    timer.timeout.connect(lambda: ticks.append(w.tasks.is_running("fit sources")))
+    timer.start()
+    qtbot.waitUntil(lambda: len(ticks) >= 5, timeout=10_000)
+    timer.stop()
+    assert all(ticks)  # every tick came during the fit
+    # a second press while it runs starts nothing
+    assert w.fit_sources() is None
+    held_fit["release"].set()
+    _wait_tasks(qtbot, w)
+    assert w.fit_button.enabled and w.feedback.last_error is None, w.feedback.label.value
+    points = [lay for lay in viewer.layers if isinstance(lay, Points)]
+    assert len(points) == 1 and points[0].data.shape == (9, 3)
+    # the layer holds the fit of these images, as the core computes it in the GUI thread: points (z, y, x) = (−depth, y, x)
+    # the fit's warning, raised in the worker thread, reached the user
+    assert any("their x, y are unreliable" in m for m in notifications), notifications
+    with pytest.warns(FDTWarning, match="unreliable"):
+        expected, _ = held_fit["real"](tiny_sim.acquisition, depth_um=15.0, device="cpu")
+    assert np.allclose(points[0].data, expected[:, [2, 1, 0]] * (-1, 1, 1), atol=1e-9)
+
+
+def test_an_error_in_a_background_fit_is_shown_and_the_widget_stays_usable(make_napari_viewer, qtbot, tiny_dir, tiny_sim,
+                                                                           notifications) -> None:
+    from napari_fdt._layers import acquisition_layer
+
+    viewer = make_napari_viewer()
+    good = _open(viewer, tiny_dir)
+    blank = Acquisition(images=np.zeros_like(tiny_sim.acquisition.images), optics=tiny_sim.acquisition.optics)
+    data, kwargs, _ = acquisition_layer(blank, name="blank")
+    viewer.add_image(data, **kwargs)
+    w = _docked(viewer, AcquisitionWidget(viewer))
+    w.layer.value = viewer.layers["blank"]
+    w.depth_um.value = 15.0
+    assert w.fit_sources() is not None  # the inputs are fine; the fit itself refuses blank images
+    _wait_tasks(qtbot, w)
+    assert w.feedback.last_error.startswith("images: 9 of 9 images are blank"), w.feedback.label.value
+    assert any("images: 9 of 9 images are blank" in m for m in notifications)
+    assert w.fit_button.enabled and not any(isinstance(lay, Points) for lay in viewer.layers)
+    # still usable: the same button on the good acquisition gives its sources
+    w.layer.value = good
+    w.fit_sources()
+    _wait_tasks(qtbot, w)
+    assert w.feedback.last_error is None, w.feedback.label.value
+    assert [lay.data.shape for lay in viewer.layers if isinstance(lay, Points)] == [(9, 3)]
+
+
+def test_a_bug_in_a_preview_is_reported_with_its_type(make_napari_viewer, qtbot, tiny_dir, monkeypatch, notifications) -> None:
+    import napari_fdt._widget_acquisition as wa
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("simulated failure")
+
+    monkeypatch.setattr(wa, "mask_stack", broken)
+    viewer = make_napari_viewer()
+    _open(viewer, tiny_dir)
+    w = _docked(viewer, AcquisitionWidget(viewer))
+    w.sources_from_file()
+    w.preview_masks()
+    _wait_tasks(qtbot, w)
+    assert w.feedback.last_error == "RuntimeError: simulated failure"
+    assert any("simulated failure" in m for m in notifications)
+    assert w.masks_button.enabled
+    # the other previews still work
+    w.preview_image()
+    _wait_tasks(qtbot, w)
+    assert w.feedback.last_error is None and viewer.layers[-1].metadata[META_KIND] == "preview"
+
+
+def test_closing_the_viewer_stops_background_actions(make_napari_viewer, qtbot, tiny_dir, held_fit, monkeypatch) -> None:
+    import threading
+
+    import napari_fdt._widget_acquisition as wa
+
+    shown = []
+    monkeypatch.setattr(wa, "set_sources", lambda *a, **k: shown.append(a))
+    viewer = make_napari_viewer()
+    _open(viewer, tiny_dir)
+    w = _docked(viewer, AcquisitionWidget(viewer))
+    w.depth_um.value = 15.0
+    w.fit_sources()
+    assert held_fit["entered"].wait(10.0)
+    task = w.tasks._tasks["fit sources"]
+    threading.Timer(0.3, held_fit["release"].set).start()  # the fit can end only after close asked it to stop
+    viewer.close()
+    assert task.done.is_set()  # close waited for the thread
+    qtbot.waitUntil(lambda: not task.worker.is_running, timeout=5000)
+    qtbot.wait(50)
+    assert shown == []  # its result was dropped, not added to a closed viewer
+
+
+# -- corrupted input through napari: the core's message, and the plugin stays usable ------------------------
+
+
+def _corrupt(folder, kind: str) -> str:
+    """Corrupt an acquisition folder in place; returns the start of the message the core gives."""
+    meta = json.loads((folder / "acquisition.json").read_text())
+    if kind == "na":
+        meta["na"] = 1.4
+        (folder / "acquisition.json").write_text(json.dumps(meta))
+        return "na: numerical aperture 1.4 is not below n_background 1.33"
+    if kind == "sources":
+        meta["sources_um"] = meta["sources_um"][:-1]
+        (folder / "acquisition.json").write_text(json.dumps(meta))
+        return "sources_um: holds 8 source positions but there are 9 images"
+    if kind == "json":
+        (folder / "acquisition.json").write_text(json.dumps(meta)[:-3])
+        return "acquisition.json: is not valid JSON"
+    raw = (folder / "images.tif").read_bytes()
+    if kind == "truncated":
+        (folder / "images.tif").write_bytes(raw[: len(raw) // 2])
+        return "images: images.tif is not a readable TIFF"
+    if kind == "png":
+        (folder / "images.tif").write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(64))
+        return "images: images.tif is not a readable TIFF: not a TIFF file"
+    import tifffile
+
+    images = tifffile.imread(folder / "images.tif").astype(np.float32)
+    images[3, 5, 7] = np.nan
+    tifffile.imwrite(folder / "images.tif", images)
+    return "images: 1 non-finite pixels (NaN or Inf), first at image 3, row 5, col 7"
+
+
+@pytest.mark.parametrize("kind", ["na", "sources", "json", "truncated", "png", "nan"])
+def test_a_corrupted_acquisition_shows_the_core_message_and_napari_goes_on(make_napari_viewer, tiny_sim, tmp_path,
+                                                                          kind) -> None:
+    bad = write_acquisition(tiny_sim.acquisition, tmp_path / "bad")
+    expected = _corrupt(bad, kind)
+    viewer = make_napari_viewer()
+    a = _docked(viewer, AcquisitionWidget(viewer))
+    with pytest.raises(Exception) as exc:
+        viewer.open(str(bad), plugin=PLUGIN)
+    assert expected in str(exc.value) and "Traceback" not in str(exc.value)
+    assert len(viewer.layers) == 0 and a.layer.value is None
+    # still usable: a good acquisition opens, the widget takes it and acts on it
+    good = write_acquisition(tiny_sim.acquisition, tmp_path / "good")
+    layer = _open(viewer, good)
+    assert a.layer.value is layer
+    a.sources_from_file()
+    assert a.feedback.last_error is None
+    assert [lay.data.shape for lay in viewer.layers if isinstance(lay, Points)] == [(9, 3)]
+
+
+def test_any_optics_typed_into_the_widget_is_applied_or_explained(make_napari_viewer, tiny_dir) -> None:
+    """A small hypothesis run over the optics fields (including 0, negative and NA ≥ n_b): each value set is applied
+    (and stored on the layer as typed) or refused with a message naming one field; valid optics apply afterwards."""
+    from hypothesis import HealthCheck, given, settings
+    from hypothesis import strategies as st
+
+    from napari_fdt.optics import OPTICS_FIELDS
+
+    viewer = make_napari_viewer()
+    layer = _open(viewer, tiny_dir)
+    w = _docked(viewer, AcquisitionWidget(viewer))
+    good = {name: getattr(w, name).value for name in OPTICS_FIELDS}
+
+    values = st.fixed_dictionaries({
+        "wavelength_um": st.sampled_from([0.0, 0.3, 0.635, 50.0]), "n_background": st.sampled_from([0.0, 0.5, 1.0, 1.33, 3.0]),
+        "na": st.sampled_from([0.0, 0.5, 0.8, 1.33, 2.0]), "pixel_size_um": st.sampled_from([0.0, 0.01, 0.33, 5.0]),
+        "n_slices": st.sampled_from([0, 1, 4, 300]), "slice_spacing_um": st.sampled_from([0.0, 0.05, 2.0]),
+        "image_plane_um": st.sampled_from([-1e4, 0.0, 3.0]),
+    })
+
+    @settings(max_examples=15, deadline=None, suppress_health_check=list(HealthCheck), database=None)
+    @given(values)
+    def check(typed: dict) -> None:
+        for name, value in typed.items():
+            getattr(w, name).value = value
+        w.apply_optics()
+        if w.feedback.last_error is None:
+            applied = layer.metadata[META_ACQUISITION].optics.to_dict()
+            assert all(applied[k] == pytest.approx(v) for k, v in typed.items())
+        else:
+            field = w.feedback.last_error.split(":")[0]
+            assert field in OPTICS_FIELDS, w.feedback.last_error
+            assert w.feedback.label.value.startswith(f"error: {field}: ")
+        for name, value in good.items():
+            getattr(w, name).value = value
+        w.apply_optics()
+        assert w.feedback.last_error is None, w.feedback.label.value
+
+    check()

@@ -77,13 +77,12 @@ def read_tiff_layers(path: str | list[str]) -> list[LayerDataTuple]:
     """A TIFF → an RI volume layer (napari-fdt OME-TIFF) or a stack layer that needs optics."""
     import tifffile
 
-    from .acquisition import check_image_layout
-    from .io import read_volume_tiff
+    from .io import _quiet_tifffile, read_image_stack, read_volume_tiff
 
     p = Path(_single(path))
     report = _report_beside(p)
     try:
-        with tifffile.TiffFile(p) as tif:
+        with _quiet_tifffile(), tifffile.TiffFile(p) as tif:
             ome_z = tif.is_ome and "PhysicalSizeZ" in (tif.ome_metadata or "")
     except Exception as exc:  # tifffile raises many kinds on corrupt files
         raise FDTInputError("images", f"{p.name} is not a readable TIFF: {exc}", "re-export it as a grayscale TIFF stack") from exc
@@ -99,9 +98,7 @@ def read_tiff_layers(path: str | list[str]) -> list[LayerDataTuple]:
             h, w = volume.shape[1:]
             kwargs.update(scale=(dz, dy, dx), translate=(0.5 * dz, -(h // 2) * dy, -(w // 2) * dx))
         return [(volume, kwargs, "image")]
-    images = tifffile.imread(p)
-    check_image_layout(images.shape, images.dtype)
-    images = np.asarray(images)
+    images = read_image_stack(p, p.name)  # layout, pixel type and memory checked from the header first
     if images.ndim == 2:
         images = images[None]
     if images.dtype.kind == "f" and not np.isfinite(images).all():

@@ -10,6 +10,10 @@
 * **Preview masks**: the solver's coherence masks of every source, as an image stack layer.
 * **Forward preview**: one image as the forward model predicts it for the current optics, sources and
   RI (this acquisition's RI layer if there is one, else the homogeneous medium), beside the measured one.
+
+The fit and the two previews compute in worker threads (:class:`~napari_fdt._widget_common.BackgroundTasks`):
+the GUI thread only checks the inputs and, when the result comes back, adds the layer. Each action's button
+is disabled while it runs; each method returns the worker (None when the inputs were refused).
 """
 
 from __future__ import annotations
@@ -19,14 +23,14 @@ from typing import TYPE_CHECKING
 import numpy as np
 from magicgui.widgets import ComboBox, Container, FloatSpinBox, Label, PushButton, SpinBox
 
-from ._compute import forward_preview, mask_stack
+from ._compute import check_index, forward_preview, mask_stack
 from ._layers import (
     META_ACQUISITION, META_ID, META_KIND, META_NEEDS_OPTICS, META_OWNER, UNITS, lateral_translate, side_by_side,
     stack_scale, stack_translate,
 )
 from ._widget_common import (
-    Feedback, acquisition_layer_choices, find_layer, follow_layers, no_layer, put_layer, refresh_layer_choice,
-    set_sources, sources_for,
+    BackgroundTasks, Feedback, acquisition_layer_choices, find_layer, follow_layers, no_layer, put_layer,
+    refresh_layer_choice, set_sources, sources_for,
 )
 from .acquisition import Acquisition
 from .optics import OPTICS_FIELDS, Optics
@@ -74,6 +78,7 @@ class AcquisitionWidget(Container):
             self.preview_button, self.feedback.label,
         ])
         self._set_optics_fields(DEFAULT_OPTICS)
+        self.tasks = BackgroundTasks(napari_viewer, self.feedback, self.native)
         self._shown = None
         self.layer.changed.connect(self._on_layer_changed)
         self.apply_button.changed.connect(self.apply_optics)
@@ -142,18 +147,34 @@ class AcquisitionWidget(Container):
             self.feedback.info(f"optics applied to {layer.name}: volume {o.n_slices} × {o.slice_spacing_um:g} µm, "
                                f"pixel {o.pixel_size_um:g} µm")
 
-    def fit_sources(self) -> None:
-        """2-D Gaussian fit of every image → the sources points layer."""
+    def fit_sources(self):
+        """2-D Gaussian fit of every image (in a worker thread) → the sources points layer."""
         from .source_fit import initial_sources
 
+        job = None
         with self.feedback.guard():
             layer, acq = self.current_acquisition()
             depth = self.depth_um.value or None
-            sources, report = initial_sources(acq, depth_um=depth, device="cpu")
+            job = lambda: initial_sources(acq, depth_um=depth, device="cpu")  # noqa: E731
+
+        def show(result) -> None:
+            sources, report = result
+            self._check_still_open(layer)
             set_sources(self._viewer, layer, sources)
             reliable = int(np.sum(report["lateral_reliable"]))
             self.feedback.info(f"fitted {len(sources)} sources ({reliable} reliable), depth "
                                f"{np.median(sources[:, 2]):.1f} µm ({report['depth_source']}); edit the points to correct them")
+
+        if job is None:
+            return None
+        return self.tasks.start("fit sources", job, show, buttons=(self.fit_button,),
+                                message=f"fitting the sources of {layer.name}…")
+
+    def _check_still_open(self, layer) -> None:
+        if layer not in self._viewer.layers:
+            from .errors import FDTInputError
+
+            raise FDTInputError("layer", f"{layer.name} was closed while the result was computed", "open it again")
 
     def sources_from_file(self) -> None:
         """The acquisition's own ``sources_um`` → the sources points layer."""
@@ -166,12 +187,17 @@ class AcquisitionWidget(Container):
             set_sources(self._viewer, layer, acq.sources_um)
             self.feedback.info(f"{len(acq.sources_um)} sources from the file")
 
-    def preview_masks(self) -> None:
-        """The coherence masks of all sources → an image stack layer."""
+    def preview_masks(self):
+        """The coherence masks of all sources (in a worker thread) → an image stack layer."""
+        job = None
         with self.feedback.guard():
             layer, acq = self.current_acquisition()
             sources = sources_for(self._viewer, layer, acq)
-            masks = mask_stack(acq, sources, threshold=self.mask_threshold.value)
+            threshold = float(self.mask_threshold.value)
+            job = lambda: mask_stack(acq, sources, threshold=threshold)  # noqa: E731
+
+        def show(masks: np.ndarray) -> None:
+            self._check_still_open(layer)
             o = acq.optics
             put_layer(self._viewer, (masks, dict(
                 name=f"{layer.name} masks", scale=stack_scale(o.pixel_size_um),
@@ -180,20 +206,36 @@ class AcquisitionWidget(Container):
                 metadata={META_KIND: "masks", META_OWNER: layer.metadata[META_ID]}), "image"))
             self.feedback.info(f"masks of {len(masks)} sources: {100 * masks.mean():.0f} % of the pixels on average")
 
-    def preview_image(self) -> None:
-        """Predicted and measured image ``image`` side by side (a 2-D layer)."""
+        if job is None:
+            return None
+        return self.tasks.start("preview masks", job, show, buttons=(self.masks_button,),
+                                message=f"computing the masks of {layer.name}…")
+
+    def preview_image(self):
+        """Predicted and measured image ``image`` side by side (computed in a worker thread; a 2-D layer)."""
+        job = None
         with self.feedback.guard():
             layer, acq = self.current_acquisition()
             sources = sources_for(self._viewer, layer, acq)
             ri_layer = find_layer(self._viewer, layer.metadata[META_ID], "ri")
-            delta_n = None if ri_layer is None else np.asarray(ri_layer.data, dtype=np.float32) - np.float32(acq.optics.n_background)
-            index = int(self.image_index.value)
-            pred, meas, _ = forward_preview(acq, sources, index, delta_n)
+            # a copy: the RI layer may change (a running reconstruction) while the worker reads it
+            delta_n = None if ri_layer is None else np.array(ri_layer.data, dtype=np.float32) - np.float32(acq.optics.n_background)
+            index = check_index(self.image_index.value, acq.n_images)
+            medium = "homogeneous medium" if ri_layer is None else ri_layer.name
+            job = lambda: forward_preview(acq, sources, index, delta_n)  # noqa: E731
+
+        def show(result) -> None:
+            pred, meas, _ = result
+            self._check_still_open(layer)
             dx = acq.optics.pixel_size_um
             put_layer(self._viewer, (side_by_side(pred, meas), dict(
                 name=f"{layer.name} preview: model | measured", scale=(dx, dx),
                 translate=lateral_translate(acq.image_shape, dx), units=UNITS[:2], colormap="gray",
                 metadata={META_KIND: "preview", META_OWNER: layer.metadata[META_ID], "fdt_image": index}), "image"))
             rel = float(np.linalg.norm(pred - meas) / max(float(np.linalg.norm(meas)), 1e-30))
-            medium = "homogeneous medium" if ri_layer is None else ri_layer.name
             self.feedback.info(f"image {index} ({medium}): relative difference {rel:.3f} after a least-squares gain")
+
+        if job is None:
+            return None
+        return self.tasks.start("forward preview", job, show, buttons=(self.preview_button,),
+                                message=f"predicting image {index} of {layer.name}…")

@@ -7,6 +7,8 @@ bar, time left and loss terms at every snapshot; the sources points layer with t
 *Cancel* takes effect at the next iteration and leaves the last complete stage. Errors appear in the
 widget and as napari notifications. Closing the viewer stops the run (it waits for the current
 iteration to finish). Settings are saved and loaded in the format of ``fdt reconstruct --config``.
+The result actions (save, predicted vs measured, coverage) compute in worker threads too
+(:class:`~napari_fdt._widget_common.BackgroundTasks`), their button disabled while they run.
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from magicgui.widgets import CheckBox, ComboBox, Container, FloatSpinBox, Label, LineEdit, ProgressBar, PushButton, SpinBox
 
-from ._compute import illumination_coverage, predicted_vs_measured
+from ._compute import check_index, illumination_coverage, predicted_vs_measured
 from ._job import JobResult, Update, reconstruction_job
 from ._layers import (
     META_ID, META_KIND, META_OWNER, META_PATH, META_REPORT, UNITS, lateral_translate, ri_layer, side_by_side,
@@ -27,8 +29,8 @@ from ._layers import (
 )
 from ._settings import format_stages, merge_config
 from ._widget_common import (
-    Feedback, acquisition_layer_choices, acquisition_of, follow_layers, put_layer, refresh_layer_choice, set_sources,
-    sources_for,
+    BackgroundTasks, CloseWatcher, Feedback, acquisition_layer_choices, acquisition_of, follow_layers, put_layer,
+    refresh_layer_choice, set_sources, sources_for, track_thread,
 )
 from .config import COHERENCE_MODELS, SolverConfig, load_config
 from .errors import FDTInputError
@@ -52,22 +54,6 @@ def device_choices() -> list[str]:
     import torch
 
     return ["auto", "cpu"] + (["cuda"] if torch.cuda.is_available() else [])
-
-
-class _CloseWatcher:
-    """Calls ``callback`` when a Qt window closes (used where napari's task-status hook is missing)."""
-
-    def __init__(self, window, callback) -> None:
-        from qtpy.QtCore import QEvent, QObject
-
-        class _Filter(QObject):
-            def eventFilter(self, obj, event):  # noqa: N802 (Qt name)
-                if event.type() == QEvent.Type.Close:
-                    callback()
-                return False
-
-        self.filter = _Filter(window)
-        window.installEventFilter(self.filter)
 
 
 class ReconstructionWidget(Container):
@@ -111,6 +97,7 @@ class ReconstructionWidget(Container):
         self.compare_button = PushButton(text="Predicted vs measured", enabled=False)
         self.coverage_button = PushButton(text="Illumination coverage")
         self.feedback = Feedback()
+        self.tasks = BackgroundTasks(napari_viewer, self.feedback, self.native, refresh=lambda: self._set_running(self.running))
         self.extend([
             self.layer, Label(value="<b>Solver</b>"), self.stages, self.coarse_model, self.batch_size,
             self.l1_l2_total, self.ssim_weight, self.tv_xy_weight, self.tv_z_weight,
@@ -216,6 +203,7 @@ class ReconstructionWidget(Container):
 
         if self.running:
             return
+        worker = None
         with self.feedback.guard():
             layer = self.layer.value
             acq = acquisition_of(layer)
@@ -255,6 +243,8 @@ class ReconstructionWidget(Container):
             self.feedback.info(f"reconstructing {layer.name} on {device}…")
             self._watch_close()
             self._t0 = time.perf_counter()
+        if worker is not None:  # started outside the guard's warning capture (see _widget_common._THREADS)
+            track_thread(worker, self._done)
             worker.start()
 
     def cancel(self) -> None:
@@ -268,8 +258,9 @@ class ReconstructionWidget(Container):
         self.cancel_button.enabled = running
         self.load_settings_button.enabled = not running
         has_result = (not running) and self._rec is not None and self._report is not None
-        self.save_button.enabled = has_result
-        self.compare_button.enabled = has_result
+        self.save_button.enabled = has_result and not self.tasks.is_running("save")
+        self.compare_button.enabled = has_result and not self.tasks.is_running("comparison")
+        self.coverage_button.enabled = not self.tasks.is_running("coverage")
 
     def _watch_close(self) -> None:
         """Stop the run when the viewer closes: napari's task status (asks before closing) or a close filter."""
@@ -280,7 +271,7 @@ class ReconstructionWidget(Container):
 
             self._task_id = register("napari-fdt", Status.BUSY, "reconstruction running", cancel_callback=self._on_viewer_closing)
         elif self._close_watcher is None:
-            self._close_watcher = _CloseWatcher(self.native.window(), self._on_viewer_closing)
+            self._close_watcher = CloseWatcher(self.native.window(), self._on_viewer_closing)
 
     def _task_status(self, status: str, text: str = "") -> None:
         window = getattr(self._viewer, "window", None)
@@ -378,11 +369,7 @@ class ReconstructionWidget(Container):
         if self._closing.is_set():
             return
         self.status.value = "failed"
-        if not isinstance(exc, FDTInputError):  # a bug, not a user error: keep the traceback in the log
-            import traceback
-
-            traceback.print_exception(type(exc), exc, exc.__traceback__)
-        self.feedback.error(str(exc) if isinstance(exc, FDTInputError) else f"{type(exc).__name__}: {exc}")
+        self.feedback.exception(exc)
 
     def _on_warning(self, args: tuple) -> None:
         """A warning raised while the worker runs: the core's (FDTWarning) are shown, others go to the log.
@@ -390,18 +377,8 @@ class ReconstructionWidget(Container):
         The worker catches every warning shown in the process while it runs (``warnings.showwarning`` is
         global), including ones from the GUI thread.
         """
-        import warnings
-
-        from .errors import FDTWarning
-
-        message, category = args[0], args[1]
-        if isinstance(category, type) and issubclass(category, FDTWarning):
-            if not self._closing.is_set():
-                self.feedback.warn(str(message))
-        else:
-            import sys
-
-            print(warnings.formatwarning(*args[:4]), file=sys.stderr, end="")
+        if not self._closing.is_set():
+            self.feedback.show_warning(args)
 
     def _on_finished(self) -> None:
         self._worker = None
@@ -428,26 +405,57 @@ class ReconstructionWidget(Container):
 
         path, _ = QFileDialog.getSaveFileName(self.native, "Save RI volume", "RI.ome.tif", "OME-TIFF (*.ome.tif *.tif)")
         if path:
-            with self.feedback.guard():
-                out, report = self.save_result(path)
-                self.feedback.info(f"wrote {out} and {report}")
+            self.save_result_in_background(path)
 
-    def show_comparison(self, index: int) -> None:
-        """Image ``index`` as the reconstruction predicts it, beside the measured one (a 2-D layer)."""
+    def save_result_in_background(self, path: str | Path):
+        """:meth:`save_result` in a worker thread (the *Save RI…* button); returns the worker, or None if refused."""
+        from .report import write_result
+
+        job = None
         with self.feedback.guard():
             rec = self._result()
-            pred, meas = predicted_vs_measured(rec, index)
+            report = {**self._report, "output": str(path)}  # this run's, even if another one starts meanwhile
+            job = lambda: write_result(rec, path, report, overwrite=True)  # noqa: E731
+
+        def show(written) -> None:
+            out, report_file = written
+            self.feedback.info(f"wrote {out} and {report_file}")
+
+        if job is None:
+            return None
+        return self.tasks.start("save", job, show, buttons=(self.save_button,), message=f"writing {path}…")
+
+    def show_comparison(self, index: int):
+        """Image ``index`` as the reconstruction predicts it, beside the measured one (computed in a worker; a 2-D layer)."""
+        job = None
+        with self.feedback.guard():
+            rec = self._result()
+            index = check_index(index, rec.acquisition.n_images)
+            acq_layer = self._acq_layer
+            job = lambda: predicted_vs_measured(rec, index)  # noqa: E731
+
+        def show(result) -> None:
+            pred, meas = result
             dx = rec.acquisition.optics.pixel_size_um
-            owner = self._acq_layer.metadata.get(META_ID)
+            owner = acq_layer.metadata.get(META_ID)
             put_layer(self._viewer, (side_by_side(pred, meas), dict(
-                name=f"{self._acq_layer.name} fit: predicted | measured", scale=(dx, dx),
+                name=f"{acq_layer.name} fit: predicted | measured", scale=(dx, dx),
                 translate=lateral_translate(rec.acquisition.image_shape, dx), units=UNITS[:2], colormap="gray",
                 metadata={META_KIND: "comparison", META_OWNER: owner, "fdt_image": int(index)}), "image"))
             rel = float(np.linalg.norm(pred - meas) / max(float(np.linalg.norm(meas)), 1e-30))
             self.feedback.info(f"image {index}: relative error {rel:.3f} (predicted left, measured right)")
 
-    def show_coverage(self) -> None:
-        """How many sources light each voxel within the pupil, as a volume layer (calibrated sources after a run)."""
+        if job is None:
+            return None
+        return self.tasks.start("comparison", job, show, buttons=(self.compare_button,),
+                                message=f"predicting image {index}…")
+
+    def show_coverage(self):
+        """How many sources light each voxel within the pupil, as a volume layer (calibrated sources after a run).
+
+        Computed in a worker thread; returns the worker, or None if refused.
+        """
+        job = None
         with self.feedback.guard():
             layer = self.layer.value
             acq = acquisition_of(layer)
@@ -455,7 +463,9 @@ class ReconstructionWidget(Container):
                 sources = self._rec.calibrated_sources().detach().cpu().double().numpy()
             else:
                 sources = sources_for(self._viewer, layer, acq)
-            cov = illumination_coverage(acq.optics, acq.image_shape, sources)
+            job = lambda: illumination_coverage(acq.optics, acq.image_shape, sources)  # noqa: E731
+
+        def show(cov: np.ndarray) -> None:
             put_layer(self._viewer, (cov, dict(
                 name=f"{layer.name} coverage", scale=volume_scale(acq.optics),
                 translate=volume_translate(acq.optics, acq.image_shape), units=UNITS, colormap="viridis",
@@ -463,3 +473,8 @@ class ReconstructionWidget(Container):
                 metadata={META_KIND: "coverage", META_OWNER: layer.metadata.get(META_ID)}), "image"))
             self.feedback.info(f"coverage: {int(cov.min())} to {int(cov.max())} sources per voxel; "
                                f"{100 * float((cov == 0).mean()):.0f} % of the voxels unlit")
+
+        if job is None:
+            return None
+        return self.tasks.start("coverage", job, show, buttons=(self.coverage_button,),
+                                message=f"counting the sources that light each voxel of {layer.name}…")

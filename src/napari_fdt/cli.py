@@ -106,6 +106,56 @@ def _optics_from_args(args: argparse.Namespace):
     )
 
 
+#: Host bytes per image pixel that ``fdt forward`` and ``fdt simulate`` hold besides the model: the images, the
+#: predictions and their float64 working copies (gain fit, residuals; noise).
+_HOST_BYTES_PER_IMAGE_PIXEL = 40
+
+
+def _check_forward_memory(plan, n_slices: int, batch: int, n_images: int, device: str, *, extra_host_bytes: int = 0,
+                          batch_fix: str | None = "lower --batch-size to {fits}", image_field: str = "images",
+                          image_fix: str = "crop or bin the images, use fewer slices, or a device with more memory") -> int:
+    """Refuse, before anything is allocated, a forward run that cannot fit; return the batch to use.
+
+    The model's peak is :func:`napari_fdt.memory.forward_bytes`; on the host the results take
+    :data:`_HOST_BYTES_PER_IMAGE_PIXEL` per image pixel (shared with the model when the device is the CPU).
+    With ``batch_fix`` None the batch is lowered to what fits instead of refusing it.
+    """
+    import torch
+
+    from .forward import resolve_device
+    from .memory import available_bytes, forward_bytes
+
+    def size(n: float) -> str:
+        return f"{n / 2.0**30:.1f} GiB" if abs(n) >= 2.0**30 else f"{n / 2.0**20:.0f} MiB"
+
+    dev = resolve_device(device)
+    h, w = plan.image_shape
+    host = _HOST_BYTES_PER_IMAGE_PIXEL * n_images * h * w + int(extra_host_bytes)
+    free_host = available_bytes(torch.device("cpu"))
+    if free_host is not None and host > 0.9 * free_host:
+        raise FDTInputError(image_field, f"{n_images} images of {h}x{w} px need about {size(host)} of memory "
+                            f"for the results; {size(free_host)} are free", image_fix)
+    free = available_bytes(dev)
+    batch = max(1, min(int(batch), n_images))
+    if free is None:
+        return batch
+    if dev.type == "cpu":
+        free -= host
+    hp, wp = plan.padded_shape
+    if forward_bytes(plan.padded_shape, n_slices, batch) <= 0.9 * free:
+        return batch
+    fits = max((b for b in range(1, batch) if forward_bytes(plan.padded_shape, n_slices, b) <= 0.9 * free), default=0)
+    if fits and batch_fix is None:
+        return fits
+    what = f"{hp}x{wp} window, {n_slices} slices; {size(max(free, 0))} are free on {dev}"
+    if fits:
+        need = forward_bytes(plan.padded_shape, n_slices, batch)
+        raise FDTInputError("batch_size", f"a batch of {batch} images needs about {size(need)} ({what})",
+                            batch_fix.format(fits=fits))
+    need = forward_bytes(plan.padded_shape, n_slices, 1)
+    raise FDTInputError(image_field, f"one image of {h}x{w} px needs about {size(need)} ({what})", image_fix)
+
+
 def _cmd_simulate(args: argparse.Namespace) -> int:
     from .io import write_acquisition, write_json_atomic, write_volume_tiff
     from .simulate import make_scene, simulate, source_grid
@@ -118,13 +168,23 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     fov = min(shape) * optics.pixel_size_um
     span = 0.8 * fov if args.span_um is None else args.span_um
     sources = source_grid(args.sources, span, args.depth_um)
+    from .grid import MAX_PADDED_SIDE, plan_for_sources
+
+    if min(shape) < 8 or max(shape) > MAX_PADDED_SIDE - 2:
+        raise FDTInputError("shape", f"{shape[0]}x{shape[1]} px is outside 8 … {MAX_PADDED_SIDE - 2} px per side",
+                            "give --shape H W within that range")
+
+    plan = plan_for_sources(optics, shape, sources, warn=False)  # simulate() plans it again, with the warnings
+    batch = _check_forward_memory(plan, optics.n_slices, 16, len(sources), args.device, batch_fix=None, image_field="shape",
+                                  extra_host_bytes=8 * optics.n_slices * shape[0] * shape[1],
+                                  image_fix="use a smaller --shape or fewer --n-slices, or a device with more memory")
     delta_n = make_scene(args.scene, shape, optics, delta_n=args.delta_n, text=args.text,
                          letter_height_px=args.letter_height_px, rng=args.seed)
     t0 = time.perf_counter()
     sim = simulate(delta_n, optics, sources, photons=args.photons, read_noise=args.read_noise,
                    brightness_spread=args.brightness_spread, jitter_xy_um=args.jitter_um, jitter_depth_um=args.jitter_um,
                    noise=not args.no_noise, seed=args.seed, device=args.device, uint16=args.uint16,
-                   bandwidth_um=args.bandwidth_um, n_wavelengths=args.n_wavelengths)
+                   bandwidth_um=args.bandwidth_um, n_wavelengths=args.n_wavelengths, batch_size=batch)
     seconds = time.perf_counter() - t0
     sim.acquisition.extra["simulated"].update(scene=args.scene, text=args.text if args.scene == "letters" else None)
     write_acquisition(sim.acquisition, out, overwrite=args.overwrite)
@@ -136,8 +196,9 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     if len(sim.settings["emission_wavelengths_um"]) > 1:
         spectral = (f"; emission FWHM {args.bandwidth_um * 1000:g} nm in {len(sim.settings['emission_wavelengths_um'])} wavelengths, "
                     f"coherence length {sim.settings['coherence_length_um']:.1f} µm")
+    lowered = f"; {batch} images at a time (memory)" if batch < min(16, len(sources)) else ""
     print(f"wrote {out}: {sim.acquisition.n_images} images of {shape[0]}x{shape[1]} px, {optics.n_slices} slices; "
-          f"window {hp}x{wp} px{spectral}; {seconds:.1f} s")
+          f"window {hp}x{wp} px{spectral}{lowered}; {seconds:.1f} s")
     return 0
 
 
@@ -179,12 +240,16 @@ def _cmd_forward(args: argparse.Namespace) -> int:
         raise FDTInputError("batch_size", f"must be >= 1, got {args.batch_size}", "use e.g. 16")
     if acq.sources_um is None:
         raise FDTInputError("sources_um", "the acquisition has no source positions", "add sources_um to acquisition.json")
+    plan = plan_for_sources(o, acq.image_shape, acq.sources_um)
+    h, w = acq.image_shape
+    _check_forward_memory(plan, o.n_slices, args.batch_size, acq.n_images, args.device,
+                          extra_host_bytes=12 * o.n_slices * h * w)  # the RI volume and its float32 copies
     ri, _ = read_volume_tiff(args.ri)
     expected = (o.n_slices, *acq.image_shape)
     if ri.shape != expected:
         raise FDTInputError("ri", f"volume shape {ri.shape} does not match the acquisition's {expected}",
                             "give a volume of (n_slices, H, W) on the acquisition's grid")
-    model = MultiSliceModel(o, plan_for_sources(o, acq.image_shape, acq.sources_um), device=args.device)
+    model = MultiSliceModel(o, plan, device=args.device)
     t0 = time.perf_counter()
     pred = render_images(model, ri.astype(np.float32) - np.float32(o.n_background), acq.sources_um, batch_size=args.batch_size)
     seconds = time.perf_counter() - t0

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import logging
 import os
 import secrets
 import shutil
@@ -39,6 +40,7 @@ __all__ = [
     "write_volume_tiff",
     "read_volume_tiff",
     "report_path",
+    "read_image_stack",
 ]
 
 PathLike = Union[str, "os.PathLike[str]"]
@@ -288,10 +290,44 @@ def _images_path(folder: Path, metadata: dict[str, Any]) -> tuple[str, Path]:
     return name, image_path
 
 
-def _read_image_stack(image_path: Path, name: str, sources: np.ndarray | None) -> np.ndarray:
-    """Pixels of the first TIFF series; shape, pixel type and source count checked before loading."""
+@contextlib.contextmanager
+def _quiet_tifffile() -> Iterator[None]:
+    """tifffile logs what it finds wrong in a file; the readers report it once, as an :class:`FDTInputError`."""
+    log = logging.getLogger("tifffile")
+    level = log.level
+    log.setLevel(logging.CRITICAL + 1)
     try:
-        with tifffile.TiffFile(image_path) as tif:
+        yield
+    finally:
+        log.setLevel(level)
+
+
+def _check_fits_in_memory(name: str, shape: tuple[int, int, int], dtype: Any) -> None:
+    """Refuse, from the TIFF's header alone, a stack that could not be held in memory (twice: read and a float copy)."""
+    import torch
+
+    from .memory import available_bytes
+
+    n, h, w = shape
+    need = 2 * n * h * w * max(np.dtype(dtype).itemsize, 4)  # the pixels, and the float32 copy every run makes
+    free = available_bytes(torch.device("cpu"))
+    if free is not None and need > 0.9 * free:
+        gib = 2.0**30
+        raise FDTInputError(
+            "images", f"{name} holds {n} images of {h} x {w} px ({np.dtype(dtype)}): about {need / gib:.1f} GiB with "
+            f"the float32 copy, and {free / gib:.1f} GiB of memory are free",
+            "crop or bin the images, or reconstruct a subset of them",
+        )
+
+
+def read_image_stack(image_path: PathLike, name: str, sources: np.ndarray | None = None) -> np.ndarray:
+    """Pixels of the first TIFF series; shape, pixel type, source count and memory checked from the header first.
+
+    Every problem is an :class:`FDTInputError` naming ``images`` (``name`` is the file name shown).
+    """
+    image_path = Path(image_path)
+    try:
+        with _quiet_tifffile(), tifffile.TiffFile(image_path) as tif:
             if not tif.series:
                 raise FDTInputError("images", f"{name} holds no images", _TIFF_FIX)
             series = tif.series[0]
@@ -299,12 +335,16 @@ def _read_image_stack(image_path: Path, name: str, sources: np.ndarray | None) -
                 raise FDTInputError(
                     "images", f"{name} holds colour (RGB) images, axes {series.axes}, shape {series.shape}", _TIFF_FIX
                 )
-            n, _, _ = check_image_layout(series.shape, series.dtype)
+            n, h, w = check_image_layout(series.shape, series.dtype)
             if sources is not None:
                 check_sources(sources, n)
+            _check_fits_in_memory(name, (n, h, w), series.dtype)
             return series.asarray()
-    except (FDTInputError, MemoryError):
+    except FDTInputError:
         raise
+    except MemoryError as exc:  # the estimate passed but the allocation did not
+        raise FDTInputError("images", f"{name}: not enough memory to read {series.shape} {series.dtype}",
+                            "crop or bin the images, or reconstruct a subset of them") from exc
     except Exception as exc:  # tifffile raises many kinds on corrupt or truncated files
         raise FDTInputError("images", f"{name} is not a readable TIFF: {exc}", _TIFF_FIX) from exc
 
@@ -329,7 +369,7 @@ def read_acquisition(path: PathLike) -> Acquisition:
     metadata = _read_json(json_path)
     optics, sources, extra = parse_metadata(metadata)
     name, image_path = _images_path(folder, metadata)
-    images = _read_image_stack(image_path, name, sources)
+    images = read_image_stack(image_path, name, sources)
     return Acquisition(images=images, optics=optics, sources_um=sources, extra=extra)
 
 
@@ -435,7 +475,7 @@ def read_volume_tiff(path: PathLike) -> tuple[np.ndarray, tuple[float, float, fl
         what = "is a folder" if p.is_dir() else "not found"
         raise FDTInputError(field_name, f"{p} {what}", "check the path of the volume TIFF")
     try:
-        with tifffile.TiffFile(p) as tif:
+        with _quiet_tifffile(), tifffile.TiffFile(p) as tif:
             if not tif.series:
                 raise FDTInputError(field_name, "holds no images", "give a (Z, Y, X) TIFF volume")
             series = tif.series[0]
@@ -455,8 +495,11 @@ def read_volume_tiff(path: PathLike) -> tuple[np.ndarray, tuple[float, float, fl
                 raise FDTInputError(field_name, f"pixel type {series.dtype} is not real", "give a float32 volume")
             raw = series.asarray().reshape(shape)
             ome = tif.ome_metadata if tif.is_ome else None
-    except (FDTInputError, MemoryError):
+    except FDTInputError:
         raise
+    except MemoryError as exc:
+        raise FDTInputError(field_name, f"not enough memory to read a volume of shape {series.shape}",
+                            "crop the volume") from exc
     except Exception as exc:  # tifffile raises many kinds on corrupt or truncated files
         raise FDTInputError(field_name, f"is not a readable TIFF: {exc}", "re-export the volume as a TIFF") from exc
     return _finite_float32_volume(raw, field_name), _ome_voxel_size(ome)

@@ -72,3 +72,27 @@ def available_bytes(device: torch.device) -> int | None:
         return int(os.sysconf("SC_AVPHYS_PAGES")) * int(os.sysconf("SC_PAGE_SIZE"))
     except (ValueError, OSError, AttributeError):
         return None
+
+
+#: Upper estimate of inference memory (``torch.no_grad``: ``fdt forward``, ``fdt simulate``), bytes per window
+#: pixel per image of a batch. Inference keeps a few complex fields per image, not one per slice: measured on CPU
+#: (``benchmarks/forward_memory.py``: peak resident growth of one ``render_images`` call, torch 2.13, complex64)
+#: 26–54 bytes per pixel per image for windows of 1024² and 2048², batches of 1–16 and 4–32 slices, all included;
+#: a least-squares fit gives 27 per pixel per image plus 4.6 per pixel per slice (the padded float32 volume). The
+#: same run varies by up to 60 % (120–217 MiB for 1024², 4 slices, batch 4: the allocator keeps or returns
+#: 32 MiB blocks), hence the margin.
+FORWARD_BYTES_PER_PIXEL_IMAGE = 56
+
+
+def forward_bytes(padded_shape: tuple[int, int], n_slices: int, batch: int) -> int:
+    """Estimated peak bytes of one batch of the multi-slice model without autograd (``fdt forward``, ``fdt simulate``).
+
+    A few complex fields per image (:data:`FORWARD_BYTES_PER_PIXEL_IMAGE` per window pixel), the contrast volume
+    padded to the window (float32, 4 bytes per pixel per slice) and the cached kernels (64 bytes per pixel, as in
+    :func:`training_bytes`). Unlike training, the cost per image does not grow with the number of slices.
+    """
+    pixels = int(padded_shape[0]) * int(padded_shape[1])
+    return FORWARD_BYTES_PER_PIXEL_IMAGE * pixels * max(1, int(batch)) + 4 * pixels * max(1, int(n_slices)) + 64 * pixels
+
+
+__all__ += ["FORWARD_BYTES_PER_PIXEL_IMAGE", "forward_bytes"]

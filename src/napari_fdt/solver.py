@@ -31,6 +31,7 @@ from .coherence import coherence_masks, emission_spectrum, spectral_images
 from .config import SolverConfig
 from .errors import FDTInputError
 from .forward import resolve_device
+from .grid import plan_for_sources
 from .losses import BatchShare, LossWeights, as_floats, total_loss
 from .stages import Stage, build_stage
 from .volume import RIVolume, upsample_to
@@ -158,6 +159,7 @@ class Reconstructor:
             raise FDTInputError("images", "are all zero (or their mean is not positive)", "check the acquisition")
         self.image_scale = mean
         _warn_about_images(acquisition)
+        plan_for_sources(o, acquisition.image_shape, src)  # FDTWarning for sampling problems, before any run
         self.images = torch.from_numpy(imgs / mean)
         self.full_shape = acquisition.image_shape
         dev, dt = self.device, self.dtype
