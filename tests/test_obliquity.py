@@ -14,6 +14,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
+
+from napari_fdt.errors import FDTInputError
 
 _PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "obliquity.py"
 _spec = importlib.util.spec_from_file_location("_fdt_obliquity_bench", _PATH)
@@ -45,3 +48,44 @@ def test_point_source_under_a_slab_and_the_per_source_correction() -> None:
     assert 0.01 < r["model"] < 0.04, r
     assert r["ray_secant"] < 0.1 * r["model"], r
     assert np.isfinite(r["secant_screen"])
+
+
+def test_the_model_offers_the_per_source_correction() -> None:
+    """MultiSliceModel(obliquity="per_source") is the measured proposal, and it reaches the solver's stages."""
+    from napari_fdt.obliquity import oblique_camera_field
+
+    o = ob.optics_for(0.66, 4)
+    src = np.array([[1.0, -0.5, ob.DEPTH]])
+    model = ob.full_window_model(o, src)
+    corrected = ob.MultiSliceModel(o, model.plan, device="cpu", dtype=torch.float64, obliquity="per_source")
+    hp, wp = model.plan.padded_shape
+    dn = 0.02 * torch.rand((4, hp, wp), generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    s = torch.tensor(src)
+    a = corrected.camera_field(dn, s)
+    b = oblique_camera_field(model, dn, s)
+    assert torch.allclose(a, b, rtol=1e-12, atol=1e-14)
+    assert not torch.allclose(a, model.camera_field(dn, s), rtol=1e-3)
+    with pytest.raises(FDTInputError):
+        ob.MultiSliceModel(o, model.plan, device="cpu", obliquity="exact")
+
+
+def test_obliquity_correction_setting_reaches_the_multislice_stages(monkeypatch) -> None:
+    import napari_fdt.solver as solver
+    from napari_fdt.config import SolverConfig, StageConfig
+    from napari_fdt.simulate import simulate, source_grid
+
+    o = ob.Optics(wavelength_um=0.6, n_background=1.33, na=0.5, pixel_size_um=0.4, n_slices=2, slice_spacing_um=2.0)
+    sim = simulate(np.zeros((2, 24, 24), np.float32), o, source_grid(2, 4.0, 12.0), device="cpu", seed=0)
+    seen = []
+    real = solver.build_stage
+
+    def spy(*a, **k):
+        stage = real(*a, **k)
+        seen.append(getattr(stage.model, "obliquity", None))
+        return stage
+
+    monkeypatch.setattr(solver, "build_stage", spy)
+    cfg = SolverConfig(stages=[StageConfig(1, 2)], batch_size=2, obliquity_correction=True)
+    for _ in solver.Reconstructor(sim.acquisition, cfg, device="cpu").run():
+        pass
+    assert seen == ["per_source"]

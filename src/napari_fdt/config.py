@@ -88,6 +88,7 @@ class SolverConfig:
     seed: int = 0
     snapshot_every: int = 10
     backward_mode: str = "auto"
+    obliquity_correction: bool = False
 
     def __post_init__(self) -> None:
         self._check_types()

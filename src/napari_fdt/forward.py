@@ -73,6 +73,11 @@ class MultiSliceModel:
         one of those three, or ``"autograd"`` (plain autograd through every operation: the reference).
     memory_budget_bytes: bytes the loop may keep in auto mode; None: 80 % of the device's free memory,
         read once per batch size.
+    obliquity: ``"none"`` (default: thin screens, phase ``2π/λ·Δz·Δn`` for light of every direction) or
+        ``"per_source"``: each source's screens scaled by ``1/cos θ`` of its ray to each voxel
+        (:func:`napari_fdt.obliquity.ray_secant`), the path oblique light really travels in a slab. Removes
+        the thin screen's obliquity error for the direct wave (2.4 % → 0.1 % image error at NA 0.66 under a
+        uniform slab; ``docs/physics.md`` §6) at the cost of a screen per image and plain autograd.
 
     Call it as ``model(delta_n, sources_um, gain)`` → images (B, H, W). The optical parameters
     ``pixel_size_um``, ``slice_spacing_um`` and ``wavelength_um`` may be overridden per call, with
@@ -89,11 +94,15 @@ class MultiSliceModel:
         dtype: torch.dtype = torch.float32,
         backward_mode: str = "auto",
         memory_budget_bytes: int | None = None,
+        obliquity: str = "none",
     ) -> None:
         if dtype not in (torch.float32, torch.float64):
             raise ValueError("dtype must be torch.float32 or torch.float64 (fp16 phases are too coarse)")
         if backward_mode not in ("auto", "autograd", *MODES):
             raise ValueError(f"backward_mode must be 'auto', 'autograd' or one of {MODES}, got {backward_mode!r}")
+        if obliquity not in ("none", "per_source"):
+            raise FDTInputError("obliquity", f"unknown correction {obliquity!r}", "use 'none' or 'per_source'")
+        self.obliquity = obliquity
         self.backward_mode = backward_mode
         self.memory_budget_bytes = memory_budget_bytes
         self._auto_modes: dict[int, str] = {}
@@ -205,7 +214,17 @@ class MultiSliceModel:
         k = self.kernels(pixel_size_um, slice_spacing_um, wavelength_um)
         dn = self.pad_volume(delta_n)
         v0 = torch.fft.ifft2(self.source_spectrum(sources_um, k))
-        if self.backward_mode == "autograd":
+        if self.obliquity == "per_source":  # a screen per image: plain autograd
+            from .obliquity import ray_secant
+
+            src = sources_um.to(self.device, self.dtype)
+            u = v0
+            for i in range(dn.shape[0]):
+                if i:
+                    u = torch.fft.ifft2(torch.fft.fft2(u) * k.slice_kernel)
+                secant = ray_secant(self, src, (i + 0.5) * k.slice_spacing_um)
+                u = u * phase_screen(dn[i] * secant, k.slice_spacing_um, k.wavelength_um)
+        elif self.backward_mode == "autograd":
             u = v0
             for i in range(dn.shape[0]):
                 if i:

@@ -1,4 +1,4 @@
-"""Obliquity of the thin phase screen: the exact slab phase, and a proposed per-source correction (not wired in).
+"""Obliquity of the thin phase screen: the exact slab phase, and a per-source correction.
 
 A thin screen gives every plane-wave component crossing a slab of thickness T and contrast Δn the same phase
 ``2π·T·Δn/λ``. The exact (reflection-free) slab phase of the component of lateral frequency f is
@@ -13,8 +13,8 @@ slab the screens commute with the propagation, and the model's phase is ``2π·T
 Point-source light crosses slice k at lateral offset ``r`` from its source at the ray angle
 ``tan θ = r/h`` (h the height above the source). :func:`oblique_camera_field` is the multi-slice model with
 each source's screens scaled by ``1/cos θ`` of that ray (first order in Δn, exact for the direct wave of a
-uniform slab up to diffraction); it is a proposal measured in ``benchmarks/obliquity.py`` and is not used by
-:class:`~napari_fdt.forward.MultiSliceModel`.
+uniform slab up to diffraction), measured in ``benchmarks/obliquity.py``; the same correction is offered by
+``MultiSliceModel(..., obliquity="per_source")`` and the solver setting ``obliquity_correction``.
 """
 
 from __future__ import annotations

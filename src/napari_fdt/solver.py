@@ -347,7 +347,8 @@ class Reconstructor:
             sc = cfg.stages[si]
             stage = build_stage(si, sc.factor, sc.iterations, o, self.images,
                                 self.calibrated_sources().detach().cpu().double().numpy(), device=self.device,
-                                coarse_model=self.coarse_model, backward_mode=cfg.backward_mode)
+                                coarse_model=self.coarse_model, backward_mode=cfg.backward_mode,
+                                obliquity="per_source" if cfg.obliquity_correction else "none")
             h, w = stage.grid_shape
             if self.volume is None:
                 self.volume = RIVolume((o.n_slices, h, w), delta_n_max=cfg.delta_n_max, activation=cfg.activation,

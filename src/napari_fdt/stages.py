@@ -150,12 +150,13 @@ def build_stage(
     offset_slack_um: float = 1.0,
     coarse_model: str = "envelope",
     backward_mode: str = "auto",
+    obliquity: str = "none",
 ) -> Stage:
     """Set up one stage for the current source estimates (the window gets some slack for calibration moves).
 
     ``coarse_model="envelope"`` uses :class:`~napari_fdt.envelope.EnvelopeModel` on the stage grid for
     factors > 1; ``"multislice"`` keeps the multi-slice model on the grid the pupil needs.
-    ``backward_mode``: see :class:`~napari_fdt.forward.MultiSliceModel`.
+    ``backward_mode``, ``obliquity``: see :class:`~napari_fdt.forward.MultiSliceModel` (multi-slice stages only).
     """
     _, big_h, big_w = images_normalised.shape
     dx = optics.pixel_size_um
@@ -171,7 +172,7 @@ def build_stage(
     g, opt, shift, plan = multislice_plan(optics, factor, (big_h, big_w), sources_um,
                                           depth_slack_um=depth_slack_um, offset_slack_um=offset_slack_um)
     h, w = plan.image_shape
-    model = MultiSliceModel(opt, plan, device=device, backward_mode=backward_mode)
+    model = MultiSliceModel(opt, plan, device=device, backward_mode=backward_mode, obliquity=obliquity)
     imgs = block_average(images_normalised[:, : h * g, : w * g], g).to(device)
     grid = (big_h // factor, big_w // factor)
     return Stage(index, factor, g, iterations, opt, model, imgs, shift, grid, plan.padded_shape)
