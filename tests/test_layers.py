@@ -172,6 +172,10 @@ def test_stage_text_and_settings() -> None:
         merge_config(SolverConfig(), {"stages": "4x10, 3x10"})
     cfg = merge_config(SolverConfig(lr_ri=0.07), {"stages": "2x3, 1x3", "seed": 5})
     assert cfg.lr_ri == 0.07 and cfg.seed == 5 and cfg.total_iterations == 6
+    # a stage's own batch size survives the widget's text (settings loaded from a file are not lost)
+    staged = [StageConfig(4, 100, 64), StageConfig(1, 5)]
+    assert format_stages(staged) == "4x100@64, 1x5"
+    assert merge_config(SolverConfig(), {"stages": format_stages(staged)}).stages == staged
 
 
 def test_job_streams_throttles_and_cancel_keeps_the_last_complete_stage(tiny) -> None:

@@ -15,17 +15,19 @@ from .errors import FDTInputError
 
 __all__ = ["format_stages", "parse_stages", "merge_config"]
 
-_STAGE = re.compile(r"^\s*(\d+)\s*[x×:*]\s*(\d+)\s*$")
-_STAGES_FIX = "write factor x iterations per stage, comma separated, e.g. 4x100, 2x100, 1x160"
+_STAGE = re.compile(r"^\s*(\d+)\s*[x×:*]\s*(\d+)\s*(?:@\s*(\d+)\s*)?$")
+_STAGES_FIX = ("write factor x iterations per stage, comma separated, e.g. 4x100, 2x100, 1x160 "
+               "(a stage's own batch size after @, e.g. 4x100@64)")
 
 
 def format_stages(stages: list[StageConfig]) -> str:
-    """``[StageConfig(4, 100), StageConfig(1, 160)]`` → ``"4x100, 1x160"``."""
-    return ", ".join(f"{s.factor}x{s.iterations}" for s in stages)
+    """``[StageConfig(4, 100, 64), StageConfig(1, 160)]`` → ``"4x100@64, 1x160"`` (``@`` a stage's own batch size)."""
+    return ", ".join(f"{s.factor}x{s.iterations}" + ("" if s.batch_size is None else f"@{s.batch_size}") for s in stages)
 
 
 def parse_stages(text: str) -> list[dict[str, int]]:
-    """``"4x100, 2x100, 1x160"`` (also ``×``, ``:`` or ``*``) → ``[{"factor": 4, "iterations": 100}, …]``."""
+    """``"4x100, 2x100, 1x160"`` (also ``×``, ``:`` or ``*``; ``4x100@64`` gives the stage batch 64) →
+    ``[{"factor": 4, "iterations": 100}, …]``."""
     parts = [p for p in str(text).split(",") if p.strip()]
     if not parts:
         raise FDTInputError("stages", "is empty", _STAGES_FIX)
@@ -34,7 +36,10 @@ def parse_stages(text: str) -> list[dict[str, int]]:
         m = _STAGE.match(part)
         if not m:
             raise FDTInputError("stages", f"cannot read {part.strip()!r}", _STAGES_FIX)
-        out.append({"factor": int(m.group(1)), "iterations": int(m.group(2))})
+        stage = {"factor": int(m.group(1)), "iterations": int(m.group(2))}
+        if m.group(3) is not None:
+            stage["batch_size"] = int(m.group(3))
+        out.append(stage)
     return out
 
 
