@@ -7,7 +7,7 @@ Run from the repository root::
 For each (window side, slices, batch) it builds a :class:`~napari_fdt.forward.MultiSliceModel` on a window of
 that size, renders ``batch`` images with :func:`napari_fdt.simulate.render_images` (``torch.no_grad``) and
 records the peak memory above what was held before the call: on CUDA ``torch.cuda.max_memory_allocated``, on
-CPU the growth of the process's peak resident set (``ru_maxrss``) in a fresh subprocess. It prints the fit
+CPU the growth of the process's peak resident set (``VmHWM``) in a fresh subprocess. It prints the fit
 ``bytes ≈ a·P·batch + b·P·n_slices`` (P = window pixels) that ``napari_fdt.memory.forward_bytes`` uses.
 """
 
@@ -52,7 +52,11 @@ def measure(side: int, n_slices: int, batch: int, device: str) -> int:
     with open("/proc/self/statm") as fh:  # resident pages now
         before = int(fh.read().split()[1]) * resource.getpagesize()
     render_images(model, dn, src, batch_size=batch)
-    return int(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024 - before)
+    # This process's own high-water mark. Not ru_maxrss: Linux carries the parent's peak RSS over fork and
+    # exec into it, so a child of a large process (pytest after the solver tests) read the parent's peak.
+    with open("/proc/self/status") as fh:
+        hwm = next(int(line.split()[1]) * 1024 for line in fh if line.startswith("VmHWM:"))
+    return int(hwm - before)
 
 
 def fit(rows: list[tuple[int, int, int, int]]) -> tuple[float, float]:

@@ -11,13 +11,14 @@ these estimates: ``docs/benchmarks.md``.
 
 from __future__ import annotations
 
-import math
 import os
 
 import torch
 
+from .slice_loop import leanest_mode, loop_bytes
+
 __all__ = ["BYTES_PER_PIXEL_SLICE_IMAGE", "GRAPH_FIELDS_PER_IMAGE", "training_bytes", "leanest_mode",
-           "grid_is_unitary", "available_bytes"]
+           "grid_is_unitary", "available_bytes", "FORWARD_BYTES_PER_PIXEL_IMAGE", "forward_bytes"]
 
 #: Upper estimate of plain-autograd memory, bytes per window pixel per slice per image (complex64).
 BYTES_PER_PIXEL_SLICE_IMAGE = 32
@@ -33,11 +34,6 @@ def grid_is_unitary(pixel_size_um: float, n_background: float, wavelength_um: fl
     return f_corner2 < (n_background / wavelength_um) ** 2 * (1.0 - 1e-9)
 
 
-def leanest_mode(unitary: bool) -> str:
-    """The backward mode that needs least memory: reversible for a unitary propagator, else checkpoint."""
-    return "reversible" if unitary else "checkpoint"
-
-
 def training_bytes(
     padded_shape: tuple[int, int],
     n_slices: int,
@@ -50,8 +46,6 @@ def training_bytes(
     ``mode`` is the slice loop's backward mode (``"stored"``, ``"reversible"``, ``"checkpoint"`` or
     ``"autograd"``); complex64 fields. Each wavelength of a spectral model keeps its own graph.
     """
-    from .slice_loop import loop_bytes
-
     pixels = int(padded_shape[0]) * int(padded_shape[1])
     n = max(1, int(n_slices))
     b = int(batch) * max(1, int(n_wavelengths))
@@ -80,9 +74,9 @@ def available_bytes(device: torch.device) -> int | None:
 #: 26–54 bytes per pixel per image for windows of 1024² and 2048², batches of 1–16 and 4–32 slices, all included;
 #: a least-squares fit gives 27 per pixel per image plus 4.6 per pixel per slice (the padded float32 volume). The
 #: same run varies by up to 60 % (120–217 MiB for 1024², 4 slices, batch 4: the allocator keeps or returns
-#: 32 MiB blocks), hence the margin. A fresh CI machine measured 391 MiB for that case, above the 304 MiB that
-#: 56 bytes per pixel per image gave; 96 leaves a margin above it (464 MiB).
-FORWARD_BYTES_PER_PIXEL_IMAGE = 96
+#: 32 MiB blocks), hence the margin. (A reading of 391 MiB on a CI machine came from the measurement: ``ru_maxrss``
+#: carries a parent process's peak into its child; ``benchmarks/forward_memory.py`` reads ``VmHWM`` now.)
+FORWARD_BYTES_PER_PIXEL_IMAGE = 56
 
 
 def forward_bytes(padded_shape: tuple[int, int], n_slices: int, batch: int) -> int:
@@ -94,6 +88,3 @@ def forward_bytes(padded_shape: tuple[int, int], n_slices: int, batch: int) -> i
     """
     pixels = int(padded_shape[0]) * int(padded_shape[1])
     return FORWARD_BYTES_PER_PIXEL_IMAGE * pixels * max(1, int(batch)) + 4 * pixels * max(1, int(n_slices)) + 64 * pixels
-
-
-__all__ += ["FORWARD_BYTES_PER_PIXEL_IMAGE", "forward_bytes"]
