@@ -98,8 +98,8 @@ def test_unitarity_and_mode_choice():
     assert loop_bytes("reversible", fb, 8, 30) == loop_bytes("reversible", fb, 960, 30)
     assert choose_mode(fb, 96, 30, True, None) == "stored"
     assert choose_mode(fb, 96, 30, True, stored) == "stored"
-    assert choose_mode(fb, 96, 30, unit, stored - 1) == "reversible"
-    assert choose_mode(fb, 96, 30, damped, stored - 1) == "checkpoint"
+    assert choose_mode(fb, 96, 30, is_unitary(unit), stored - 1) == "reversible"
+    assert choose_mode(fb, 96, 30, is_unitary(damped), stored - 1) == "checkpoint"
 
 
 @pytest.mark.parametrize("mode", ["stored", "reversible", "checkpoint", "auto"])

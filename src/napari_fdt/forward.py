@@ -16,6 +16,8 @@ import torch.nn.functional as F
 
 from .errors import FDTInputError
 from .grid import GridPlan, frequency_grid
+from .memory import available_bytes, grid_is_unitary
+from .obliquity import ray_secant
 from .optics import Optics
 from .propagation import phase_screen, propagation_kernel, pupil, screen_phase
 from .slice_loop import MODES, choose_mode, loop_forward, slice_loop
@@ -106,9 +108,7 @@ class MultiSliceModel:
         self.backward_mode = backward_mode
         self.memory_budget_bytes = memory_budget_bytes
         self._auto_modes: dict[int, str] = {}
-        from .memory import grid_is_unitary
-
-        # reversible needs |K| = 1 on the whole grid; 2 % slack in the pixel size leaves room for calibration
+        # reversible needs |K| = 1 on the whole grid (grid_is_unitary leaves room for pixel-size calibration)
         self._unitary = grid_is_unitary(optics.pixel_size_um, optics.n_background, optics.wavelength_um)
         if backward_mode == "reversible" and not self._unitary:
             raise FDTInputError(
@@ -214,22 +214,14 @@ class MultiSliceModel:
         k = self.kernels(pixel_size_um, slice_spacing_um, wavelength_um)
         dn = self.pad_volume(delta_n)
         v0 = torch.fft.ifft2(self.source_spectrum(sources_um, k))
-        if self.obliquity == "per_source":  # a screen per image: plain autograd
-            from .obliquity import ray_secant
-
+        if self.obliquity == "per_source" or self.backward_mode == "autograd":  # plain autograd
             src = sources_um.to(self.device, self.dtype)
             u = v0
             for i in range(dn.shape[0]):
                 if i:
                     u = torch.fft.ifft2(torch.fft.fft2(u) * k.slice_kernel)
-                secant = ray_secant(self, src, (i + 0.5) * k.slice_spacing_um)
-                u = u * phase_screen(dn[i] * secant, k.slice_spacing_um, k.wavelength_um)
-        elif self.backward_mode == "autograd":
-            u = v0
-            for i in range(dn.shape[0]):
-                if i:
-                    u = torch.fft.ifft2(torch.fft.fft2(u) * k.slice_kernel)
-                u = u * phase_screen(dn[i], k.slice_spacing_um, k.wavelength_um)
+                dn_i = dn[i] if self.obliquity == "none" else dn[i] * ray_secant(self, src, (i + 0.5) * k.slice_spacing_um)
+                u = u * phase_screen(dn_i, k.slice_spacing_um, k.wavelength_um)
         else:
             phi = screen_phase(dn, k.slice_spacing_um, k.wavelength_um)
             if torch.is_grad_enabled() and (v0.requires_grad or phi.requires_grad or k.slice_kernel.requires_grad):
@@ -244,8 +236,6 @@ class MultiSliceModel:
         if self.backward_mode != "auto":
             return self.backward_mode
         if batch not in self._auto_modes:
-            from .memory import available_bytes
-
             budget = self.memory_budget_bytes
             if budget is None:
                 free = available_bytes(self.device)

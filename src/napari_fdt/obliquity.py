@@ -82,19 +82,13 @@ def oblique_camera_field(model, delta_n: torch.Tensor, sources_um: torch.Tensor)
 
     Same kernels, source spectrum, pupil and crop as ``model`` (the acquisition's optics); the screen of slice k
     becomes ``exp(i·2π/λ·Δz·Δn·sec θ_i(x, y, z_k))`` with ``z_k = (k + ½)·Δz``. Cost: the screen is per image
-    (B, Hp, Wp) instead of shared. Returns (B, H, W) complex.
+    (B, Hp, Wp) instead of shared. Returns (B, H, W) complex. This is ``MultiSliceModel(...,
+    obliquity="per_source")`` for ``model``'s optics and window.
     """
-    k = model.kernels()
-    dn = model.pad_volume(delta_n)
-    src = sources_um.to(model.device, model.dtype)
-    u = torch.fft.ifft2(model.source_spectrum(src, k))
-    dz = k.slice_spacing_um
-    for i in range(dn.shape[0]):
-        if i:
-            u = torch.fft.ifft2(torch.fft.fft2(u) * k.slice_kernel)
-        u = u * phase_screen(dn[i] * ray_secant(model, src, (i + 0.5) * dz), dz, k.wavelength_um)
-    u = torch.fft.ifft2(torch.fft.fft2(u) * k.exit_kernel)
-    return model.crop(u)
+    from .forward import MultiSliceModel
+
+    corrected = MultiSliceModel(model.optics, model.plan, device=model.device, dtype=model.dtype, obliquity="per_source")
+    return corrected.camera_field(delta_n, sources_um)
 
 
 def secant_screen_camera_field(model, delta_n: torch.Tensor, sources_um: torch.Tensor) -> torch.Tensor:

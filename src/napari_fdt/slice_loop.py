@@ -31,7 +31,7 @@ import math
 
 import torch
 
-__all__ = ["slice_loop", "loop_forward", "choose_mode", "is_unitary", "loop_bytes", "MODES"]
+__all__ = ["slice_loop", "loop_forward", "choose_mode", "leanest_mode", "is_unitary", "loop_bytes", "MODES"]
 
 MODES = ("stored", "reversible", "checkpoint")
 
@@ -67,18 +67,21 @@ def loop_bytes(mode: str, field_bytes: int, n_slices: int, batch: int) -> int:
     raise ValueError(f"unknown mode {mode!r}; one of {MODES}")
 
 
-def choose_mode(field_bytes: int, n_slices: int, batch: int, unitary: bool | torch.Tensor, budget_bytes: int | None) -> str:
+def leanest_mode(unitary: bool) -> str:
+    """The backward mode that needs least memory: reversible for a unitary propagator, else checkpoint."""
+    return "reversible" if unitary else "checkpoint"
+
+
+def choose_mode(field_bytes: int, n_slices: int, batch: int, unitary: bool, budget_bytes: int | None) -> str:
     """The cheapest backward mode that fits ``budget_bytes`` (None: no limit → ``"stored"``).
 
-    ``unitary``: whether the propagator has modulus 1 everywhere (or the kernel itself, to test).
-    Order of preference: stored (least work), reversible (only for a unitary kernel), checkpoint.
-    When none fits, the one that needs least (the caller's memory check refuses the run earlier).
+    ``unitary``: whether the propagator has modulus 1 everywhere (:func:`is_unitary`). Order of
+    preference: stored (least work), then :func:`leanest_mode`; when none fits, the caller's memory check
+    has refused the run earlier.
     """
     if budget_bytes is None or loop_bytes("stored", field_bytes, n_slices, batch) <= budget_bytes:
         return "stored"
-    if unitary if isinstance(unitary, bool) else is_unitary(unitary):
-        return "reversible"
-    return "checkpoint"
+    return leanest_mode(unitary)
 
 
 # -- per-slice arithmetic (torch fallback; the Triton kernel does the same in one pass) ------------
@@ -162,7 +165,7 @@ class _SliceLoop(torch.autograd.Function):
         need_v0, need_phi, need_k = ctx.needs_input_grad[:3]
         n = phi.shape[0]
         npix = kernel.shape[-1] * kernel.shape[-2]
-        g = grad_out.clone()
+        g = grad_out.clone(memory_format=torch.contiguous_format)  # the Triton kernel needs contiguous fields
         grad_phi = torch.empty_like(phi) if need_phi else None
         grad_k = torch.zeros_like(kernel) if need_k else None
         conj_k = _scaled(kernel.conj())

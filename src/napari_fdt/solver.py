@@ -28,7 +28,7 @@ import torch
 
 from .acquisition import Acquisition
 from .coherence import coherence_masks, emission_spectrum, spectral_images
-from .config import SolverConfig
+from .config import SolverConfig, resolve_coarse_model
 from .errors import FDTInputError
 from .forward import resolve_device
 from .grid import plan_for_sources
@@ -133,8 +133,6 @@ class Reconstructor:
         self.device = resolve_device(device)
         self.dtype = torch.float32
         cfg = self.config
-        from .config import resolve_coarse_model
-
         #: the coarse stages' model after resolving "auto" for this device
         self.coarse_model = resolve_coarse_model(cfg.coarse_model, self.device.type)
         o = acquisition.optics
