@@ -30,11 +30,11 @@ import numpy as np
 import torch
 
 from napari_fdt import read_acquisition, read_volume_tiff, simulate, source_grid
-from napari_fdt.config import SolverConfig, StageConfig
-from napari_fdt.metrics import ri_metrics
-from napari_fdt.phantoms import text_phantom
-from napari_fdt.report import evaluate_images, source_errors
-from napari_fdt.solver import Reconstructor
+from napari_fdt.recon.config import SolverConfig, StageConfig
+from napari_fdt.recon.metrics import ri_metrics
+from napari_fdt.recon.report import evaluate_images, source_errors
+from napari_fdt.recon.solver import Reconstructor
+from napari_fdt.sim.phantoms import text_phantom
 
 ROOT = Path(__file__).resolve().parents[1]
 SAMPLE = ROOT / "sample_data" / "letters"

@@ -20,10 +20,9 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).parent))
-from suite import _letters_scene, run_scene  # noqa: E402
-
 from napari_fdt import resolve_device  # noqa: E402
-from napari_fdt.config import SolverConfig, StageConfig  # noqa: E402
+from napari_fdt.recon.config import SolverConfig, StageConfig  # noqa: E402
+from suite import _letters_scene, run_scene  # noqa: E402
 
 VARIANTS = {
     "default": {},

@@ -86,8 +86,8 @@ def main() -> None:
     p.add_argument("--threads", type=int, default=os.cpu_count() or 1, help="CPU threads shared among the ranks")
     args = p.parse_args()
 
-    from napari_fdt.config import SolverConfig
-    from napari_fdt.io import read_acquisition
+    from napari_fdt.data.io import read_acquisition
+    from napari_fdt.recon.config import SolverConfig
 
     cfg = SolverConfig()
     for s in cfg.stages:
@@ -122,7 +122,7 @@ def main() -> None:
     acq_name = str(acq.relative_to(ROOT)) if acq.is_relative_to(ROOT) else str(acq)
     out.write_text(json.dumps({"hardware": hw, "acquisition": acq_name, "n_images": n_images,
                                "batch_size": cfg.batch_size, "iterations_per_stage": args.iterations, "runs": results}, indent=1) + "\n")
-    print(f"| processes | backend | threads each | " + " | ".join(f"x{s['factor']} s/it" for s in base["stages"])
+    print("| processes | backend | threads each | " + " | ".join(f"x{s['factor']} s/it" for s in base["stages"])
           + " | run s | wall s | load imbalance | max ΔRI vs first | max Δsources µm |")
     print("|" + "---|" * (7 + len(base["stages"])))
     for r in results:

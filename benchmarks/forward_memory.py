@@ -4,11 +4,11 @@ Run from the repository root::
 
     python benchmarks/forward_memory.py            # CPU (one subprocess per configuration), and CUDA if present
 
-For each (window side, slices, batch) it builds a :class:`~napari_fdt.forward.MultiSliceModel` on a window of
-that size, renders ``batch`` images with :func:`napari_fdt.simulate.render_images` (``torch.no_grad``) and
+For each (window side, slices, batch) it builds a :class:`~napari_fdt.model.forward.MultiSliceModel` on a window of
+that size, renders ``batch`` images with :func:`napari_fdt.model.render.render_images` (``torch.no_grad``) and
 records the peak memory above what was held before the call: on CUDA ``torch.cuda.max_memory_allocated``, on
 CPU the growth of the process's peak resident set (``VmHWM``) in a fresh subprocess. It prints the fit
-``bytes ≈ a·P·batch + b·P·n_slices`` (P = window pixels) that ``napari_fdt.memory.forward_bytes`` uses.
+``bytes ≈ a·P·batch + b·P·n_slices`` (P = window pixels) that ``napari_fdt.model.memory.forward_bytes`` uses.
 """
 
 from __future__ import annotations
@@ -27,10 +27,10 @@ def measure(side: int, n_slices: int, batch: int, device: str) -> int:
     import numpy as np
     import torch
 
-    from napari_fdt.forward import MultiSliceModel
-    from napari_fdt.grid import GridPlan
-    from napari_fdt.optics import Optics
-    from napari_fdt.simulate import render_images
+    from napari_fdt.model.forward import MultiSliceModel
+    from napari_fdt.model.render import render_images
+    from napari_fdt.physics.grid import GridPlan
+    from napari_fdt.physics.optics import Optics
 
     warnings.simplefilter("ignore")
     torch.set_num_threads(2)

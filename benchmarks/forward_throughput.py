@@ -9,7 +9,7 @@ Writes ``benchmarks/results/forward_<device>.json`` (hardware, versions, per-sce
 a Markdown table for ``docs/benchmarks.md``. Timing only: the numbers are never asserted anywhere.
 Geometry of every scene: λ 0.6 µm, n_b 1.33, NA 0.65, pixel 0.33 µm, slices 1.5 µm apart (the paper's
 demo), sources on a grid over 50 % of the field of view, 50 µm below the volume; the window is the one
-the geometry needs (``napari_fdt.grid.plan_grid``), reported beside the image size.
+the geometry needs (``napari_fdt.physics.grid.plan_grid``), reported beside the image size.
 """
 
 from __future__ import annotations

@@ -21,10 +21,9 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).parent))
 from naive_step import naive_loop  # noqa: E402
-
 from napari_fdt import MultiSliceModel, Optics, plan_for_sources, source_grid
-from napari_fdt.grid import frequency_grid
-from napari_fdt.propagation import propagation_kernel
+from napari_fdt.physics.grid import frequency_grid
+from napari_fdt.physics.propagation import propagation_kernel
 
 FAILED = []
 
@@ -42,8 +41,7 @@ def rel(a: torch.Tensor, b: torch.Tensor) -> float:
 
 
 def check_triton(dev) -> None:
-    from napari_fdt import _triton_slice
-    from napari_fdt.slice_loop import _adjoint_screen
+    from napari_fdt.model import _triton_slice
 
     if not _triton_slice.available():
         print("skip Triton kernel: Triton not importable here")
@@ -71,7 +69,7 @@ def check_triton(dev) -> None:
 
 
 def check_modes(dev) -> None:
-    from napari_fdt.slice_loop import slice_loop
+    from napari_fdt.model.slice_loop import slice_loop
 
     for shape, dx in (((256, 256), 0.33), ((96, 130), 0.15)):
         g = torch.Generator().manual_seed(3)
@@ -107,16 +105,16 @@ def check_model(dev) -> None:
 
 
 def check_reconstruction(dev) -> None:
-    from napari_fdt.config import SolverConfig, StageConfig
-    from napari_fdt.simulate import make_scene, simulate
-    from napari_fdt.solver import Reconstructor
+    from napari_fdt.recon.config import SolverConfig, StageConfig
+    from napari_fdt.recon.solver import Reconstructor
+    from napari_fdt.sim.simulate import make_scene, simulate
 
     o = Optics(wavelength_um=0.6, n_background=1.33, na=0.65, pixel_size_um=0.33, n_slices=6, slice_spacing_um=1.5, image_plane_um=4.5)
     dn = make_scene("letters", (64, 64), o, delta_n=0.03, text="FD")
     sim = simulate(dn, o, source_grid(5, 12.0, 30.0), device="cpu", seed=1)
     # the same algorithm on both devices ("auto" picks a different coarse model on CUDA)
     cfg = SolverConfig(stages=[StageConfig(2, 20), StageConfig(1, 20)], batch_size=8, seed=3, coarse_model="envelope")
-    from napari_fdt.metrics import relative_delta_n_error
+    from napari_fdt.recon.metrics import relative_delta_n_error
 
     out = {}
     for d in ("cpu", dev):

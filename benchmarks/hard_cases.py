@@ -26,14 +26,14 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from napari_fdt.acquisition import Acquisition
-from napari_fdt.config import SolverConfig, StageConfig
+from napari_fdt.data.acquisition import Acquisition
 from napari_fdt.errors import FDTInputError, FDTWarning
-from napari_fdt.forward import MultiSliceModel
-from napari_fdt.grid import plan_for_sources
-from napari_fdt.optics import Optics
-from napari_fdt.simulate import simulate, source_grid
-from napari_fdt.solver import Reconstructor
+from napari_fdt.model.forward import MultiSliceModel
+from napari_fdt.physics.grid import plan_for_sources
+from napari_fdt.physics.optics import Optics
+from napari_fdt.recon.config import SolverConfig, StageConfig
+from napari_fdt.recon.solver import Reconstructor
+from napari_fdt.sim.simulate import simulate, source_grid
 
 ROOT = Path(__file__).resolve().parents[1]
 COMMAND = "python benchmarks/hard_cases.py"
@@ -112,7 +112,7 @@ def window_error(optics: Optics, plan, dn: np.ndarray, src: np.ndarray, factor: 
     """Relative L2 difference (float64) of the images on ``plan``'s window and on one ``factor`` times as wide."""
     import dataclasses
 
-    from napari_fdt.grid import next_fast_even
+    from napari_fdt.physics.grid import next_fast_even
 
     h, w = plan.image_shape
     hp, wp = (next_fast_even(int(factor * s)) for s in plan.padded_shape)

@@ -15,7 +15,7 @@ aside), an exact reference for any source.
 2. **Images.** A point source 20 µm below the slab; the exact camera field is the homogeneous one with
    ``exp(i·φ_exact(f))`` applied per component. Relative L2 image error of the model, of the model after
    refitting the source depth (what self-calibration could absorb: obliquity of a uniform slab acts like a focus
-   shift), and of the two proposed corrections in :mod:`napari_fdt.obliquity`.
+   shift), and of the two proposed corrections in :mod:`napari_fdt.physics.obliquity`.
 """
 
 from __future__ import annotations
@@ -28,16 +28,72 @@ import time
 import numpy as np
 import torch
 
-from napari_fdt.forward import MultiSliceModel
-from napari_fdt.grid import plan_for_sources
-from napari_fdt.obliquity import (
-    obliquity_error, oblique_camera_field, screen_phase, secant_screen_camera_field, slab_phase_exact,
-)
-from napari_fdt.optics import Optics
+from napari_fdt.model.forward import MultiSliceModel
+from napari_fdt.physics.grid import plan_for_sources
+from napari_fdt.physics.obliquity import obliquity_error, slab_phase_exact
+from napari_fdt.physics.optics import Optics
+from napari_fdt.physics.propagation import axial_frequency_offset, phase_screen, screen_phase
 
 LAM, N_B, THICKNESS, DEPTH = 0.6, 1.33, 8.0, 20.0
 NAS = (0.3, 0.45, 0.66, 0.8, 0.95)
 
+
+
+# --- Proposals measured here (not in the package) ------------------------------------------------------------------
+
+def oblique_camera_field(model, delta_n: torch.Tensor, sources_um: torch.Tensor) -> torch.Tensor:
+    """Reference for ``MultiSliceModel(..., obliquity="per_source")``, written out from docs/physics.md §6.
+
+    Same kernels, source spectrum, pupil and crop as ``model``; the screen of slice k for source i becomes
+    ``exp(i·2π/λ·Δz·Δn·sec θ_i)`` with ``tan θ_i = r/(depth_i + (k + ½)·Δz)``, r the lateral distance from source i
+    to the window pixel, sec θ capped at the band limit's angle. The secant is computed here in float64 numpy,
+    independently of :func:`napari_fdt.model.forward.ray_secant`. Returns (B, H, W) complex.
+    """
+    k = model.kernels()
+    dn = model.pad_volume(delta_n)
+    hp, wp = model.plan.padded_shape
+    dx = float(model.pixel_size_um)
+    dz = float(k.slice_spacing_um)
+    src = np.asarray(sources_um.detach().cpu(), dtype=np.float64)
+    yy, xx = np.meshgrid((np.arange(hp) - hp // 2) * dx, (np.arange(wp) - wp // 2) * dx, indexing="ij")
+    max_sine = model.plan.f_hi_per_um * model.optics.wavelength_um / model.optics.n_background
+    sec_cap = 1.0 / math.sqrt(1.0 - max_sine**2)
+    u = torch.fft.ifft2(model.source_spectrum(sources_um.to(model.device, model.dtype), k))
+    for i in range(dn.shape[0]):
+        if i:
+            u = torch.fft.ifft2(torch.fft.fft2(u) * k.slice_kernel)
+        h = src[:, 2, None, None] + (i + 0.5) * dz
+        r2 = (xx[None] - src[:, 0, None, None]) ** 2 + (yy[None] - src[:, 1, None, None]) ** 2
+        sec = np.minimum(np.sqrt(1.0 + r2 / h**2), sec_cap)
+        u = u * phase_screen(dn[i] * torch.as_tensor(sec, dtype=dn.dtype, device=dn.device), dz, k.wavelength_um)
+    u = torch.fft.ifft2(torch.fft.fft2(u) * k.exit_kernel)
+    return model.crop(u)
+
+
+def secant_screen_camera_field(model, delta_n: torch.Tensor, sources_um: torch.Tensor) -> torch.Tensor:
+    """Proposal: the multi-slice model with each screen's scattered part weighted by ``1/cos θ`` of its direction.
+
+    First-order (Born) scattering from a slab of thickness Δz carries the factor ``i·(2π/λ)·Δz·Δn / cos θ_out``,
+    θ_out the direction of the scattered plane wave (``cos θ = λ·qz/n_b``); the thin screen omits ``1/cos θ_out``.
+    Here a slice's step is ``u ← u + F⁻¹[sec(f)·F[(t − 1)·u]]`` with ``t`` the usual screen: exact to first order
+    in Δn for any object, and for a uniform slab its error falls as 1/n_slices. Cost: one more FFT pair per slice.
+    Returns (B, H, W) complex.
+    """
+    k = model.kernels()
+    dn = model.pad_volume(delta_n)
+    f2 = k.fy * k.fy + k.fx * k.fx
+    offset, propagating = axial_frequency_offset(f2, model.optics.n_background, k.wavelength_um)
+    k_b = model.optics.n_background / k.wavelength_um
+    max_sec = 1.0 / math.sqrt(1.0 - 0.98**2)
+    sec = torch.where(propagating, torch.clamp(k_b / (offset + k_b), max=max_sec), torch.zeros_like(f2))
+    u = torch.fft.ifft2(model.source_spectrum(sources_um.to(model.device, model.dtype), k))
+    for i in range(dn.shape[0]):
+        if i:
+            u = torch.fft.ifft2(torch.fft.fft2(u) * k.slice_kernel)
+        t = phase_screen(dn[i], k.slice_spacing_um, k.wavelength_um) - 1.0
+        u = u + torch.fft.ifft2(torch.fft.fft2(t * u) * sec)
+    u = torch.fft.ifft2(torch.fft.fft2(u) * k.exit_kernel)
+    return model.crop(u)
 
 def optics_for(na: float, n_slices: int, thickness: float = THICKNESS) -> Optics:
     """Pixel at 90 % of the pupil's Nyquist limit (at most 0.5 µm)."""

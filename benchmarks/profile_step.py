@@ -11,7 +11,6 @@ each stage of the solver on the demo geometry. Notes and predictions: ``docs/ben
 from __future__ import annotations
 
 import argparse
-import math
 import statistics
 import sys
 from pathlib import Path
@@ -31,7 +30,7 @@ def bench(fn, repeats=30):
 
 
 def primitives(side, n, batch):
-    from napari_fdt import _triton_slice
+    from napari_fdt.model import _triton_slice
     v0, dn, target, kernel, exit_kernel = _inputs(side, n, batch, torch.device("cuda"))
     u = v0.clone()
     gbytes = u.numel() * 8 / 1e9
@@ -79,9 +78,9 @@ def profile_solver_demo():
 
     from torch.profiler import ProfilerActivity, profile
 
-    from napari_fdt.config import SolverConfig, StageConfig
+    from napari_fdt.recon.config import SolverConfig, StageConfig
+    from napari_fdt.recon.solver import Reconstructor
     from suite import _letters_scene
-    from napari_fdt.solver import Reconstructor
 
     acq, dn = _letters_scene(512, 14, 13, 84.0, 100, torch.device("cuda"), text="UCDAVIS")
     for factor in (4, 2, 1):

@@ -7,7 +7,7 @@ Usage (repository root)::
 
 For each size, on the same random inputs in one process: the naive eager step
 (``benchmarks/naive_step.py``), the package's slice loop in each backward mode
-(``napari_fdt.slice_loop``), the same with the whole step captured in a CUDA graph, and the full
+(``napari_fdt.model.slice_loop``), the same with the whole step captured in a CUDA graph, and the full
 ``MultiSliceModel`` step on the demo geometry's planned window. Times are medians of CUDA-event
 (or host-clock on CPU) timings after warm-up; peak memory is ``torch.cuda.max_memory_allocated``
 above the inputs. Writes ``benchmarks/results/step_speed_<device>.json`` and prints a Markdown table.
@@ -26,16 +26,14 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).parent))
 from naive_step import naive_step  # noqa: E402
-
 from napari_fdt import MultiSliceModel, Optics, plan_for_sources, resolve_device, source_grid  # noqa: E402
-from napari_fdt.grid import frequency_grid  # noqa: E402
-from napari_fdt.propagation import propagation_kernel, pupil  # noqa: E402
-from napari_fdt.slice_loop import slice_loop  # noqa: E402
+from napari_fdt.model.slice_loop import slice_loop  # noqa: E402
+from napari_fdt.physics.grid import frequency_grid  # noqa: E402
+from napari_fdt.physics.propagation import propagation_kernel, pupil  # noqa: E402
 
 LAM, NB, NA, DX, DZ = 0.6, 1.33, 0.65, 0.33, 1.5
 
@@ -122,7 +120,7 @@ def bench_size(side, n_slices, batch, device, repeats, modes, graphs=True, naive
             dn.grad = None
             loss_fn(dn).backward()
         rows.append(_measure(name, fn, device, run, repeats, base))
-        del dn
+        dn = None  # frees the volume and its gradient before the next variant
         if device.type == "cuda" and graphs and name.startswith("package"):
             rows.append(_graphed(name, loss_fn, dn0, device, run, repeats))
     return {"image": [side, side], "window": [side, side], "n_slices": n_slices, "batch": batch, "rows": rows}

@@ -33,10 +33,10 @@ import numpy as np
 import torch
 
 from napari_fdt import Optics, read_acquisition, read_volume_tiff, resolve_device, source_grid
-from napari_fdt.config import SolverConfig, StageConfig
-from napari_fdt.metrics import paper_normalised_metrics, relative_delta_n_error
-from napari_fdt.simulate import make_scene, simulate
-from napari_fdt.solver import Reconstructor
+from napari_fdt.recon.config import SolverConfig, StageConfig
+from napari_fdt.recon.metrics import paper_normalised_metrics, relative_delta_n_error
+from napari_fdt.recon.solver import Reconstructor
+from napari_fdt.sim.simulate import make_scene, simulate
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -142,7 +142,7 @@ def main() -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     demo_cfg = None
     if args.demo_config is not None:
-        from napari_fdt.config import load_config
+        from napari_fdt.recon.config import load_config
         demo_cfg = load_config(args.demo_config)
     for name in args.scenes.split(","):
         t = time.perf_counter()

@@ -20,8 +20,8 @@ from PIL import Image
 from qtpy.QtGui import QImage
 from qtpy.QtWidgets import QApplication, QWidget
 
-from napari_fdt._widget_acquisition import AcquisitionWidget
-from napari_fdt._widget_reconstruction import ReconstructionWidget
+from napari_fdt.napari.widget_acquisition import AcquisitionWidget
+from napari_fdt.napari.widget_reconstruction import ReconstructionWidget
 
 OUT = Path(__file__).resolve().parent / "images"
 STAGES = "4x60, 2x60, 1x60"

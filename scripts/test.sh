@@ -4,7 +4,7 @@
 # napari needs a real X display even for a hidden viewer (QT_QPA_PLATFORM=offscreen gives no OpenGL
 # context), so the suite runs under xvfb-run with Qt's default xcb platform. Where Xvfb or the xcb
 # libraries Qt loads are missing, they are installed first with apt-get (as root, or through sudo).
-# Arguments go to pytest, e.g. `bash scripts/test.sh -k napari`. PYTHON overrides the interpreter
+# Before pytest: ruff and the import-layer contracts (lint-imports). Arguments go to pytest, e.g. `bash scripts/test.sh -k napari`. PYTHON overrides the interpreter
 # (default .venv/bin/python).
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -30,5 +30,10 @@ if [ "${#missing[@]}" -gt 0 ]; then
     "${sudo[@]}" apt-get update -qq
     "${sudo[@]}" env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends "${missing[@]}" >/dev/null
 fi
+
+# Static checks first (docs/architecture.md): lint and import order, then the layer contracts.
+BIN="$(dirname "$PYTHON")"
+"$PYTHON" -m ruff check --quiet .
+"$BIN/lint-imports" --no-cache >/dev/null || { "$BIN/lint-imports" --no-cache; exit 1; }
 
 exec xvfb-run -a -s "-screen 0 1280x1024x24" "$PYTHON" -m pytest -q "$@"

@@ -19,10 +19,10 @@ from hypothesis import HealthCheck, assume, event, given, settings
 from hypothesis import strategies as st
 
 from napari_fdt.cli import main
-from napari_fdt.config import SolverConfig, StageConfig
+from napari_fdt.data.io import read_acquisition
 from napari_fdt.errors import FDTInputError, FDTWarning
-from napari_fdt.io import read_acquisition
-from napari_fdt.optics import OPTICS_FIELDS
+from napari_fdt.physics.optics import OPTICS_FIELDS
+from napari_fdt.recon.config import SolverConfig, StageConfig
 
 # Any JSON value a user could write.
 json_values = st.recursive(
@@ -181,7 +181,7 @@ def corrupted_folders(draw):
 def _check_napari_readers(folder: Path, cli_refusal: str | None) -> None:
     """napari's reader on the folder, and on its images.tif opened as a bare stack: layers holding exactly the
     file's pixels, or the core's FDTInputError, with the message ``fdt info`` printed."""
-    from napari_fdt._reader import get_reader
+    from napari_fdt.napari.reader import get_reader
 
     for path in (folder, folder / "images.tif"):
         reader = get_reader(str(path))
@@ -263,6 +263,6 @@ def test_cli_refuses_any_corrupted_acquisition_with_one_line(tmp_path: Path, cap
     else:
         assert refusal2 is None or refusal2.startswith("error: images:"), refusal2  # e.g. blank images
         if refusal2 is None:
-            from napari_fdt.io import read_volume_tiff
+            from napari_fdt.data.io import read_volume_tiff
 
             assert np.isfinite(read_volume_tiff(out_ri)[0]).all()

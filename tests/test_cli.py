@@ -12,7 +12,7 @@ import pytest
 import tifffile
 
 from napari_fdt.cli import main
-from napari_fdt.io import read_acquisition
+from napari_fdt.data.io import read_acquisition
 
 SMALL = ["--shape", "40", "48", "--n-slices", "4", "--slice-spacing-um", "2", "--sources", "3", "--depth-um", "20"]
 

@@ -14,18 +14,19 @@ import numpy as np
 import pytest
 import torch
 
-from napari_fdt.coherence import (
+from napari_fdt.errors import FDTInputError
+from napari_fdt.model.coherence import (
     FWHM_PER_SIGMA,
     coherence_length_um,
     coherence_masks,
     emission_spectrum,
     spectral_images,
 )
-from napari_fdt.errors import FDTInputError
-from napari_fdt.forward import MultiSliceModel
-from napari_fdt.grid import plan_for_sources
-from napari_fdt.optics import Optics
-from napari_fdt.simulate import render_images, simulate
+from napari_fdt.model.forward import MultiSliceModel
+from napari_fdt.model.render import render_images
+from napari_fdt.physics.grid import plan_for_sources
+from napari_fdt.physics.optics import Optics
+from napari_fdt.sim.simulate import simulate
 
 LAM = 0.635
 N_B = 1.33

@@ -26,13 +26,13 @@ import torch
 
 import napari_fdt
 from napari_fdt import Optics, simulate, source_grid
-from napari_fdt import distributed
 from napari_fdt.cli import main
-from napari_fdt.config import SolverConfig, StageConfig
+from napari_fdt.data.io import read_volume_tiff, write_acquisition
 from napari_fdt.errors import FDTInputError
-from napari_fdt.io import read_volume_tiff, write_acquisition
-from napari_fdt.losses import BatchShare, LossWeights, total_loss
-from napari_fdt.phantoms import text_phantom
+from napari_fdt.recon import distributed
+from napari_fdt.recon.config import SolverConfig, StageConfig
+from napari_fdt.recon.losses import BatchShare, LossWeights, total_loss
+from napari_fdt.sim.phantoms import text_phantom
 
 TESTS = Path(__file__).resolve().parent
 DN_TOL = 4e-6  # absolute, on Δn
@@ -99,10 +99,10 @@ def test_backend_choice(monkeypatch) -> None:
 
 
 def test_rank_device_maps_local_rank_to_a_gpu(monkeypatch) -> None:
-    import napari_fdt.forward as forward
+    import napari_fdt.device as device_module
 
     assert distributed.rank_device("cpu", 3) == torch.device("cpu")
-    monkeypatch.setattr(forward, "resolve_device", lambda d: torch.device("cuda" if d == "auto" else d))
+    monkeypatch.setattr(device_module, "resolve_device", lambda d: torch.device("cuda" if d == "auto" else d))
     assert distributed.rank_device("auto", 3, gpu_count=4) == torch.device("cuda", 3)
     assert distributed.rank_device("cuda", 3, gpu_count=2) == torch.device("cuda", 1)  # two ranks share GPU 1
     assert distributed.rank_device("cuda:0", 3, gpu_count=4) == torch.device("cuda", 0)  # explicit: kept

@@ -5,12 +5,12 @@ from __future__ import annotations
 import pytest
 import torch
 
-from napari_fdt.envelope import EnvelopeModel
-from napari_fdt.forward import MultiSliceModel
-from napari_fdt.grid import plan_for_sources
-from napari_fdt.optics import Optics
-from napari_fdt.phantoms import bead_phantom
-from napari_fdt.simulate import source_grid
+from napari_fdt.model.envelope import EnvelopeModel
+from napari_fdt.model.forward import MultiSliceModel
+from napari_fdt.physics.grid import plan_for_sources
+from napari_fdt.physics.optics import Optics
+from napari_fdt.sim.phantoms import bead_phantom
+from napari_fdt.sim.simulate import source_grid
 
 
 @pytest.fixture(scope="module")

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 import torch
 
-from napari_fdt.forward import MultiSliceModel
-from napari_fdt.grid import plan_for_sources
-from napari_fdt.optics import Optics
+from napari_fdt.model.forward import MultiSliceModel
+from napari_fdt.physics.grid import plan_for_sources
+from napari_fdt.physics.optics import Optics
 
 
 def _tiny_model(dtype=torch.float64, device="cpu") -> tuple[MultiSliceModel, np.ndarray]:

@@ -14,11 +14,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from napari_fdt.acquisition import Acquisition
-from napari_fdt.config import SolverConfig, StageConfig
+from napari_fdt.data.acquisition import Acquisition
 from napari_fdt.errors import FDTInputError
-from napari_fdt.optics import Optics
-from napari_fdt.solver import Reconstructor
+from napari_fdt.physics.optics import Optics
+from napari_fdt.recon.config import SolverConfig, StageConfig
+from napari_fdt.recon.solver import Reconstructor
 
 _PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "hard_cases.py"
 _spec = importlib.util.spec_from_file_location("_fdt_hard_cases", _PATH)

@@ -17,17 +17,17 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from napari_fdt import io as fdt_io
-from napari_fdt.acquisition import Acquisition
-from napari_fdt.errors import FDTInputError, FDTWarning
-from napari_fdt.io import (
+from napari_fdt.data import io as fdt_io
+from napari_fdt.data.acquisition import Acquisition
+from napari_fdt.data.io import (
     read_acquisition,
     read_volume_tiff,
     write_acquisition,
     write_json_atomic,
     write_volume_tiff,
 )
-from napari_fdt.optics import Optics
+from napari_fdt.errors import FDTInputError, FDTWarning
+from napari_fdt.physics.optics import Optics
 
 REQUIRED_OPTICS = ("wavelength_um", "n_background", "na", "pixel_size_um", "n_slices", "slice_spacing_um")
 

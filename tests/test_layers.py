@@ -18,21 +18,27 @@ import pytest
 import tifffile
 
 from napari_fdt import Optics, simulate, source_grid, write_acquisition
-from napari_fdt._compute import forward_preview, illumination_coverage, mask_stack, predicted_vs_measured
-from napari_fdt._job import reconstruction_job
-from napari_fdt._layers import (
-    META_ACQUISITION, META_NEEDS_OPTICS, META_REPORT, UNITS, points_to_sources, sources_to_points, volume_scale,
+from napari_fdt.data.io import read_volume_tiff
+from napari_fdt.errors import FDTInputError
+from napari_fdt.napari.compute import forward_preview, illumination_coverage, mask_stack, predicted_vs_measured
+from napari_fdt.napari.job import reconstruction_job
+from napari_fdt.napari.layers import (
+    META_ACQUISITION,
+    META_NEEDS_OPTICS,
+    META_REPORT,
+    UNITS,
+    points_to_sources,
+    sources_to_points,
+    volume_scale,
     volume_translate,
 )
-from napari_fdt._reader import get_reader
-from napari_fdt._sample_data import BEADS_NAME, LETTERS_NAME, letters_sample, sample_dir
-from napari_fdt._settings import format_stages, merge_config, parse_stages
-from napari_fdt._writer import write_ri
-from napari_fdt.config import SolverConfig, StageConfig
-from napari_fdt.errors import FDTInputError
-from napari_fdt.io import read_volume_tiff
-from napari_fdt.phantoms import text_phantom
-from napari_fdt.solver import Reconstructor
+from napari_fdt.napari.reader import get_reader
+from napari_fdt.napari.sample_data import BEADS_NAME, LETTERS_NAME, letters_sample, sample_dir
+from napari_fdt.napari.settings import format_stages, merge_config, parse_stages
+from napari_fdt.napari.writer import write_ri
+from napari_fdt.recon.config import SolverConfig, StageConfig
+from napari_fdt.recon.solver import Reconstructor
+from napari_fdt.sim.phantoms import text_phantom
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -52,9 +58,9 @@ def tiny_dir(tiny, tmp_path) -> Path:
 def test_core_imports_no_qt_or_napari() -> None:
     """The headless core and the plugin's Qt-free modules import neither napari nor a Qt binding."""
     code = (
-        "import sys, napari_fdt, napari_fdt.solver, napari_fdt.report, napari_fdt.cli, napari_fdt._layers, "
-        "napari_fdt._compute, napari_fdt._job, napari_fdt._settings, napari_fdt._reader, napari_fdt._writer, "
-        "napari_fdt._sample_data\n"
+        "import sys, napari_fdt, napari_fdt.recon.solver, napari_fdt.recon.report, napari_fdt.cli, napari_fdt.napari.layers, "
+        "napari_fdt.napari.compute, napari_fdt.napari.job, napari_fdt.napari.settings, napari_fdt.napari.reader, napari_fdt.napari.writer, "
+        "napari_fdt.napari.sample_data\n"
         "bad = sorted(m for m in sys.modules if m.split('.')[0] in "
         "('napari', 'magicgui', 'qtpy', 'PyQt5', 'PyQt6', 'PySide2', 'PySide6', 'vispy', 'superqt'))\n"
         "print(bad); sys.exit(1 if bad else 0)"
@@ -151,7 +157,7 @@ def test_writer_and_reader_round_trip_an_ri_volume(tmp_path) -> None:
 
 
 def test_sample_data_names_and_content() -> None:
-    manifest = (ROOT / "src" / "napari_fdt" / "napari.yaml").read_text(encoding="utf-8")
+    manifest = (ROOT / "src" / "napari_fdt" / "napari" / "napari.yaml").read_text(encoding="utf-8")
     assert LETTERS_NAME in manifest and BEADS_NAME in manifest
     assert sample_dir() == ROOT / "sample_data" / "letters"
     layers = letters_sample()
@@ -252,7 +258,7 @@ def test_npe2_validate() -> None:
 
 def test_sample_ground_truth_is_not_the_reconstruction_layer() -> None:
     """A reconstruction updates the acquisition's "ri" layer; the sample's truth is a separate kind."""
-    from napari_fdt._sample_data import simulated_beads
+    from napari_fdt.napari.sample_data import simulated_beads
 
     layers = simulated_beads()
     assert [kw["metadata"]["fdt_kind"] for _, kw, _ in layers] == ["acquisition", "truth"]

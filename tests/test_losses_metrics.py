@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 import torch
 
-import napari_fdt.losses as losses
+import napari_fdt.recon.losses as losses
 from napari_fdt.errors import FDTInputError
-from napari_fdt.losses import (
+from napari_fdt.recon.losses import (
     LossWeights,
     as_floats,
     l1_l2_weights,
@@ -22,7 +22,7 @@ from napari_fdt.losses import (
     tv_xy,
     tv_z,
 )
-from napari_fdt.metrics import (
+from napari_fdt.recon.metrics import (
     image_metrics,
     paper_normalised_metrics,
     psnr,

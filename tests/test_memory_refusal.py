@@ -1,5 +1,5 @@
 """Runs too large for the memory are refused before anything is allocated: ``fdt forward``, ``fdt simulate`` and
-the acquisition reader (``napari_fdt.memory.forward_bytes``, ``benchmarks/forward_memory.py``)."""
+the acquisition reader (``napari_fdt.model.memory.forward_bytes``, ``benchmarks/forward_memory.py``)."""
 
 from __future__ import annotations
 
@@ -12,15 +12,15 @@ import numpy as np
 import pytest
 import tifffile
 
-import napari_fdt.forward as forward_module
-import napari_fdt.memory as memory
+import napari_fdt.device as device_module
+import napari_fdt.model.forward as forward_module
 from napari_fdt.cli import _HOST_BYTES_PER_IMAGE_PIXEL, main
+from napari_fdt.data.io import read_acquisition, write_acquisition, write_volume_tiff
 from napari_fdt.errors import FDTInputError
-from napari_fdt.grid import plan_for_sources
-from napari_fdt.io import read_acquisition, write_acquisition, write_volume_tiff
-from napari_fdt.memory import forward_bytes
-from napari_fdt.optics import Optics
-from napari_fdt.simulate import simulate, source_grid
+from napari_fdt.model.memory import forward_bytes
+from napari_fdt.physics.grid import plan_for_sources
+from napari_fdt.physics.optics import Optics
+from napari_fdt.sim.simulate import simulate, source_grid
 
 ROOT = Path(__file__).resolve().parents[1]
 OPTICS = Optics(wavelength_um=0.635, n_background=1.33, na=0.8, pixel_size_um=0.33, n_slices=4, slice_spacing_um=2.0)
@@ -49,7 +49,7 @@ def clean_acquisition(tmp_path):
 
 
 def _limit_memory(monkeypatch, free_bytes: int) -> None:
-    monkeypatch.setattr(memory, "available_bytes", lambda device: int(free_bytes))
+    monkeypatch.setattr(device_module, "available_bytes", lambda device: int(free_bytes))
 
 
 def _no_model(monkeypatch) -> list:

@@ -24,12 +24,12 @@ from napari.layers import Image, Points  # noqa: E402
 from napari.utils.notifications import notification_manager  # noqa: E402
 
 from napari_fdt import Acquisition, FDTWarning, Optics, simulate, source_grid, write_acquisition  # noqa: E402
-from napari_fdt._layers import META_ACQUISITION, META_KIND, META_REPORT  # noqa: E402
-from napari_fdt._widget_acquisition import AcquisitionWidget  # noqa: E402
-from napari_fdt._widget_reconstruction import ReconstructionWidget  # noqa: E402
-from napari_fdt.config import SolverConfig, load_config  # noqa: E402
-from napari_fdt.io import read_volume_tiff  # noqa: E402
-from napari_fdt.phantoms import text_phantom  # noqa: E402
+from napari_fdt.data.io import read_volume_tiff  # noqa: E402
+from napari_fdt.napari.layers import META_ACQUISITION, META_KIND, META_REPORT  # noqa: E402
+from napari_fdt.napari.widget_acquisition import AcquisitionWidget  # noqa: E402
+from napari_fdt.napari.widget_reconstruction import ReconstructionWidget  # noqa: E402
+from napari_fdt.recon.config import SolverConfig, load_config  # noqa: E402
+from napari_fdt.sim.phantoms import text_phantom  # noqa: E402
 
 PLUGIN = "napari-fdt"
 
@@ -246,7 +246,7 @@ def test_viewer_stays_responsive_during_a_run(make_napari_viewer, qtbot, tiny_di
     viewer = make_napari_viewer()
     _open(viewer, tiny_dir)
     w = _docked(viewer, ReconstructionWidget(viewer))
-    _settings(w, "2x10, 1x30")
+    _settings(w, "2x10, 1x100")
     ticks = []
     timer = QTimer()
     timer.setInterval(20)
@@ -283,7 +283,7 @@ def test_errors_during_a_run_are_shown(make_napari_viewer, qtbot, tiny_sim, noti
     viewer = make_napari_viewer()
     acq = Acquisition(images=np.zeros_like(tiny_sim.acquisition.images), optics=tiny_sim.acquisition.optics,
                       sources_um=tiny_sim.acquisition.sources_um)
-    from napari_fdt._layers import acquisition_layer
+    from napari_fdt.napari.layers import acquisition_layer
 
     data, kwargs, _ = acquisition_layer(acq, name="blank")
     viewer.add_image(data, **kwargs)
@@ -381,7 +381,7 @@ def held_fit(monkeypatch):
     """``initial_sources`` that waits for ``release`` before fitting, and records the thread it ran in."""
     import threading
 
-    import napari_fdt.source_fit as source_fit
+    import napari_fdt.recon.source_fit as source_fit
 
     real = source_fit.initial_sources
     state = {"release": threading.Event(), "entered": threading.Event(), "threads": [], "real": real}
@@ -439,7 +439,7 @@ def test_fit_sources_runs_in_a_worker_and_the_gui_stays_live(make_napari_viewer,
 
 def test_an_error_in_a_background_fit_is_shown_and_the_widget_stays_usable(make_napari_viewer, qtbot, tiny_dir, tiny_sim,
                                                                            notifications) -> None:
-    from napari_fdt._layers import acquisition_layer
+    from napari_fdt.napari.layers import acquisition_layer
 
     viewer = make_napari_viewer()
     good = _open(viewer, tiny_dir)
@@ -463,7 +463,7 @@ def test_an_error_in_a_background_fit_is_shown_and_the_widget_stays_usable(make_
 
 
 def test_a_bug_in_a_preview_is_reported_with_its_type(make_napari_viewer, qtbot, tiny_dir, monkeypatch, notifications) -> None:
-    import napari_fdt._widget_acquisition as wa
+    import napari_fdt.napari.widget_acquisition as wa
 
     def broken(*args, **kwargs):
         raise RuntimeError("simulated failure")
@@ -487,7 +487,7 @@ def test_a_bug_in_a_preview_is_reported_with_its_type(make_napari_viewer, qtbot,
 def test_closing_the_viewer_stops_background_actions(make_napari_viewer, qtbot, tiny_dir, held_fit, monkeypatch) -> None:
     import threading
 
-    import napari_fdt._widget_acquisition as wa
+    import napari_fdt.napari.widget_acquisition as wa
 
     shown = []
     monkeypatch.setattr(wa, "set_sources", lambda *a, **k: shown.append(a))
@@ -564,7 +564,7 @@ def test_any_optics_typed_into_the_widget_is_applied_or_explained(make_napari_vi
     from hypothesis import HealthCheck, given, settings
     from hypothesis import strategies as st
 
-    from napari_fdt.optics import OPTICS_FIELDS
+    from napari_fdt.physics.optics import OPTICS_FIELDS
 
     viewer = make_napari_viewer()
     layer = _open(viewer, tiny_dir)

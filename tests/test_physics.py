@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 import torch
 
-from napari_fdt.forward import MultiSliceModel
-from napari_fdt.grid import frequency_grid, plan_for_sources
-from napari_fdt.optics import Optics
-from napari_fdt.propagation import propagation_kernel, pupil
+from napari_fdt.model.forward import MultiSliceModel
+from napari_fdt.physics.grid import frequency_grid, plan_for_sources
+from napari_fdt.physics.optics import Optics
+from napari_fdt.physics.propagation import propagation_kernel, pupil
 
 
 def _optics(**kw) -> Optics:
@@ -190,6 +190,6 @@ def test_planned_window_is_large_enough() -> None:
 
 
 def next_fast_even_ge(n: int) -> int:
-    from napari_fdt.grid import next_fast_even
+    from napari_fdt.physics.grid import next_fast_even
 
     return next_fast_even(2 * n) // 2

@@ -1,4 +1,4 @@
-"""Planning-time checks of the sampling (``napari_fdt.grid.plan_grid``, ``docs/physics.md`` §4 and §7).
+"""Planning-time checks of the sampling (``napari_fdt.physics.grid.plan_grid``, ``docs/physics.md`` §4 and §7).
 
 Each warning is checked twice: that it fires (naming its field and the fix) where it should and stays silent on
 the shipped geometries, and that the problem it names is real, by measuring the image error it predicts against
@@ -15,12 +15,12 @@ import numpy as np
 import pytest
 import torch
 
-import napari_fdt.grid as grid
+import napari_fdt.physics.grid as grid
 from napari_fdt.errors import FDTWarning
-from napari_fdt.forward import MultiSliceModel
-from napari_fdt.grid import next_fast_even, plan_for_sources
-from napari_fdt.optics import Optics
-from napari_fdt.simulate import source_grid
+from napari_fdt.model.forward import MultiSliceModel
+from napari_fdt.physics.grid import next_fast_even, plan_for_sources
+from napari_fdt.physics.optics import Optics
+from napari_fdt.sim.simulate import source_grid
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -162,7 +162,7 @@ def test_undersampled_pupil_gives_one_warning() -> None:
 
 
 def test_shipped_geometries_plan_silently() -> None:
-    from napari_fdt.io import read_acquisition
+    from napari_fdt.data.io import read_acquisition
 
     acq = read_acquisition(ROOT / "sample_data" / "letters")
     o8 = Optics(wavelength_um=0.635, n_background=1.33, na=0.8, pixel_size_um=0.33, n_slices=8, slice_spacing_um=2.0)
@@ -176,10 +176,10 @@ def test_shipped_geometries_plan_silently() -> None:
 
 def test_reconstructor_warns_at_construction(capsys, tmp_path) -> None:
     """The run's sampling problems are reported when the solver is built, before it computes anything."""
-    from napari_fdt.acquisition import Acquisition
     from napari_fdt.cli import main
-    from napari_fdt.io import write_acquisition
-    from napari_fdt.solver import Reconstructor
+    from napari_fdt.data.acquisition import Acquisition
+    from napari_fdt.data.io import write_acquisition
+    from napari_fdt.recon.solver import Reconstructor
 
     optics = _optics(pixel_size_um=0.55)
     rng = np.random.default_rng(0)

@@ -9,10 +9,10 @@ import pytest
 import torch
 
 from napari_fdt import Optics
-from napari_fdt.forward import MultiSliceModel
-from napari_fdt.grid import frequency_grid, plan_for_sources
-from napari_fdt.propagation import propagation_kernel
-from napari_fdt.slice_loop import choose_mode, is_unitary, loop_bytes, slice_loop
+from napari_fdt.model.forward import MultiSliceModel
+from napari_fdt.model.slice_loop import choose_mode, is_unitary, loop_bytes, slice_loop
+from napari_fdt.physics.grid import frequency_grid, plan_for_sources
+from napari_fdt.physics.propagation import propagation_kernel
 
 
 def _reference(v0, phi, kernel):

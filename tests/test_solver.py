@@ -11,13 +11,13 @@ import tifffile
 
 from napari_fdt import Optics, simulate, source_grid
 from napari_fdt.cli import main
-from napari_fdt.config import SolverConfig, StageConfig, load_config
+from napari_fdt.data.io import read_acquisition, read_volume_tiff
 from napari_fdt.errors import FDTInputError
-from napari_fdt.io import read_acquisition, read_volume_tiff
-from napari_fdt.metrics import relative_delta_n_error
-from napari_fdt.phantoms import text_phantom
-from napari_fdt.report import source_errors
-from napari_fdt.solver import Reconstructor
+from napari_fdt.recon.config import SolverConfig, StageConfig, load_config
+from napari_fdt.recon.metrics import relative_delta_n_error
+from napari_fdt.recon.report import source_errors
+from napari_fdt.recon.solver import Reconstructor
+from napari_fdt.sim.phantoms import text_phantom
 
 SAMPLE = Path(__file__).resolve().parents[1] / "sample_data" / "letters"
 
@@ -160,7 +160,7 @@ def test_config_round_trips_through_a_file(tmp_path: Path) -> None:
 
 
 def test_cli_reconstruct_writes_volume_and_report(tiny, tmp_path: Path, capsys) -> None:
-    from napari_fdt.io import write_acquisition, write_json_atomic, write_volume_tiff
+    from napari_fdt.data.io import write_acquisition, write_json_atomic, write_volume_tiff
 
     acq_dir = tmp_path / "acq"
     write_acquisition(tiny.acquisition, acq_dir)
@@ -193,8 +193,9 @@ def test_cli_reconstruct_writes_volume_and_report(tiny, tmp_path: Path, capsys) 
 
 
 def test_a_batch_that_cannot_fit_is_refused_before_running(tiny, monkeypatch) -> None:
-    import napari_fdt.memory as memory
-    from napari_fdt.stages import multislice_plan
+    import napari_fdt.device as device_module
+    import napari_fdt.model.memory as memory
+    from napari_fdt.recon.stages import multislice_plan
 
     o = tiny.acquisition.optics
     _, opt, _, plan = multislice_plan(o, 1, tiny.acquisition.image_shape, tiny.acquisition.sources_um)
@@ -203,20 +204,20 @@ def test_a_batch_that_cannot_fit_is_refused_before_running(tiny, monkeypatch) ->
     need9 = memory.training_bytes(plan.padded_shape, o.n_slices, 9, 1, mode) + images
     need1 = memory.training_bytes(plan.padded_shape, o.n_slices, 1, 1, mode)
     assert need9 > 4 * need1
-    monkeypatch.setattr(memory, "available_bytes", lambda device: need9 // 2)  # about half of batch 9 fits
+    monkeypatch.setattr(device_module, "available_bytes", lambda device: need9 // 2)  # about half of batch 9 fits
     with pytest.raises(FDTInputError) as exc:
         Reconstructor(tiny.acquisition, _tiny_config(batch_size=9), device="cpu")
     fits = int((0.9 * (need9 // 2) - images) // need1)
     assert exc.value.field == "batch_size" and "GiB" in str(exc.value) and f"lower batch_size to {fits}" in str(exc.value)
     assert mode in str(exc.value)
-    monkeypatch.setattr(memory, "available_bytes", lambda device: need1 // 2)  # not even one image
+    monkeypatch.setattr(device_module, "available_bytes", lambda device: need1 // 2)  # not even one image
     with pytest.raises(FDTInputError) as exc:
         Reconstructor(tiny.acquisition, _tiny_config(batch_size=9), device="cpu")
     assert "crop the images" in str(exc.value)
 
 
 def test_blank_and_saturated_images_are_reported(tiny) -> None:
-    from napari_fdt.acquisition import Acquisition
+    from napari_fdt.data.acquisition import Acquisition
     from napari_fdt.errors import FDTWarning
 
     acq = tiny.acquisition
@@ -252,7 +253,7 @@ def test_a_stage_may_have_its_own_batch_size(tiny) -> None:
 
 
 def test_coarse_model_auto_resolves_per_device(tiny) -> None:
-    from napari_fdt.config import resolve_coarse_model
+    from napari_fdt.recon.config import resolve_coarse_model
 
     assert resolve_coarse_model("auto", "cpu") == "envelope" and resolve_coarse_model("auto", "cuda") == "multislice"
     assert resolve_coarse_model("multislice", "cpu") == "multislice"

@@ -1,7 +1,7 @@
 """Initial source positions from the images (the paper's per-image 2-D Gaussian fit), against the truth.
 
 Scenes are small (64×64 px of 0.33 µm, 4 slices of 2 µm, NA 0.8) and simulated with the default noise
-of :func:`napari_fdt.simulate`. Two geometries:
+of :func:`napari_fdt.sim.simulate`. Two geometries:
 
 - ``FOCUS_NEAR``: the camera focused 17 µm below the volume's bottom face (``image_plane_um`` 25), so a
   source 25 µm deep is 8 µm below the focal plane and its disc (radius 6 µm) lies inside the 21 µm image:
@@ -22,7 +22,7 @@ import pytest
 import torch
 
 from napari_fdt import Acquisition, FDTInputError, FDTWarning, Optics, make_scene, simulate, source_grid
-from napari_fdt.source_fit import (
+from napari_fdt.recon.source_fit import (
     GaussianFit,
     calibrate_sigma,
     depth_from_sigma,

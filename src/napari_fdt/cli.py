@@ -15,7 +15,7 @@ from typing import Sequence
 
 import numpy as np
 
-from .errors import FDTInputError, FDTWarning
+from napari_fdt.errors import FDTInputError, FDTWarning
 
 __all__ = ["main", "build_parser"]
 
@@ -97,7 +97,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _optics_from_args(args: argparse.Namespace):
-    from .optics import Optics
+    from napari_fdt.physics.optics import Optics
 
     return Optics(
         wavelength_um=args.wavelength_um, n_background=args.n_background, na=args.na,
@@ -116,14 +116,14 @@ def _check_forward_memory(plan, n_slices: int, batch: int, n_images: int, device
                           image_fix: str = "crop or bin the images, use fewer slices, or a device with more memory") -> int:
     """Refuse, before anything is allocated, a forward run that cannot fit; return the batch to use.
 
-    The model's peak is :func:`napari_fdt.memory.forward_bytes`; on the host the results take
+    The model's peak is :func:`napari_fdt.model.memory.forward_bytes`; on the host the results take
     :data:`_HOST_BYTES_PER_IMAGE_PIXEL` per image pixel (shared with the model when the device is the CPU).
     With ``batch_fix`` None the batch is lowered to what fits instead of refusing it.
     """
     import torch
 
-    from .forward import resolve_device
-    from .memory import available_bytes, forward_bytes
+    from napari_fdt.device import available_bytes, resolve_device
+    from napari_fdt.model.memory import forward_bytes
 
     def size(n: float) -> str:
         return f"{n / 2.0**30:.1f} GiB" if abs(n) >= 2.0**30 else f"{n / 2.0**20:.0f} MiB"
@@ -157,8 +157,8 @@ def _check_forward_memory(plan, n_slices: int, batch: int, n_images: int, device
 
 
 def _cmd_simulate(args: argparse.Namespace) -> int:
-    from .io import write_acquisition, write_json_atomic, write_volume_tiff
-    from .simulate import make_scene, simulate, source_grid
+    from napari_fdt.data.io import write_acquisition, write_json_atomic, write_volume_tiff
+    from napari_fdt.sim.simulate import make_scene, simulate, source_grid
 
     optics = _optics_from_args(args)
     out = Path(args.out_dir)
@@ -168,7 +168,7 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     fov = min(shape) * optics.pixel_size_um
     span = 0.8 * fov if args.span_um is None else args.span_um
     sources = source_grid(args.sources, span, args.depth_um)
-    from .grid import MAX_PADDED_SIDE, plan_for_sources
+    from napari_fdt.physics.grid import MAX_PADDED_SIDE, plan_for_sources
 
     if min(shape) < 8 or max(shape) > MAX_PADDED_SIDE - 2:
         raise FDTInputError("shape", f"{shape[0]}x{shape[1]} px is outside 8 … {MAX_PADDED_SIDE - 2} px per side",
@@ -203,8 +203,8 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
 
 
 def _cmd_info(args: argparse.Namespace) -> int:
-    from .grid import plan_for_sources
-    from .io import read_acquisition
+    from napari_fdt.data.io import read_acquisition
+    from napari_fdt.physics.grid import plan_for_sources
 
     acq = read_acquisition(args.acquisition)
     o = acq.optics
@@ -227,10 +227,10 @@ def _cmd_info(args: argparse.Namespace) -> int:
 
 
 def _cmd_forward(args: argparse.Namespace) -> int:
-    from .forward import MultiSliceModel
-    from .grid import plan_for_sources
-    from .io import read_acquisition, read_volume_tiff, write_volume_tiff
-    from .simulate import render_images
+    from napari_fdt.data.io import read_acquisition, read_volume_tiff, write_volume_tiff
+    from napari_fdt.model.forward import MultiSliceModel
+    from napari_fdt.model.render import render_images
+    from napari_fdt.physics.grid import plan_for_sources
 
     acq = read_acquisition(args.acquisition)
     o = acq.optics
@@ -285,10 +285,9 @@ def _progress_line(snap) -> str:
 def _cmd_reconstruct(args: argparse.Namespace) -> int:
     import json
 
-    from . import distributed
-    from .config import SolverConfig, load_config
-    from .io import read_acquisition, read_volume_tiff
-    from .io import report_path
+    from napari_fdt.data.io import read_acquisition, read_volume_tiff, report_path
+    from napari_fdt.recon import distributed
+    from napari_fdt.recon.config import SolverConfig, load_config
 
     config = load_config(args.config) if args.config is not None else SolverConfig()
     if args.seed is not None:
@@ -333,8 +332,8 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
 
 
 def _run_and_write(args, config, acq, out: Path, json_out: Path, truth, truth_src, group) -> int:
-    from .report import build_report, write_result
-    from .solver import Reconstructor
+    from napari_fdt.recon.report import build_report, write_result
+    from napari_fdt.recon.solver import Reconstructor
 
     device = args.device if group is None else group.device
     if args.resume is not None:
@@ -383,7 +382,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     if args.version:
-        from . import __version__
+        from napari_fdt._version import __version__
 
         print(__version__)
         return 0

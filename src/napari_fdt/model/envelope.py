@@ -1,0 +1,169 @@
+"""A cheap coarse forward model: envelopes of the spherical waves, propagated in angular coordinates.
+
+The field of source i is written ``u = s·a`` with ``s = d·exp(ikR)/R`` its spherical wave and ``a`` an
+envelope that the sample modulates. In the angular coordinate ``p = (x − x_i)/h`` (h the height above
+the source) rays from the source are straight lines of constant p, and the Fresnel scaling theorem turns
+the paraxial propagation of ``s·a`` over Δz between heights h and h + Δz into a plain Fresnel step of
+the envelope,
+
+    â(f_p) ← â(f_p) · exp(−iπ·λ'·f_p²·Δz / (h·(h + Δz))),       λ' = λ/n_b,
+
+with f_p the frequency conjugate to p. The envelope is smooth wherever the RI is, so it can be sampled
+at the *stage's* pixel: this model costs about (stage grid)² per image and slice instead of the full
+window's, which makes early coarse-to-fine stages cheap. Screens are the same thin phase screens as in
+the multi-slice model, sampled at ``x = x_i + p·h_k`` (bilinear, differentiable in the RI and the source
+position); the pupil becomes an angular aperture ``|sin θ| ≤ NA/n_b`` (same soft edge), and the camera
+sees ``gain·d²/(h_c²·(1 + |p|²))·|a|²``. The p-grid of each source is aligned so that camera pixel
+(r, c) is p-grid point (r + o, c + o): no resampling at the camera.
+
+Approximations, on top of the multi-slice model's: paraxial diffraction of the envelope about each
+source's axis (exact transport along rays), and the pupil as an angular aperture (its edge diffraction
+is not modelled; compare images only inside ``coverage``). It is meant for coarse stages; the final
+stage uses :class:`~napari_fdt.model.forward.MultiSliceModel`.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+
+from napari_fdt.physics.optics import Optics
+from napari_fdt.physics.propagation import pupil
+
+__all__ = ["EnvelopeModel"]
+
+
+class EnvelopeModel:
+    """Coarse forward model on a stage grid.
+
+    Parameters
+    ----------
+    optics: the acquisition's optics (the pixel size is the acquisition's; the stage pixel is
+        ``factor × pixel_size_um``).
+    grid_shape: (h, w) of the stage grid (RI and images).
+    factor: stage factor.
+    shift_um: (x, y) position of the stage grid's block-centre origin relative to the convention
+        (see :mod:`napari_fdt.recon.stages`).
+    pupil_taper: soft edge of the angular aperture, as the pupil's.
+    """
+
+    def __init__(self, optics: Optics, grid_shape: tuple[int, int], factor: int, shift_um: tuple[float, float],
+                 *, pupil_taper: float = 0.03, device: torch.device | str = "cpu", dtype: torch.dtype = torch.float32) -> None:
+        self.optics = optics
+        self.grid_shape = tuple(int(s) for s in grid_shape)
+        self.factor = int(factor)
+        self.pixel_um = optics.pixel_size_um * factor
+        self.shift_um = shift_um
+        self.pupil_taper = pupil_taper
+        self.device = torch.device(device)
+        self.dtype = dtype
+        h, w = self.grid_shape
+        lam_medium = optics.wavelength_um / optics.n_background
+        # Envelope diffraction spreads by at most λ'/(2·pixel) over the thickness plus the exit distance.
+        reach = (optics.thickness_um + abs(optics.image_plane_um)) * lam_medium / (2 * self.pixel_um)
+        self.pad = int(math.ceil(reach / self.pixel_um)) + 4
+        self.padded = (h + 2 * self.pad, w + 2 * self.pad)
+
+    @property
+    def image_shape(self) -> tuple[int, int]:
+        """(h, w) of the stage grid: the images this model returns."""
+        return self.grid_shape
+
+    @property
+    def pixel_size_um(self) -> float:
+        """Stage pixel, µm."""
+        return self.pixel_um
+
+    def _index(self, n: int) -> torch.Tensor:
+        return torch.arange(n, device=self.device, dtype=self.dtype) - n // 2
+
+    def coverage(self, sources_um: torch.Tensor, fraction: float = 0.9) -> torch.Tensor:
+        """(B, h, w) 0/1: pixels seen at angles with sin θ below ``fraction``·NA/n_b (away from the aperture edge)."""
+        with torch.no_grad():
+            p2 = self._p2(sources_um.to(self.device, self.dtype))
+            s2 = p2 / (1 + p2)
+            lim = (fraction * self.optics.na / self.optics.n_background) ** 2
+            return self._crop((s2 <= lim).to(self.dtype))
+
+    def _p_axes(self, src: torch.Tensor):
+        o = self.optics
+        h_cam = src[:, 2] + o.thickness_um - o.image_plane_um  # (B,)
+        dp = self.pixel_um / h_cam
+        hp, wp = self.padded
+        # camera pixel c ↔ p index c + pad; camera pixel c sits at x = (c − w//2)·D + shift_x
+        jy = self._index(hp) + (hp // 2 - self.pad - self.grid_shape[0] // 2)
+        jx = self._index(wp) + (wp // 2 - self.pad - self.grid_shape[1] // 2)
+        py = ((jy[None] * self.pixel_um + self.shift_um[1]) - src[:, 1:2]) / h_cam[:, None]  # (B, hp)
+        px = ((jx[None] * self.pixel_um + self.shift_um[0]) - src[:, 0:1]) / h_cam[:, None]  # (B, wp)
+        return h_cam, dp, py, px
+
+    def _p2(self, src: torch.Tensor) -> torch.Tensor:
+        _, _, py, px = self._p_axes(src)
+        return py[:, :, None] ** 2 + px[:, None, :] ** 2
+
+    def _crop(self, a: torch.Tensor) -> torch.Tensor:
+        h, w = self.grid_shape
+        return a[..., self.pad : self.pad + h, self.pad : self.pad + w]
+
+    @staticmethod
+    def _kernel(f2p: torch.Tensor, h0: torch.Tensor, h1: torch.Tensor, lam_medium) -> torch.Tensor:
+        """Envelope step from height h0 to h1 (per source): the Fresnel-scaled angular-spectrum kernel.
+
+        In the frame of the scaling theorem the envelope at h0 propagates over ``Δz·h0/h1`` with physical
+        frequency ``f = f_p/h0``; the exact kernel ``exp(i2π·Δz_eff·(q_z(f) − 1/λ'))`` replaces the paraxial
+        ``exp(−iπ·λ'·f_p²·Δz/(h0·h1))`` (equal to leading order), evanescent frequencies set to 0.
+        """
+        k = 1.0 / lam_medium
+        f2 = f2p / (h0 * h0)[:, None, None]
+        dz_eff = ((h1 - h0) * h0 / h1)[:, None, None]
+        prop = f2 < k * k
+        q = torch.sqrt(torch.clamp(k * k - f2, min=1e-30))
+        offset = torch.where(prop, -f2 / (q + k), torch.zeros_like(f2))
+        return torch.polar(prop.to(f2.dtype), 2 * math.pi * dz_eff * offset)
+
+    def __call__(self, delta_n: torch.Tensor, sources_um: torch.Tensor, gain: torch.Tensor | None = None,
+                 *, slice_spacing_um=None, wavelength_um=None) -> torch.Tensor:
+        """Images (B, h, w) on the stage grid for Δn (n_slices, h, w) on the stage grid; sources (B, 3) µm."""
+        o = self.optics
+        dz = o.slice_spacing_um if slice_spacing_um is None else slice_spacing_um
+        lam = o.wavelength_um if wavelength_um is None else wavelength_um
+        lam_medium = lam / o.n_background
+        src = sources_um.to(self.device, self.dtype)
+        dn = delta_n.to(self.device, self.dtype)
+        b = src.shape[0]
+        h, w = self.grid_shape
+        hp, wp = self.padded
+        h_cam, dp, py, px = self._p_axes(src)
+        depth = src[:, 2]
+        # frequencies conjugate to p, per source: (B, hp, 1), (B, 1, wp)
+        fy = torch.fft.fftfreq(hp, device=self.device, dtype=self.dtype)[None, :, None] / dp[:, None, None]
+        fx = torch.fft.fftfreq(wp, device=self.device, dtype=self.dtype)[None, None, :] / dp[:, None, None]
+        f2 = fy * fy + fx * fx
+        k0dz = 2 * math.pi / lam * dz
+        a = None
+        heights = [depth + (k + 0.5) * dz for k in range(o.n_slices)]
+        vol = dn[None].expand(b, -1, -1, -1)  # (B, n, h, w), no copy
+        for k, hk in enumerate(heights):
+            # physical sample positions of the p-grid at this height, as grid_sample coordinates
+            xs = src[:, 0:1] + px * hk[:, None]  # (B, wp)
+            ys = src[:, 1:2] + py * hk[:, None]  # (B, hp)
+            u = (2 * ((xs - self.shift_um[0]) / self.pixel_um + w // 2) + 1) / w - 1
+            v = (2 * ((ys - self.shift_um[1]) / self.pixel_um + h // 2) + 1) / h - 1
+            grid = torch.stack(torch.broadcast_tensors(u[:, None, :], v[:, :, None]), dim=-1)  # (B, hp, wp, 2)
+            sample = F.grid_sample(vol[:, k : k + 1], grid, mode="bilinear", padding_mode="zeros", align_corners=False)[:, 0]
+            screen = torch.polar(torch.ones_like(sample), k0dz * sample)
+            if a is None:
+                a = screen
+            else:
+                a = torch.fft.ifft2(torch.fft.fft2(a) * self._kernel(f2, heights[k - 1], hk, lam_medium)) * screen
+        a = torch.fft.ifft2(torch.fft.fft2(a) * self._kernel(f2, heights[-1], h_cam, lam_medium))
+        p2 = py[:, :, None] ** 2 + px[:, None, :] ** 2
+        sin2 = p2 / (1 + p2)
+        aperture = pupil(sin2 * (o.n_background / lam) ** 2, o.na, lam, self.pupil_taper)
+        intensity = (depth**2 / h_cam**2)[:, None, None] / (1 + p2) * aperture**2 * (a.real.square() + a.imag.square())
+        out = self._crop(intensity)
+        if gain is not None:
+            out = out * gain.to(self.device, self.dtype).reshape(-1, 1, 1)
+        return out

@@ -1,0 +1,97 @@
+"""The reconstruction as the napari widget runs it in a worker thread: a generator around the solver loop.
+
+:func:`reconstruction_job` drives :meth:`napari_fdt.recon.solver.Reconstructor.run` (the loop ``fdt reconstruct``
+runs) and yields an :class:`Update` per snapshot. The absolute RI on the acquisition grid is attached
+(computed here, in the worker, not in the GUI thread) at every stage end and otherwise at most every
+``min_interval_s``. Setting ``stop`` cancels at the next iteration; the job then returns to the last
+complete stage (:meth:`~napari_fdt.recon.solver.Reconstructor.restore_last_complete`) and reports it. No Qt here.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Any, Iterator
+
+import numpy as np
+
+from napari_fdt.data.acquisition import Acquisition
+from napari_fdt.recon.config import SolverConfig
+
+__all__ = ["Update", "JobResult", "reconstruction_job"]
+
+
+@dataclass
+class Update:
+    """One step of the job: ``kind`` is ``"started"`` (``rec`` set), ``"snapshot"`` or ``"evaluating"``.
+
+    ``ri`` (n_slices, H, W) absolute RI, or None when this snapshot is throttled away.
+    """
+
+    kind: str
+    snapshot: Any = None
+    ri: np.ndarray | None = None
+    rec: Any = None
+
+
+@dataclass
+class JobResult:
+    """What the job ended with. ``ri`` is None when nothing is kept (cancelled before the first stage ended,
+    or stopped because the viewer closed); ``report`` is the content of ``RI.json``."""
+
+    rec: Any
+    cancelled: bool
+    completed_stages: int
+    ri: np.ndarray | None = None
+    sources_um: np.ndarray | None = None
+    report: dict[str, Any] | None = None
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+def reconstruction_job(
+    acquisition: Acquisition,
+    config: SolverConfig,
+    *,
+    device: str = "auto",
+    initial_sources_um: np.ndarray | None = None,
+    stop: threading.Event,
+    done: threading.Event | None = None,
+    closing: threading.Event | None = None,
+    min_interval_s: float = 0.5,
+    acquisition_path: str | None = None,
+) -> Iterator[Update]:
+    """Generator: yields :class:`Update` s, returns a :class:`JobResult` (``StopIteration.value``).
+
+    ``closing`` set (the viewer is closing) skips the final evaluation so the thread ends at once.
+    ``done`` is set when the generator ends, however it ends.
+    """
+    from napari_fdt.recon.report import build_report
+    from napari_fdt.recon.solver import Reconstructor
+
+    try:
+        rec = Reconstructor(acquisition, config, device=device, initial_sources_um=initial_sources_um)
+        yield Update("started", rec=rec)
+        n_b = np.float32(acquisition.optics.n_background)
+        last = -float("inf")
+        for snap in rec.run(should_stop=stop.is_set):
+            now = time.perf_counter()
+            ri = None
+            if snap.stage_complete or now - last >= min_interval_s:
+                ri = n_b + snap.delta_n_full()
+                last = time.perf_counter()
+            yield Update("snapshot", snapshot=snap, ri=ri)
+        cancelled = stop.is_set() and rec.completed_stages < len(config.stages)
+        if closing is not None and closing.is_set():
+            return JobResult(rec, True, rec.completed_stages)
+        if cancelled:
+            if rec.completed_stages == 0:
+                return JobResult(rec, True, 0)
+            rec.restore_last_complete()
+        yield Update("evaluating")
+        report = build_report(rec, acquisition_path=acquisition_path, cancelled=cancelled)
+        sources = rec.calibrated_sources().detach().cpu().double().numpy()
+        return JobResult(rec, cancelled, rec.completed_stages, ri=rec.ri_full(), sources_um=sources, report=report)
+    finally:
+        if done is not None:
+            done.set()

@@ -1,0 +1,118 @@
+"""The result of a reconstruction: the RI volume on disk (OME-TIFF) and its report (``RI.json``).
+
+The report holds everything needed to judge and reproduce the result: the configuration, the package
+version, the calibrated sources and optical parameters, per-stage grid size, iterations and seconds
+per iteration, the final loss terms, the fit of all images, and metrics against the truth when given.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import platform
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from napari_fdt.data.io import report_path, write_json_atomic, write_volume_tiff
+from napari_fdt.model.render import iter_batches
+from napari_fdt.recon.metrics import image_metrics, ri_metrics
+from napari_fdt.recon.solver import Reconstructor
+from napari_fdt.recon.stages import build_stage
+
+__all__ = ["evaluate_images", "build_report", "write_result", "source_errors"]
+
+
+def evaluate_images(rec: Reconstructor, batch_size: int | None = None) -> tuple[np.ndarray, dict[str, float]]:
+    """Predict every image with the final state on the acquisition grid; return (predictions (N, H, W), metrics).
+
+    Predictions are in the acquisition's intensity units (calibrated gains applied).
+    """
+    acq = rec.acquisition
+    src = rec.calibrated_sources().detach().cpu().double().numpy()
+    stage = build_stage(-1, 1, 0, acq.optics, rec.images, src, device=rec.device)
+    dn = torch.from_numpy(rec.delta_n_full()).to(rec.device)
+    preds = np.empty(acq.images.shape, dtype=np.float32)
+    bs = batch_size or rec.config.batch_size
+    with torch.no_grad():
+        for sl in iter_batches(acq.n_images, bs):
+            idx = torch.arange(sl.start, sl.stop, device=rec.device)
+            preds[sl] = (rec._predict(stage, dn, idx) * rec.image_scale).cpu().numpy()
+    return preds, image_metrics(preds, acq.images_float32())
+
+
+def source_errors(calibrated_um: np.ndarray, true_um: np.ndarray) -> dict[str, float]:
+    """RMS lateral and depth errors (µm) of calibrated source positions against the truth."""
+    d = np.asarray(calibrated_um) - np.asarray(true_um)
+    return {
+        "lateral_rms_um": float(np.sqrt(np.mean(np.sum(d[:, :2] ** 2, axis=1)))),
+        "depth_rms_um": float(np.sqrt(np.mean(d[:, 2] ** 2))),
+    }
+
+
+def build_report(
+    rec: Reconstructor,
+    *,
+    output: str | None = None,
+    acquisition_path: str | None = None,
+    truth_ri: np.ndarray | None = None,
+    truth_sources_um: np.ndarray | None = None,
+    cancelled: bool = False,
+    evaluate: bool = True,
+) -> dict[str, Any]:
+    """The content of ``RI.json`` for the current state of ``rec``."""
+    from napari_fdt._version import __version__
+
+    o = rec.acquisition.optics
+    src = rec.calibrated_sources().detach().cpu().double().numpy()
+    report: dict[str, Any] = {
+        "format": "napari-fdt-report",
+        "version": 1,
+        "napari_fdt_version": __version__,
+        "created_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+        "acquisition": acquisition_path,
+        "output": output,
+        "cancelled": cancelled,
+        "completed_stages": rec.completed_stages,
+        "n_stages": len(rec.config.stages),
+        "device": str(rec.device),
+        "hardware": {"torch": torch.__version__, "python": platform.python_version(), "threads": torch.get_num_threads(),
+                     "device_name": torch.cuda.get_device_name(rec.device) if rec.device.type == "cuda" else platform.processor() or platform.machine()},
+        "config": rec.config.to_dict(),
+        "ri": {"shape": [o.n_slices, *rec.full_shape], "n_background": o.n_background, "units": "absolute refractive index",
+               "voxel_size_um": [o.slice_spacing_um, o.pixel_size_um, o.pixel_size_um],
+               "slice_order": "slice 0 nearest the sources"},
+        "calibration": {
+            **rec.calibration(),
+            "sources_um": src.tolist(),
+            "initial_sources_um": rec.initial_sources_um.tolist(),
+            "gains": (torch.exp(rec.log_gain.detach()).cpu().double().numpy() * rec.image_scale).tolist(),
+        },
+        "stages": [r.to_dict() for r in rec.stages],
+        "seconds_total": rec.elapsed_s,
+        "final_losses": rec.final_losses,
+    }
+    if rec.group is not None:
+        report["distributed"] = rec.group.describe()
+    if evaluate and rec.volume is not None:
+        _, report["image_fit"] = evaluate_images(rec)
+    metrics: dict[str, Any] = {}
+    if truth_ri is not None and rec.volume is not None:
+        metrics.update(ri_metrics(rec.ri_full(), truth_ri, o.n_background))
+    if truth_sources_um is not None:
+        metrics["sources"] = source_errors(src, truth_sources_um)
+        metrics["sources_initial"] = source_errors(rec.initial_sources_um, truth_sources_um)
+    if metrics:
+        report["metrics"] = metrics
+    return report
+
+
+def write_result(rec: Reconstructor, out: str | Path, report: dict[str, Any], *, overwrite: bool = False) -> tuple[Path, Path]:
+    """Write ``out`` (OME-TIFF, absolute RI, float32, ZYX) and ``out``'s ``.json`` report, each atomically."""
+    out = Path(out)
+    o = rec.acquisition.optics
+    json_path = report_path(out)
+    write_volume_tiff(out, rec.ri_full(), (o.slice_spacing_um, o.pixel_size_um, o.pixel_size_um), overwrite=overwrite)
+    write_json_atomic(json_path, report, overwrite=overwrite)
+    return out, json_path

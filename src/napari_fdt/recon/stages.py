@@ -1,0 +1,178 @@
+"""Coarse-to-fine stages: a coarse RI grid, and the field and images on the coarsest grid the optics allow.
+
+A stage with ``factor`` f holds the RI on pixels of ``f·dx``. The field, however, must resolve the pupil:
+its sampling ``g·dx`` (``g`` the *field factor*, a divisor of f) is the coarsest that keeps the pupil's
+outer edge below 95 % of the grid's Nyquist frequency, ``g·dx ≤ 0.95·λ/(2·NA·(1 + pupil_taper))``. The
+RI is upsampled from the stage grid to the field grid inside the model, and the measured images are
+averaged over g×g blocks. When the camera oversamples the pupil, early stages are cheaper by ``g²``;
+on data sampled near the pupil's Nyquist limit (g = 1) every stage costs the same per iteration and the
+coarse stages act as a coarse parameterisation of the RI only. (A coarse *field* grid with a reduced
+aperture was tried and rejected: at the low Fresnel numbers of a reduced aperture the images are
+dominated by its edge diffraction, 39 % residual on a homogeneous medium at f = 4; ``docs/solver.md``.)
+
+Coordinates: coarse pixel j averages fine pixels ``j·f … j·f + f − 1``, so its centre sits at
+``x = (j·f + (f − 1)/2 − W//2)·dx``, while a model on that grid puts pixel j at ``(j − w//2)·f·dx``. The
+difference ``shift_um`` is subtracted from source positions given to the stage model.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from napari_fdt.model.envelope import EnvelopeModel
+from napari_fdt.model.forward import MultiSliceModel
+from napari_fdt.physics.grid import DEFAULT_PUPIL_TAPER, GridPlan, plan_grid
+from napari_fdt.physics.optics import Optics
+from napari_fdt.recon.volume import upsample_to
+
+__all__ = ["Stage", "build_stage", "block_average", "stage_optics", "field_factor", "multislice_plan"]
+
+#: Fraction of the coarse grid's Nyquist frequency the stage pupil's outer edge may reach.
+NYQUIST_FILL = 0.95
+
+
+def block_average(images: torch.Tensor, factor: int) -> torch.Tensor:
+    """Average (..., H, W) over factor×factor blocks → (..., H//f, W//f); the remainder rows/columns are dropped."""
+    if factor == 1:
+        return images
+    shape = images.shape
+    flat = images.reshape(-1, 1, shape[-2], shape[-1])
+    out = F.avg_pool2d(flat, factor, stride=factor)
+    return out.reshape(*shape[:-2], out.shape[-2], out.shape[-1])
+
+
+def field_factor(optics: Optics, factor: int, pupil_taper: float = DEFAULT_PUPIL_TAPER) -> int:
+    """Largest divisor g of ``factor`` with ``g·dx ≤ NYQUIST_FILL·λ/(2·NA·(1 + pupil_taper))`` (at least 1)."""
+    limit = NYQUIST_FILL * optics.wavelength_um / (2.0 * optics.na * (1.0 + pupil_taper))
+    best = 1
+    for g in range(1, factor + 1):
+        if factor % g == 0 and g * optics.pixel_size_um <= limit:
+            best = g
+    return best
+
+
+def stage_optics(optics: Optics, field_factor_: int) -> Optics:
+    """The acquisition's optics sampled at ``field_factor_ · dx``."""
+    return Optics(
+        wavelength_um=optics.wavelength_um, n_background=optics.n_background, na=optics.na,
+        pixel_size_um=optics.pixel_size_um * field_factor_, n_slices=optics.n_slices,
+        slice_spacing_um=optics.slice_spacing_um, image_plane_um=optics.image_plane_um,
+    )
+
+
+@dataclass
+class Stage:
+    """Everything fixed during one stage.
+
+    ``factor``: RI grid factor; ``field_factor``: field/image grid factor (divides ``factor``).
+    ``images``: measured images averaged to the field grid (N, h_f, w_f), normalised by the acquisition's mean.
+    ``shift_um``: (x, y) to subtract from source positions for the stage model.
+    """
+
+    index: int
+    factor: int
+    field_factor: int
+    iterations: int
+    optics: Optics
+    model: MultiSliceModel | EnvelopeModel
+    images: torch.Tensor
+    shift_um: tuple[float, float]
+    grid_shape: tuple[int, int]
+    window: tuple[int, int]
+    coverage: torch.Tensor | None = None
+
+    @property
+    def image_shape(self) -> tuple[int, int]:
+        """(h, w) of the field grid and of the stage's images."""
+        return self.model.image_shape
+
+    @property
+    def envelope(self) -> bool:
+        """Whether the stage uses the coarse envelope model."""
+        return isinstance(self.model, EnvelopeModel)
+
+    def stage_sources(self, sources_um: torch.Tensor) -> torch.Tensor:
+        """Sources (B, 3) in the stage model's coordinates."""
+        shift = torch.tensor([self.shift_um[0], self.shift_um[1], 0.0], device=sources_um.device, dtype=sources_um.dtype)
+        return sources_um - shift
+
+    def to_field_grid(self, delta_n: torch.Tensor) -> torch.Tensor:
+        """RI contrast on the stage grid (Z, h, w) → the field grid (Z, h_f, w_f), differentiable."""
+        return upsample_to(delta_n, self.factor // self.field_factor, self.image_shape)
+
+
+def _shift_um(n_full: int, g: int, dx: float) -> float:
+    return ((g - 1) / 2 - (n_full // 2) + (n_full // g // 2) * g) * dx
+
+
+def multislice_plan(
+    optics: Optics,
+    factor: int,
+    full_shape: tuple[int, int],
+    sources_um: np.ndarray,
+    *,
+    depth_slack_um: float = 2.0,
+    offset_slack_um: float = 1.0,
+) -> tuple[int, Optics, tuple[float, float], GridPlan]:
+    """Field factor, stage optics, origin shift (x, y) µm and window of a multi-slice stage.
+
+    The window is planned for the current sources plus some slack for the moves of calibration.
+    """
+    big_h, big_w = full_shape
+    dx = optics.pixel_size_um
+    g = field_factor(optics, factor)
+    opt = stage_optics(optics, g)
+    shift = (_shift_um(big_w, g, dx), _shift_um(big_h, g, dx))
+    src = np.asarray(sources_um, dtype=np.float64)
+    plan = plan_grid(
+        opt, (big_h // g, big_w // g),
+        (float(np.abs(src[:, 1] - shift[1]).max()) + offset_slack_um, float(np.abs(src[:, 0] - shift[0]).max()) + offset_slack_um),
+        float(src[:, 2].max()) + depth_slack_um,
+        warn=False,
+    )
+    return g, opt, shift, plan
+
+
+def build_stage(
+    index: int,
+    factor: int,
+    iterations: int,
+    optics: Optics,
+    images_normalised: torch.Tensor,
+    sources_um: np.ndarray,
+    *,
+    device: torch.device,
+    depth_slack_um: float = 2.0,
+    offset_slack_um: float = 1.0,
+    coarse_model: str = "envelope",
+    backward_mode: str = "auto",
+    obliquity: str = "none",
+) -> Stage:
+    """Set up one stage for the current source estimates (the window gets some slack for calibration moves).
+
+    ``coarse_model="envelope"`` uses :class:`~napari_fdt.model.envelope.EnvelopeModel` on the stage grid for
+    factors > 1; ``"multislice"`` keeps the multi-slice model on the grid the pupil needs.
+    ``backward_mode``, ``obliquity``: see :class:`~napari_fdt.model.forward.MultiSliceModel` (multi-slice stages only).
+    """
+    _, big_h, big_w = images_normalised.shape
+    dx = optics.pixel_size_um
+    if factor > 1 and coarse_model == "envelope":
+        h, w = big_h // factor, big_w // factor
+        shift = (_shift_um(big_w, factor, dx), _shift_um(big_h, factor, dx))
+        env = EnvelopeModel(optics, (h, w), factor, (0.0, 0.0), device=device)
+        imgs = block_average(images_normalised[:, : h * factor, : w * factor], factor).to(device)
+        stage = Stage(index, factor, factor, iterations, optics, env, imgs, shift, (h, w), env.padded)
+        src = torch.as_tensor(np.asarray(sources_um), dtype=env.dtype, device=device)
+        stage.coverage = env.coverage(stage.stage_sources(src))
+        return stage
+    g, opt, shift, plan = multislice_plan(optics, factor, (big_h, big_w), sources_um,
+                                          depth_slack_um=depth_slack_um, offset_slack_um=offset_slack_um)
+    h, w = plan.image_shape
+    model = MultiSliceModel(opt, plan, device=device, backward_mode=backward_mode, obliquity=obliquity)
+    imgs = block_average(images_normalised[:, : h * g, : w * g], g).to(device)
+    grid = (big_h // factor, big_w // factor)
+    return Stage(index, factor, g, iterations, opt, model, imgs, shift, grid, plan.padded_shape)
