@@ -195,8 +195,7 @@ def input_error(exc: ValidationError, model: type, root: str = "config", prefix:
     The first error is reported. Its field is the dotted location with list indices written ``[]``
     (``stages[].factor``); an unknown key is named under ``root`` (``config.learning_rate``). An
     ``FDTInputError`` raised by a cross-field validator passes through unchanged; ``prefix`` goes before other
-    field names. The fix is the type's hint
-    followed by the field's own ``fix``.
+    field names. The fix is the field's own ``fix``, else a hint for the kind of error.
     """
     error = exc.errors(include_url=False)[0]
     cause = (error.get("ctx") or {}).get("error")
@@ -221,11 +220,28 @@ def input_error(exc: ValidationError, model: type, root: str = "config", prefix:
         known = ", ".join(schema_fields(parent_model)) if parent_model is not None else ""
         return FDTInputError(f"{parent}.{name.rpartition('.')[2]}", "is not a setting", f"known settings: {known}")
     name = prefix + name if name else root
-    message = error["msg"]
-    message = "must be" + message[len("Input should be"):] if message.startswith("Input should be") else message[:1].lower() + message[1:]
-    problem = message if kind in ("missing", "missing_argument") else f"{message}, got {_short(error.get('input'))}"
-    fix = "; ".join(f for f in (_type_fix(error), _fix_of(info)) if f)
+    problem = _problem(error)
+    fix = _fix_of(info) or _type_fix(error)
     return FDTInputError(name, problem, fix)
+
+
+def _problem(error: dict[str, Any]) -> str:
+    """``must be …, got …`` for one pydantic error (a number out of bounds written with ``:g``)."""
+    kind, ctx = error["type"], error.get("ctx") or {}
+    if kind in ("missing", "missing_argument"):
+        return "is missing"
+    if kind == "greater_than":
+        text = "must be positive" if ctx.get("gt") == 0 else f"must be > {ctx.get('gt'):g}"
+    elif kind in ("greater_than_equal", "less_than_equal", "less_than"):
+        sign, key = {"greater_than_equal": (">=", "ge"), "less_than_equal": ("<=", "le"), "less_than": ("<", "lt")}[kind]
+        text = f"must be {sign} {ctx.get(key):g}"
+    else:
+        msg = error["msg"]
+        text = "must be" + msg[len("Input should be"):] if msg.startswith("Input should be") else msg[:1].lower() + msg[1:]
+    value = error.get("input")
+    bound = kind in ("greater_than", "greater_than_equal", "less_than", "less_than_equal")
+    shown = f"{value:g}" if bound and isinstance(value, float) else _short(value)
+    return f"{text}, got {shown}"
 
 
 def _owner_of(model: type, dotted: str) -> type | None:
