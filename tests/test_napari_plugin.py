@@ -597,3 +597,26 @@ def test_any_optics_typed_into_the_widget_is_applied_or_explained(make_napari_vi
         assert w.feedback.last_error is None, w.feedback.label.value
 
     check()
+
+
+def test_settings_widgets_are_generated_from_the_schema(make_napari_viewer) -> None:
+    """Bounds, defaults, choices and tooltips of the settings widgets are the schema's (no second declaration)."""
+    from napari_fdt.napari.schema_widgets import schema_widget
+    from napari_fdt.recon.config import COARSE_MODELS, COHERENCE_MODELS
+    from napari_fdt.schema import schema_fields
+
+    viewer = make_napari_viewer()
+    w = _docked(viewer, ReconstructionWidget(viewer))
+    fields = schema_fields(SolverConfig)
+    assert w.batch_size.min == 1 and w.snapshot_every.min == 1 and w.snapshot_every.value == SolverConfig().snapshot_every
+    assert tuple(w.coarse_model.choices) == COARSE_MODELS and tuple(w.coherence.choices) == COHERENCE_MODELS
+    assert w.mask_threshold.min == 0 and w.mask_threshold.max == 1
+    assert w.tv_xy_weight.tooltip == fields["tv_xy_weight"].description
+    assert w.calibrate_gain.value is True and w.calibrate_pixel_size.value is False
+    a = _docked(viewer, AcquisitionWidget(viewer))
+    assert {name: getattr(a, name).value for name in Optics.examples()} == pytest.approx(Optics.examples())
+    # optics spin boxes accept what the core refuses, so the core's message is shown instead of a silent clamp
+    assert a.n_background.min == 0 and a.image_plane_um.min < 0
+    assert schema_widget(Optics, "n_background", clamp=True).min == 1
+    with pytest.raises(TypeError):
+        schema_widget(SolverConfig, "stages")

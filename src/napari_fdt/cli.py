@@ -7,6 +7,7 @@ Errors a user can cause print one line naming the field and the fix, and exit wi
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import time
 import warnings
@@ -20,20 +21,50 @@ from napari_fdt.errors import FDTInputError, FDTWarning
 __all__ = ["main", "build_parser"]
 
 
+def _schema_help(info, default) -> str:
+    """``--help`` text of a schema field: its description, bounds and default (``%`` escaped for argparse)."""
+    from napari_fdt.schema import bounds
+
+    signs = {"ge": ">=", "gt": ">", "le": "<=", "lt": "<"}
+    limits = ", ".join(f"{signs[k]} {v:g}" for k, v in bounds(info).items())
+    text = (info.description or "").replace("`", "") + (f"; {limits}" if limits else "") + ("" if default is None else f" (default {default})")
+    return text.replace("%", "%%")
+
+
+def _add_schema_args(group, model, defaults: dict | None = None) -> None:
+    """One flag per scalar field of a settings class (``--tv-xy-weight``; booleans as ``--x/--no-x``), typed,
+    with the ``Literal`` choices and the description as help. With ``defaults`` None every flag defaults to
+    None (unset: it overrides nothing); else the flag's default is ``defaults[name]``."""
+    from napari_fdt.schema import choices, scalar_type, schema_fields
+
+    for name, info in schema_fields(model).items():
+        kind, _ = scalar_type(info)
+        if kind is None:
+            continue
+        default = None if defaults is None else defaults[name]
+        shown = info.get_default(call_default_factory=True) if defaults is None else default
+        kwargs = dict(dest=name, default=default, help=_schema_help(info, shown))
+        if kind is bool:
+            kwargs["action"] = argparse.BooleanOptionalAction
+        else:
+            kwargs["type"] = kind
+            if choices(info) is not None:
+                kwargs["choices"] = choices(info)
+        group.add_argument("--" + name.replace("_", "-"), **kwargs)
+
+
 def _add_optics_args(p: argparse.ArgumentParser) -> None:
+    from napari_fdt.physics.optics import Optics
+
     g = p.add_argument_group("optics and sampling (µm)")
     g.add_argument("--shape", type=int, nargs=2, default=(96, 96), metavar=("H", "W"), help="image size in pixels (default 96 96)")
-    g.add_argument("--pixel-size-um", type=float, default=0.33, help="lateral sampling in the sample, µm (default 0.33)")
-    g.add_argument("--n-slices", type=int, default=8, help="slices of the RI volume (default 8)")
-    g.add_argument("--slice-spacing-um", type=float, default=2.0, help="slice thickness, µm (default 2)")
-    g.add_argument("--wavelength-um", type=float, default=0.635, help="vacuum emission wavelength, µm (default 0.635)")
-    g.add_argument("--n-background", type=float, default=1.33, help="background refractive index (default 1.33)")
-    g.add_argument("--na", type=float, default=0.8, help="detection numerical aperture (default 0.8)")
-    g.add_argument("--image-plane-um", type=float, default=0.0, help="camera focal plane below the volume's top face, µm (default 0)")
+    _add_schema_args(g, Optics, defaults=Optics.examples())
 
 
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of ``fdt``."""
+    from napari_fdt.recon.config import SolverConfig
+
     parser = argparse.ArgumentParser(prog="fdt", description="Fluorescence diffraction tomography (napari-fdt).")
     parser.add_argument("--version", action="store_true", help="print the version and exit")
     sub = parser.add_subparsers(dest="command")
@@ -74,7 +105,6 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--out", type=Path, required=True, help="RI volume to write (OME-TIFF); the report goes beside it as .json")
     rec.add_argument("--config", type=Path, default=None, help="solver settings (JSON, see docs/solver.md)")
     rec.add_argument("--device", default="auto", help="auto, cpu or cuda (default auto)")
-    rec.add_argument("--seed", type=int, default=None, help="random seed (overrides the config's)")
     rec.add_argument("--truth", type=Path, default=None,
                      help="ground-truth RI TIFF for metrics (ground_truth_sources_um.json beside it is used too)")
     rec.add_argument("--checkpoint-dir", type=Path, default=None, help="write a checkpoint at the end of every stage here")
@@ -85,6 +115,7 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--dist-backend", choices=("auto", "nccl", "gloo"), default="auto",
                      help="under torchrun: the torch.distributed backend (default auto: NCCL when each rank has a GPU "
                           "of its own, else gloo; env FDT_DIST_BACKEND); docs/distributed.md")
+    _add_schema_args(rec.add_argument_group("solver settings (docs/solver.md; each overrides the --config file's value)"), SolverConfig)
 
     fwd = sub.add_parser("forward", help="predict an acquisition's images from an RI volume and report the residual")
     fwd.add_argument("acquisition", type=Path)
@@ -97,13 +128,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _optics_from_args(args: argparse.Namespace):
-    from napari_fdt.physics.optics import Optics
+    from napari_fdt.physics.optics import OPTICS_FIELDS, Optics
 
-    return Optics(
-        wavelength_um=args.wavelength_um, n_background=args.n_background, na=args.na,
-        pixel_size_um=args.pixel_size_um, n_slices=args.n_slices, slice_spacing_um=args.slice_spacing_um,
-        image_plane_um=args.image_plane_um,
-    )
+    return Optics(**{name: getattr(args, name) for name in OPTICS_FIELDS})
 
 
 #: Host bytes per image pixel that ``fdt forward`` and ``fdt simulate`` hold besides the model: the images, the
@@ -288,11 +315,12 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
     from napari_fdt.data.io import read_acquisition, read_volume_tiff, report_path
     from napari_fdt.recon import distributed
     from napari_fdt.recon.config import SolverConfig, load_config
+    from napari_fdt.schema import schema_fields
 
     config = load_config(args.config) if args.config is not None else SolverConfig()
-    if args.seed is not None:
-        config.seed = args.seed
-        config.__post_init__()
+    overrides = {name: getattr(args, name) for name in schema_fields(SolverConfig) if getattr(args, name, None) is not None}
+    if overrides:
+        config = dataclasses.replace(config, **overrides)  # validated again
     # Under torchrun every rank runs this; everything up to the process group is checked on all ranks alike,
     # and only rank 0 writes or prints progress.
     _, rank, _, _ = distributed.world_from_env()

@@ -37,6 +37,7 @@ from napari_fdt.napari.layers import (
     stack_scale,
     stack_translate,
 )
+from napari_fdt.napari.schema_widgets import schema_widget
 from napari_fdt.napari.widget_common import (
     BackgroundTasks,
     Feedback,
@@ -50,15 +51,15 @@ from napari_fdt.napari.widget_common import (
     sources_for,
 )
 from napari_fdt.physics.optics import OPTICS_FIELDS, Optics
+from napari_fdt.recon.config import SolverConfig
 
 if TYPE_CHECKING:  # pragma: no cover
     import napari
 
 __all__ = ["AcquisitionWidget"]
 
-#: Defaults shown for a stack without optics (those of ``fdt simulate``).
-DEFAULT_OPTICS = dict(wavelength_um=0.635, n_background=1.33, na=0.8, pixel_size_um=0.33, n_slices=8,
-                      slice_spacing_um=2.0, image_plane_um=0.0)
+#: Defaults shown for a stack without optics: the schema's example values (those of ``fdt simulate``).
+DEFAULT_OPTICS = Optics.examples()
 
 
 class AcquisitionWidget(Container):
@@ -68,20 +69,24 @@ class AcquisitionWidget(Container):
         super().__init__(labels=True)
         self._viewer = napari_viewer
         self.layer = ComboBox(label="images", choices=self._choices)
-        # Ranges are wide on purpose: the core checks the values and explains what is wrong.
-        self.wavelength_um = FloatSpinBox(label="wavelength (µm)", min=0.0, max=100.0, step=0.001)
-        self.n_background = FloatSpinBox(label="n background", min=0.0, max=10.0, step=0.001)
-        self.na = FloatSpinBox(label="NA", min=0.0, max=10.0, step=0.01)
-        self.pixel_size_um = FloatSpinBox(label="pixel size (µm)", min=0.0, max=1000.0, step=0.001)
-        self.n_slices = SpinBox(label="slices", min=0, max=100000)
-        self.slice_spacing_um = FloatSpinBox(label="slice spacing (µm)", min=0.0, max=1000.0, step=0.01)
-        self.image_plane_um = FloatSpinBox(label="image plane (µm)", min=-1e5, max=1e5, step=0.01)
+        # Optics fields from the schema of Optics, with wide ranges on purpose (clamp=False): the core checks the
+        # values and explains what is wrong.
+        def optic(name: str, label: str, step: float | None = None):
+            return schema_widget(Optics, name, label=label, step=step, clamp=False)
+
+        self.wavelength_um = optic("wavelength_um", "wavelength (µm)", 0.001)
+        self.n_background = optic("n_background", "n background", 0.001)
+        self.na = optic("na", "NA", 0.01)
+        self.pixel_size_um = optic("pixel_size_um", "pixel size (µm)", 0.001)
+        self.n_slices = optic("n_slices", "slices")
+        self.slice_spacing_um = optic("slice_spacing_um", "slice spacing (µm)", 0.01)
+        self.image_plane_um = optic("image_plane_um", "image plane (µm)", 0.01)
         self.apply_button = PushButton(text="Apply optics")
         self.depth_um = FloatSpinBox(label="source depth (µm)", min=0.0, max=1e5, step=0.1,
                                      tooltip="common depth of the sources below the volume; 0: estimate it from the image widths")
         self.fit_button = PushButton(text="Fit sources")
         self.file_sources_button = PushButton(text="Sources from file")
-        self.mask_threshold = FloatSpinBox(label="mask threshold", value=0.5, min=0.0, max=1.0, step=0.05)
+        self.mask_threshold = schema_widget(SolverConfig, "mask_threshold", label="mask threshold", step=0.05)
         self.masks_button = PushButton(text="Preview masks")
         self.image_index = SpinBox(label="image", min=0, max=0)
         self.preview_button = PushButton(text="Forward preview")

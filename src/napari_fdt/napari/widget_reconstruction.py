@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from magicgui.widgets import CheckBox, ComboBox, Container, FloatSpinBox, Label, LineEdit, ProgressBar, PushButton, SpinBox
+from magicgui.widgets import ComboBox, Container, Label, LineEdit, ProgressBar, PushButton, SpinBox
 
 from napari_fdt.errors import FDTInputError
 from napari_fdt.napari.compute import check_index, illumination_coverage, predicted_vs_measured
@@ -37,6 +37,7 @@ from napari_fdt.napari.layers import (
     volume_scale,
     volume_translate,
 )
+from napari_fdt.napari.schema_widgets import schema_widget
 from napari_fdt.napari.settings import format_stages, merge_config
 from napari_fdt.napari.widget_common import (
     BackgroundTasks,
@@ -51,7 +52,7 @@ from napari_fdt.napari.widget_common import (
     sources_for,
     track_thread,
 )
-from napari_fdt.recon.config import COHERENCE_MODELS, SolverConfig, load_config
+from napari_fdt.recon.config import SolverConfig, load_config
 
 if TYPE_CHECKING:  # pragma: no cover
     import napari
@@ -85,24 +86,25 @@ class ReconstructionWidget(Container):
         self.layer = ComboBox(label="acquisition", choices=self._choices)
         self.stages = LineEdit(label="stages", value=format_stages(d.stages),
                                tooltip="factor x iterations per stage, coarse to fine, e.g. 4x100, 2x100, 1x160")
-        self.coarse_model = ComboBox(label="coarse model", choices=["auto", "envelope", "multislice"], value=d.coarse_model,
-                                     tooltip="auto: envelope on CPU, multi-slice on GPU (faster there)")
-        self.batch_size = SpinBox(label="batch size", value=d.batch_size, min=0, max=100000)
-        self.l1_l2_total = FloatSpinBox(label="L1 + L2 weight", value=d.l1_l2_total, min=0, max=1e6, step=0.01)
-        self.ssim_weight = FloatSpinBox(label="SSIM weight", value=d.ssim_weight, min=0, max=1e6, step=0.01)
-        self.tv_xy_weight = FloatSpinBox(label="TV xy weight", value=d.tv_xy_weight, min=0, max=1e6, step=1e-5)
-        self.tv_z_weight = FloatSpinBox(label="TV z weight", value=d.tv_z_weight, min=0, max=1e6, step=1e-5)
-        self.calibrate_sources = CheckBox(text="calibrate source positions", value=d.calibrate_sources)
-        self.calibrate_gain = CheckBox(text="calibrate gains", value=d.calibrate_gain)
-        self.calibrate_source_depth = CheckBox(text="calibrate source depth", value=d.calibrate_source_depth)
-        self.calibrate_pixel_size = CheckBox(text="calibrate pixel size", value=d.calibrate_pixel_size)
-        self.calibrate_slice_spacing = CheckBox(text="calibrate slice spacing", value=d.calibrate_slice_spacing)
-        self.calibration_from_stage = SpinBox(label="calibrate from stage", value=d.calibration_from_stage, min=0, max=100)
-        self.coherence = ComboBox(label="coherence", choices=list(COHERENCE_MODELS), value=d.coherence)
-        self.mask_threshold = FloatSpinBox(label="mask threshold", value=d.mask_threshold, min=0, max=1, step=0.05)
+        # Settings generated from the schema: bounds, defaults, choices and tooltips are SolverConfig's.
+        f = self._setting
+        self.coarse_model = f("coarse_model", "coarse model")
+        self.batch_size = f("batch_size", "batch size")
+        self.l1_l2_total = f("l1_l2_total", "L1 + L2 weight", step=0.01)
+        self.ssim_weight = f("ssim_weight", "SSIM weight", step=0.01)
+        self.tv_xy_weight = f("tv_xy_weight", "TV xy weight", step=1e-5)
+        self.tv_z_weight = f("tv_z_weight", "TV z weight", step=1e-5)
+        self.calibrate_sources = f("calibrate_sources", "calibrate source positions")
+        self.calibrate_gain = f("calibrate_gain", "calibrate gains")
+        self.calibrate_source_depth = f("calibrate_source_depth", "calibrate source depth")
+        self.calibrate_pixel_size = f("calibrate_pixel_size", "calibrate pixel size")
+        self.calibrate_slice_spacing = f("calibrate_slice_spacing", "calibrate slice spacing")
+        self.calibration_from_stage = f("calibration_from_stage", "calibrate from stage")
+        self.coherence = f("coherence", "coherence")
+        self.mask_threshold = f("mask_threshold", "mask threshold", step=0.05)
         self.device = ComboBox(label="device", choices=device_choices(), value="auto")
-        self.seed = SpinBox(label="seed", value=d.seed, min=-2**31, max=2**31 - 1)
-        self.snapshot_every = SpinBox(label="progress every (it)", value=5, min=0, max=100000)
+        self.seed = f("seed", "seed")
+        self.snapshot_every = f("snapshot_every", "progress every (it)")
         self.save_settings_button = PushButton(text="Save settings…")
         self.load_settings_button = PushButton(text="Load settings…")
         self.run_button = PushButton(text="Reconstruct")
@@ -155,6 +157,10 @@ class ReconstructionWidget(Container):
         self.coverage_button.changed.connect(self.show_coverage)
         self.layer.changed.connect(self._on_layer_changed)
         follow_layers(napari_viewer, self.layer, self._refresh)
+
+    def _setting(self, name: str, label: str, step: float | None = None):
+        """The widget of SolverConfig field ``name`` (schema bounds, default, choices, description as tooltip)."""
+        return schema_widget(SolverConfig, name, label=label, value=getattr(self._base, name), step=step)
 
     # -- layers -------------------------------------------------------------------------------
     def _choices(self, _widget=None) -> list[tuple[str, object]]:

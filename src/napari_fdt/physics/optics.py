@@ -1,48 +1,37 @@
 """Optical and sampling parameters of an acquisition, with their physical checks.
 
 All lengths are in micrometres. See ``docs/format.md`` for the meaning of each field and
-``docs/physics.md`` for the conventions.
+``docs/physics.md`` for the conventions. The fields are declared with the settings schema
+(:mod:`napari_fdt.schema`): ``fdt simulate``'s optics flags and the napari acquisition widget read their
+descriptions and example values from it.
 """
 
 from __future__ import annotations
 
-import math
-from dataclasses import asdict, dataclass
+import typing
+from dataclasses import asdict
 from typing import Any, Mapping
 
+from pydantic import BeforeValidator, model_validator
+
 from napari_fdt.errors import FDTInputError
+from napari_fdt.schema import example, schema_dataclass, schema_fields, setting
 
 __all__ = ["Optics", "OPTICS_FIELDS"]
 
-#: The optical fields of ``acquisition.json``, in the order they are documented.
-OPTICS_FIELDS = (
-    "wavelength_um",
-    "n_background",
-    "na",
-    "pixel_size_um",
-    "n_slices",
-    "slice_spacing_um",
-    "image_plane_um",
-)
 
-
-def _finite_number(field: str, value: Any) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise FDTInputError(field, f"must be a number, got {value!r}", "write a plain JSON number")
-    value = float(value)
-    if not math.isfinite(value):
-        raise FDTInputError(field, f"must be finite, got {value!r}", "write a finite number")
+def _whole_number(value: Any) -> Any:
+    """A whole float (``14.0``, as JSON may write it) as an ``int``; anything else unchanged for the strict
+    integer check."""
+    if isinstance(value, float) and value.is_integer():
+        return int(value)
     return value
 
 
-def _positive(field: str, value: Any, unit: str = "µm") -> float:
-    value = _finite_number(field, value)
-    if value <= 0:
-        raise FDTInputError(field, f"must be positive, got {value:g}", f"give it in {unit}, > 0")
-    return value
+_SliceCount = typing.Annotated[int, BeforeValidator(_whole_number)]
 
 
-@dataclass(frozen=True)
+@schema_dataclass(frozen=True, root="optics")
 class Optics:
     """Optics of the microscope and sampling of the RI volume.
 
@@ -65,41 +54,24 @@ class Optics:
         positive: inside the volume; negative: above it).
     """
 
-    wavelength_um: float
-    n_background: float
-    na: float
-    pixel_size_um: float
-    n_slices: int
-    slice_spacing_um: float
-    image_plane_um: float = 0.0
+    wavelength_um: float = setting(gt=0, example=0.635, description="vacuum emission wavelength, µm", fix="give it in µm, > 0")
+    n_background: float = setting(ge=1, example=1.33, description="background refractive index",
+                                  fix="give the refractive index of the medium, e.g. 1.33 for water")
+    na: float = setting(gt=0, example=0.8, description="detection numerical aperture (below n_background)", fix="give it in NA units, > 0")
+    pixel_size_um: float = setting(gt=0, example=0.33, description="lateral sampling in the sample, µm", fix="give it in µm, > 0")
+    n_slices: _SliceCount = setting(ge=1, example=8, description="slices of the RI volume", fix="write an integer >= 1")
+    slice_spacing_um: float = setting(gt=0, example=2.0, description="slice thickness, µm", fix="give it in µm, > 0")
+    image_plane_um: float = setting(0.0, example=0.0, description="camera focal plane below the volume's top face, µm",
+                                    fix="write a finite number")
 
-    def __post_init__(self) -> None:
-        # Normalise and check every field; frozen dataclass, so use object.__setattr__.
-        set_ = object.__setattr__
-        set_(self, "wavelength_um", _positive("wavelength_um", self.wavelength_um))
-        n_b = _finite_number("n_background", self.n_background)
-        if n_b < 1.0:
+    @model_validator(mode="after")
+    def _aperture_below_medium(self) -> "Optics":
+        if self.na >= self.n_background:
             raise FDTInputError(
-                "n_background", f"must be >= 1 (a physical medium), got {n_b:g}",
-                "give the refractive index of the medium, e.g. 1.33 for water",
-            )
-        set_(self, "n_background", n_b)
-        na = _positive("na", self.na, unit="NA units")
-        if na >= n_b:
-            raise FDTInputError(
-                "na", f"numerical aperture {na:g} is not below n_background {n_b:g}",
+                "na", f"numerical aperture {self.na:g} is not below n_background {self.n_background:g}",
                 "an objective cannot collect light beyond the medium's index: check na and n_background",
             )
-        set_(self, "na", na)
-        set_(self, "pixel_size_um", _positive("pixel_size_um", self.pixel_size_um))
-        n_slices = self.n_slices
-        if isinstance(n_slices, bool) or not isinstance(n_slices, (int, float)) or int(n_slices) != n_slices:
-            raise FDTInputError("n_slices", f"must be a whole number, got {n_slices!r}", "write an integer >= 1")
-        if int(n_slices) < 1:
-            raise FDTInputError("n_slices", f"must be >= 1, got {n_slices!r}", "write an integer >= 1")
-        set_(self, "n_slices", int(n_slices))
-        set_(self, "slice_spacing_um", _positive("slice_spacing_um", self.slice_spacing_um))
-        set_(self, "image_plane_um", _finite_number("image_plane_um", self.image_plane_um))
+        return self
 
     @property
     def thickness_um(self) -> float:
@@ -116,6 +88,11 @@ class Optics:
         return asdict(self)
 
     @classmethod
+    def examples(cls) -> dict[str, Any]:
+        """Example value of every field (those of ``fdt simulate``), e.g. to prefill a form."""
+        return {name: example(info) for name, info in schema_fields(cls).items()}
+
+    @classmethod
     def from_mapping(cls, data: Mapping[str, Any]) -> "Optics":
         """Build from a mapping holding every field of :data:`OPTICS_FIELDS` (``image_plane_um`` optional)."""
         missing = [f for f in OPTICS_FIELDS if f not in data and f != "image_plane_um"]
@@ -124,3 +101,7 @@ class Optics:
                 missing[0], "is missing", f"add it to acquisition.json; required: {', '.join(OPTICS_FIELDS[:-1])}"
             )
         return cls(**{f: data[f] for f in OPTICS_FIELDS if f in data})
+
+
+#: The optical fields of ``acquisition.json``, in the order they are documented.
+OPTICS_FIELDS: tuple[str, ...] = tuple(schema_fields(Optics))

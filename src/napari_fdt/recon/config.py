@@ -1,157 +1,128 @@
 """Every solver setting, in one JSON-serialisable configuration shared by the API, ``fdt`` and napari.
 
-``docs/solver.md`` documents each field. ``SolverConfig.from_dict`` rejects unknown keys (a typo would
-otherwise be silently ignored) and validates values, naming the field and the fix.
+The fields below are the schema (:mod:`napari_fdt.schema`): their descriptions, bounds and choices are read by
+``fdt reconstruct``'s flags, the napari widgets and the settings table of ``docs/solver.md`` (regenerate it with
+``python scripts/settings_table.py --write``). Unknown keys are refused (a typo would otherwise be silently
+ignored) and bad values raise :class:`~napari_fdt.errors.FDTInputError` naming the field and the fix.
 """
 
 from __future__ import annotations
 
 import json
-import math
-from dataclasses import asdict, dataclass, field, fields
+import typing
+from dataclasses import asdict
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal, Optional
+
+from pydantic import Field, model_validator
 
 from napari_fdt.errors import FDTInputError
+from napari_fdt.schema import markdown_table, schema_dataclass, setting
 
-__all__ = ["StageConfig", "SolverConfig", "load_config", "COHERENCE_MODELS", "BACKWARD_MODES", "COARSE_MODELS", "resolve_coarse_model"]
+__all__ = ["StageConfig", "SolverConfig", "load_config", "COHERENCE_MODELS", "BACKWARD_MODES", "COARSE_MODELS", "resolve_coarse_model", "settings_markdown"]
 
-COHERENCE_MODELS = ("none", "mask", "spectral", "mask+spectral")
+CoherenceModel = Literal["none", "mask", "spectral", "mask+spectral"]
 #: Model of the coarse stages; "auto": the envelope model on a CPU (12× cheaper than multi-slice there),
 #: multi-slice on a GPU (where the envelope model's many small kernels made it slower; docs/benchmarks.md).
-COARSE_MODELS = ("auto", "envelope", "multislice")
+CoarseModel = Literal["auto", "envelope", "multislice"]
 #: How the multi-slice model forms gradients (:mod:`napari_fdt.model.slice_loop`); "autograd" is the plain reference.
-BACKWARD_MODES = ("auto", "stored", "reversible", "checkpoint", "autograd")
+BackwardMode = Literal["auto", "stored", "reversible", "checkpoint", "autograd"]
+Activation = Literal["paper", "signed"]
+
+COHERENCE_MODELS: tuple[str, ...] = typing.get_args(CoherenceModel)
+COARSE_MODELS: tuple[str, ...] = typing.get_args(CoarseModel)
+BACKWARD_MODES: tuple[str, ...] = typing.get_args(BackwardMode)
+
+_POSITIVE_DEPTH = typing.Annotated[float, Field(gt=0, strict=True)]
 
 
-@dataclass
+@schema_dataclass(root="stages[]", prefix="stages[].")
 class StageConfig:
     """One coarse-to-fine stage: lateral ``factor`` (stage pixel = factor × acquisition pixel), ``iterations``
     and optionally its own ``batch_size`` (None: the configuration's). A coarse stage's images are
     ``factor²`` times smaller: on a GPU, where a small step costs its kernel launches rather than its
     arithmetic, a larger batch there uses more data for about the same time per iteration."""
 
-    factor: int = 1
-    iterations: int = 100
-    batch_size: int | None = None
-
-    def __post_init__(self) -> None:
-        if isinstance(self.factor, bool) or not isinstance(self.factor, int) or self.factor < 1:
-            raise FDTInputError("stages[].factor", f"must be an integer >= 1, got {self.factor!r}", "use 4, 2, 1 for three stages")
-        if isinstance(self.iterations, bool) or not isinstance(self.iterations, int) or self.iterations < 0:
-            raise FDTInputError("stages[].iterations", f"must be an integer >= 0, got {self.iterations!r}", "e.g. 100")
-        if self.batch_size is not None and (isinstance(self.batch_size, bool) or not isinstance(self.batch_size, int) or self.batch_size < 1):
-            raise FDTInputError("stages[].batch_size", f"must be an integer >= 1 or null, got {self.batch_size!r}",
-                                "leave it out to use the configuration's batch_size")
+    factor: int = setting(1, ge=1, description="stage pixel = factor × acquisition pixel", fix="use 4, 2, 1 for three stages")
+    iterations: int = setting(100, ge=0, description="iterations of the stage", fix="e.g. 100")
+    batch_size: Optional[typing.Annotated[int, Field(ge=1, strict=True)]] = setting(
+        None, strict=False, description="images per iteration in this stage; null: the configuration's `batch_size`",
+        fix="leave it out to use the configuration's batch_size")
 
 
 def _default_stages() -> list[StageConfig]:
     return [StageConfig(4, 100), StageConfig(2, 100), StageConfig(1, 160)]
 
 
-@dataclass
+@schema_dataclass(root="config")
 class SolverConfig:
     """Settings of a reconstruction. Learning rates are Adam step sizes in the parameters' own units."""
 
     # coarse-to-fine
-    stages: list[StageConfig] = field(default_factory=_default_stages)
-    coarse_model: str = "auto"
-    batch_size: int = 16
+    stages: list[StageConfig] = setting(
+        default_factory=_default_stages, strict=False,
+        description="coarse-to-fine stages; each factor must divide the previous one; a stage may carry its own `\"batch_size\"`",
+        fix='e.g. [{"factor": 2, "iterations": 50}, {"factor": 1, "iterations": 100}]')
+    coarse_model: CoarseModel = setting(
+        "auto", strict=False, description="model of stages with factor > 1: `\"envelope\"` (cheap on CPU), `\"multislice\"` (exact; faster than the "
+        "envelope on a GPU), `\"auto\"`: envelope on CPU, multi-slice on CUDA ([benchmarks.md](benchmarks.md))")
+    batch_size: int = setting(16, ge=1, description="images per iteration")
     # RI grid
-    delta_n_max: float = 0.1
-    activation: str = "paper"
-    lr_ri: float = 0.05
+    delta_n_max: float = setting(0.1, gt=0, description="bound of Δn (absolute RI units)")
+    activation: Activation = setting("paper", strict=False, description="`\"paper\"` (Δn ≥ 0) or `\"signed\"`")
+    lr_ri: float = setting(0.05, gt=0, description="Adam step of the RI parameters (activation input units)")
     # losses
-    l1_l2_total: float = 1.0
-    l1_ramp_start: float = 0.0
-    l1_ramp_end: float = 1.0
-    ssim_weight: float = 0.0
-    tv_xy_weight: float = 0.0
-    tv_z_weight: float = 0.0
+    l1_l2_total: float = setting(1.0, ge=0, description="α + β", fix="0 switches the term off")
+    l1_ramp_start: float = setting(0.0, ge=0, le=1, description="fraction of the run where α starts rising from 0 (≤ `l1_ramp_end`)",
+                                   fix="the L1 weight rises over this fraction of the run")
+    l1_ramp_end: float = setting(1.0, ge=0, le=1, description="fraction of the run where α reaches `l1_l2_total`",
+                                 fix="the L1 weight rises over this fraction of the run")
+    ssim_weight: float = setting(0.0, ge=0, description="γ, weight of 1 − SSIM", fix="0 switches the term off")
+    tv_xy_weight: float = setting(0.0, ge=0, description="τ_xy, weight of the lateral total variation", fix="0 switches the term off")
+    tv_z_weight: float = setting(0.0, ge=0, description="τ_z, weight of the axial total variation", fix="0 switches the term off")
     # self-calibration
-    calibrate_sources: bool = True
-    calibrate_gain: bool = True
-    calibrate_source_depth: bool = True
-    calibrate_pixel_size: bool = False
-    calibrate_slice_spacing: bool = False
-    calibration_from_stage: int = 1
-    lr_sources_um: float = 0.02
-    lr_log_gain: float = 0.01
-    lr_global: float = 1e-3
-    source_depth_um: float | None = None
+    calibrate_sources: bool = setting(True, description="fit each source's lateral position")
+    calibrate_gain: bool = setting(True, description="fit each image's gain")
+    calibrate_source_depth: bool = setting(True, description="fit a common offset of the source depths")
+    calibrate_pixel_size: bool = setting(False, description="fit a global scale of the pixel size")
+    calibrate_slice_spacing: bool = setting(False, description="fit a global scale of the slice spacing")
+    calibration_from_stage: int = setting(1, ge=0, description="first stage (0-based) with position/optics calibration (gains from the start)",
+                                          fix="0 calibrates from the start")
+    lr_sources_um: float = setting(0.02, gt=0, description="Adam step of positions and depth offset, µm")
+    lr_log_gain: float = setting(0.01, gt=0, description="Adam step of the log-gains")
+    lr_global: float = setting(1e-3, gt=0, description="Adam step of the pixel-size and slice-spacing scales (relative)")
+    source_depth_um: Optional[_POSITIVE_DEPTH] = setting(None, strict=False, description="depth guess when the acquisition has no `sources_um`, µm")
     # partial coherence
-    coherence: str = "none"
-    mask_threshold: float = 0.5
-    bandwidth_um: float = 0.03
-    n_wavelengths: int = 3
+    coherence: CoherenceModel = setting("none", strict=False, description="`\"none\"`, `\"mask\"`, `\"spectral\"`, `\"mask+spectral\"`")
+    mask_threshold: float = setting(0.5, gt=0, lt=1, description="mask binarisation level, fraction of each image's maximum",
+                                    fix="the paper binarises at about 0.5 of the maximum")
+    bandwidth_um: float = setting(0.03, ge=0, description="emission FWHM for the spectral model, µm")
+    n_wavelengths: int = setting(3, ge=1, description="wavelengths of the spectral model")
     # run
-    seed: int = 0
-    snapshot_every: int = 10
-    backward_mode: str = "auto"
-    obliquity_correction: bool = False
+    seed: int = setting(0, description="batch order; a fixed seed gives the same result twice on CPU")
+    snapshot_every: int = setting(10, ge=1, description="iterations between progress snapshots")
+    backward_mode: BackwardMode = setting(
+        "auto", strict=False, description="how the multi-slice model forms gradients (`napari_fdt.model.slice_loop`): `\"stored\"` (one field per slice and "
+        "image, fastest), `\"reversible\"` (re-propagates the field backwards: memory independent of the number of slices; grids without "
+        "evanescent frequencies only), `\"checkpoint\"` (≈2√N fields), `\"autograd\"` (plain autograd, the reference); `\"auto\"`: stored "
+        "when it fits in 80 % of the free memory, else the leanest valid mode", fix="auto picks the fastest that fits in memory")
+    obliquity_correction: bool = setting(
+        False, description="scale each source's phase screens by 1/cos θ of its ray (the thin screen's obliquity error, `docs/physics.md` "
+        "§6); multi-slice stages, plain autograd")
 
-    def __post_init__(self) -> None:
-        self._check_types()
-        self.stages = [s if isinstance(s, StageConfig) else StageConfig(**_only(s, StageConfig, "stages[]")) for s in self.stages]
+    @model_validator(mode="after")
+    def _cross_field(self) -> "SolverConfig":
+        """Rules between fields: at least one stage, factors dividing each other, the L1 ramp in order."""
         if not self.stages:
             raise FDTInputError("stages", "is empty", "give at least one stage, e.g. [{\"factor\": 1, \"iterations\": 100}]")
         for a, b in zip(self.stages, self.stages[1:]):
             if a.factor % b.factor:
                 raise FDTInputError("stages", f"factor {a.factor} is followed by {b.factor}, which does not divide it",
                                     "use decreasing factors that divide each other, e.g. 4, 2, 1")
-        _positive_int("batch_size", self.batch_size)
-        _positive_int("snapshot_every", self.snapshot_every)
-        _positive_int("n_wavelengths", self.n_wavelengths)
-        for name in ("delta_n_max", "lr_ri", "lr_sources_um", "lr_log_gain", "lr_global"):
-            _positive(name, getattr(self, name))
-        for name in ("l1_l2_total", "ssim_weight", "tv_xy_weight", "tv_z_weight", "bandwidth_um"):
-            _non_negative(name, getattr(self, name))
-        if not (0.0 <= self.l1_ramp_start <= self.l1_ramp_end <= 1.0):
-            raise FDTInputError("l1_ramp_start", "must satisfy 0 <= l1_ramp_start <= l1_ramp_end <= 1",
+        if not (self.l1_ramp_start <= self.l1_ramp_end):
+            raise FDTInputError("l1_ramp_start", f"must satisfy 0 <= l1_ramp_start <= l1_ramp_end <= 1, got {self.l1_ramp_start} > {self.l1_ramp_end}",
                                 "the L1 weight rises over this fraction of the run")
-        if self.coarse_model not in COARSE_MODELS:
-            raise FDTInputError("coarse_model", f"unknown model {self.coarse_model!r}", f"choose one of {', '.join(COARSE_MODELS)}")
-        if self.backward_mode not in BACKWARD_MODES:
-            raise FDTInputError("backward_mode", f"unknown mode {self.backward_mode!r}",
-                                f"choose one of {', '.join(BACKWARD_MODES)} (auto picks the fastest that fits in memory)")
-        if self.activation not in ("paper", "signed"):
-            raise FDTInputError("activation", f"unknown activation {self.activation!r}", "choose paper or signed")
-        if self.coherence not in COHERENCE_MODELS:
-            raise FDTInputError("coherence", f"unknown model {self.coherence!r}", f"choose one of {', '.join(COHERENCE_MODELS)}")
-        if not (0.0 < self.mask_threshold < 1.0):
-            raise FDTInputError("mask_threshold", f"must be in (0, 1), got {self.mask_threshold}", "the paper binarises at about 0.5 of the maximum")
-        if self.source_depth_um is not None:
-            _positive("source_depth_um", self.source_depth_um)
-        if isinstance(self.calibration_from_stage, bool) or not isinstance(self.calibration_from_stage, int) or self.calibration_from_stage < 0:
-            raise FDTInputError("calibration_from_stage", f"must be an integer >= 0, got {self.calibration_from_stage!r}", "0 calibrates from the start")
-        if isinstance(self.seed, bool) or not isinstance(self.seed, int):
-            raise FDTInputError("seed", f"must be an integer, got {self.seed!r}", "e.g. 0")
-
-    def _check_types(self) -> None:
-        """Every field has the JSON type its default has (numbers may be int or float; source_depth_um may be null)."""
-        if not isinstance(self.stages, list):
-            raise FDTInputError("stages", f"must be a list of {{factor, iterations}} objects, got {self.stages!r}",
-                                "e.g. [{\"factor\": 2, \"iterations\": 50}, {\"factor\": 1, \"iterations\": 100}]")
-        for f in fields(self):
-            if f.name == "stages":
-                continue
-            value = getattr(self, f.name)
-            default = getattr(SolverConfig, f.name, None)
-            if f.name == "source_depth_um":
-                if value is None:
-                    continue
-                default = 1.0
-            if isinstance(default, bool):
-                ok = isinstance(value, bool)
-                want = "true or false"
-            elif isinstance(default, (int, float)):
-                ok = isinstance(value, (int, float)) and not isinstance(value, bool)
-                want = "a number"
-            else:
-                ok = isinstance(value, str)
-                want = "a string"
-            if not ok:
-                raise FDTInputError(f.name, f"must be {want}, got {value!r}", "see docs/solver.md for each setting")
+        return self
 
     def stage_batch(self, stage_index: int) -> int:
         """Batch size of a stage: its own ``batch_size``, else the configuration's."""
@@ -167,7 +138,9 @@ class SolverConfig:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> "SolverConfig":
-        return cls(**_only(data, cls, "config"))
+        if not isinstance(data, dict):
+            raise FDTInputError("config", f"must be a JSON object, got {type(data).__name__}", "see docs/solver.md")
+        return cls(**data)
 
     def save(self, path: str | Path) -> None:
         from napari_fdt.data.io import write_json_atomic
@@ -180,31 +153,6 @@ def resolve_coarse_model(coarse_model: str, device_type: str) -> str:
     if coarse_model != "auto":
         return coarse_model
     return "multislice" if device_type == "cuda" else "envelope"
-
-
-def _only(data: Any, klass, where: str) -> dict:
-    if not isinstance(data, dict):
-        raise FDTInputError(where, f"must be a JSON object, got {type(data).__name__}", "see docs/solver.md")
-    known = {f.name for f in fields(klass)}
-    unknown = sorted(set(data) - known)
-    if unknown:
-        raise FDTInputError(f"{where}.{unknown[0]}", "is not a setting", f"known settings: {', '.join(sorted(known))}")
-    return data
-
-
-def _positive_int(name: str, v: Any) -> None:
-    if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-        raise FDTInputError(name, f"must be an integer >= 1, got {v!r}", "give a positive whole number")
-
-
-def _positive(name: str, v: Any) -> None:
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
-        raise FDTInputError(name, f"must be a positive number, got {v!r}", "give a finite value > 0")
-
-
-def _non_negative(name: str, v: Any) -> None:
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
-        raise FDTInputError(name, f"must be a number >= 0, got {v!r}", "0 switches the term off")
 
 
 def load_config(path: str | Path) -> SolverConfig:
@@ -226,3 +174,9 @@ def load_config(path: str | Path) -> SolverConfig:
     except (ValueError, json.JSONDecodeError) as exc:
         raise FDTInputError("config", f"{p} does not parse: {exc}", "write valid JSON (or TOML for .toml)") from None
     return SolverConfig.from_dict(data)
+
+
+def settings_markdown() -> str:
+    """The settings table of ``docs/solver.md``, generated from :class:`SolverConfig` and :class:`StageConfig`."""
+    return markdown_table(SolverConfig) + "\n" + "Each entry of `stages`:\n\n" + markdown_table(StageConfig)
+

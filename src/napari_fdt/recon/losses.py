@@ -17,12 +17,15 @@ values are brought back to Python floats, to be called only when they are needed
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
+from pydantic import model_validator
 
 from napari_fdt.errors import FDTInputError
+from napari_fdt.recon.config import SolverConfig
+from napari_fdt.schema import schema_dataclass, setting
 
 __all__ = [
     "BatchShare",
@@ -377,9 +380,12 @@ class BatchShare:
         return cls(int(batch_shape[0]), weight_sum, bool(regularisers))
 
 
-@dataclass(frozen=True)
+@schema_dataclass(frozen=True, root="weights")
 class LossWeights:
-    """Weights of the loss terms (all ≥ 0 and finite).
+    """Weights of the loss terms (all ≥ 0 and finite), declared with the settings schema.
+
+    A reconstruction builds them from its validated configuration (:meth:`from_config`); the bounds below are
+    the same as :class:`~napari_fdt.recon.config.SolverConfig`'s, for callers of :func:`total_loss` alone.
 
     Attributes
     ----------
@@ -394,33 +400,29 @@ class LossWeights:
         ``l1_l2_total`` (defaults: the whole run).
     """
 
-    l1_l2_total: float = 1.0
-    ssim: float = 0.0
-    tv_xy: float = 0.0
-    tv_z: float = 0.0
-    schedule_start: float = 0.0
-    schedule_end: float = 1.0
+    l1_l2_total: float = setting(1.0, ge=0, strict=False, description="α + β", fix="use 0 to switch the term off")
+    ssim: float = setting(0.0, ge=0, strict=False, description="γ, weight of 1 − SSIM", fix="use 0 to switch the term off")
+    tv_xy: float = setting(0.0, ge=0, strict=False, description="τ_xy, weight of the lateral TV", fix="use 0 to switch the term off")
+    tv_z: float = setting(0.0, ge=0, strict=False, description="τ_z, weight of the axial TV", fix="use 0 to switch the term off")
+    schedule_start: float = setting(0.0, ge=0, le=1, strict=False, description="progress where α starts rising")
+    schedule_end: float = setting(1.0, ge=0, le=1, strict=False, description="progress where α reaches l1_l2_total")
 
-    def __post_init__(self) -> None:
-        for f in fields(self):
-            value = getattr(self, f.name)
-            try:
-                ok = math.isfinite(float(value)) and float(value) >= 0
-            except (TypeError, ValueError):
-                ok = False
-            if not ok:
-                raise FDTInputError(
-                    f.name,
-                    f"loss weight must be a finite number ≥ 0, got {value!r}",
-                    "use 0 to switch the term off",
-                )
-        if not (self.schedule_start <= self.schedule_end <= 1.0):
+    @model_validator(mode="after")
+    def _schedule_in_order(self) -> "LossWeights":
+        if not self.schedule_start <= self.schedule_end:
             raise FDTInputError(
                 "schedule_end",
                 f"the L1/L2 schedule needs 0 ≤ schedule_start ≤ schedule_end ≤ 1, got "
                 f"{self.schedule_start} and {self.schedule_end}",
                 "give fractions of the run with start ≤ end",
             )
+        return self
+
+    @classmethod
+    def from_config(cls, config: SolverConfig) -> "LossWeights":
+        """The weights of a (validated) solver configuration."""
+        return cls(config.l1_l2_total, config.ssim_weight, config.tv_xy_weight, config.tv_z_weight,
+                   config.l1_ramp_start, config.l1_ramp_end)
 
 
 def total_loss(

@@ -183,8 +183,7 @@ class Reconstructor:
             self.wavelengths, self.weights = list(map(float, lams)), list(map(float, ws))
         else:
             self.wavelengths, self.weights = None, None
-        self.loss_weights = LossWeights(cfg.l1_l2_total, cfg.ssim_weight, cfg.tv_xy_weight, cfg.tv_z_weight,
-                                        cfg.l1_ramp_start, cfg.l1_ramp_end)
+        self.loss_weights = LossWeights.from_config(cfg)
         self._check_memory(src)
 
     def _check_memory(self, sources_um: np.ndarray) -> None:
