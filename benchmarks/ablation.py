@@ -48,13 +48,13 @@ def run(acq, truth_ri, truth_src, config: SolverConfig, device: str) -> dict:
     wall = time.perf_counter() - t0
     m = ri_metrics(rec.ri_full(), truth_ri, acq.optics.n_background)
     _, fit = evaluate_images(rec)
-    src = source_errors(rec.calibrated_sources().detach().cpu().numpy(), truth_src)
+    src = source_errors(rec.sources_um(), truth_src)
     return {
         "relative_delta_n_error": m["relative_delta_n_error"], "ri_rmse": m["ri_rmse"],
         "paper_psnr": m["paper_normalised"]["psnr"], "paper_ssim": m["paper_normalised"]["ssim"],
         "image_relative_error": fit["image_relative_error"], "image_ssim": fit["image_ssim"],
         "source_lateral_rms_um": src["lateral_rms_um"], "wall_s": wall,
-        "iterations": config.total_iterations, "calibration": rec.calibration(),
+        "iterations": config.total_iterations, "calibration": rec.calibration.summary(),
     }
 
 

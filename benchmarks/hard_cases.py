@@ -212,10 +212,10 @@ def _reconstruct(case: Case, optics: Optics, dn: np.ndarray, src: np.ndarray) ->
         return f"EXCEPTION {type(exc).__name__}: {exc} ({Path(tb.filename).name}:{tb.lineno})"
     vol = rc.delta_n_full()
     losses = list(rc.final_losses.values())
-    if not (np.isfinite(vol).all() and np.isfinite(losses).all() and _finite(rc.sources.detach(), rc.log_gain.detach())):
+    if not (np.isfinite(vol).all() and np.isfinite(losses).all() and _finite(rc.calibration.sources.detach(), rc.calibration.log_gain.detach())):
         return "NON-FINITE result (NaN/Inf in volume, losses or calibration)"
     return (f"ok, loss {rc.final_losses.get('total', float('nan')):.3g}, "
-            f"log-gain min {float(rc.log_gain.detach().min()):.3g}")
+            f"log-gain min {float(rc.calibration.log_gain.detach().min()):.3g}")
 
 
 def markdown(results: list[dict], obliquity: list[dict] | None = None) -> str:

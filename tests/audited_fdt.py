@@ -74,7 +74,7 @@ def _fail_on_request() -> None:
         return
     from napari_fdt.recon.solver import Reconstructor
 
-    predict, calls = Reconstructor._predict, [0]
+    predict, calls = Reconstructor._predict_normalised, [0]
 
     def failing(self, *args):
         calls[0] += 1
@@ -82,7 +82,7 @@ def _fail_on_request() -> None:
             raise RuntimeError(f"injected failure on rank {rank}")
         return predict(self, *args)
 
-    Reconstructor._predict = failing
+    Reconstructor._predict_normalised = failing
 
 
 _fail_on_request()

@@ -59,3 +59,27 @@ def test_gradients_match_finite_differences() -> None:
     src = torch.tensor([[0.3, -0.2, 6.0], [-0.5, 0.4, 7.0]], dtype=torch.float64, requires_grad=True)
     w = torch.rand(2, 8, 8, generator=gen, dtype=torch.float64)
     assert torch.autograd.gradcheck(lambda d, s: (env(d, s) * w).sum(), (dn, src), eps=1e-6, atol=1e-6, rtol=1e-4)
+
+
+def test_both_models_are_image_models(scene) -> None:
+    """The interface of napari_fdt.model.protocol: shapes of images, and the optics overrides the solver passes."""
+    from napari_fdt.model.protocol import ImageModel
+
+    o, src, dn, ms, env = scene
+    for model in (ms, env):
+        assert isinstance(model, ImageModel)
+        assert model.image_shape == (48, 48) and model.pixel_size_um == pytest.approx(0.33)
+        out = model(dn, src[:2], torch.tensor([1.0, 2.0], dtype=torch.float64), slice_spacing_um=2.1, wavelength_um=0.64)
+        assert out.shape == (2, 48, 48) and out.dtype == torch.float64
+
+
+def test_envelope_step_is_the_angular_spectrum_kernel() -> None:
+    """The envelope's Fresnel-scaled step is propagation_kernel over Δz·h0/h1 at frequency f_p/h0."""
+    from napari_fdt.physics.propagation import propagation_kernel
+
+    f2p = torch.linspace(0.0, 200.0, 101, dtype=torch.float64).reshape(1, 1, -1).expand(2, 1, -1)
+    h0, h1 = torch.tensor([5.0, 9.0], dtype=torch.float64), torch.tensor([7.0, 9.5], dtype=torch.float64)
+    k = EnvelopeModel._kernel(f2p, h0, h1, 1.33, 0.6)
+    ref = propagation_kernel(f2p / (h0 * h0)[:, None, None], ((h1 - h0) * h0 / h1)[:, None, None], 1.33, 0.6)
+    assert torch.allclose(k, ref, rtol=1e-12, atol=1e-14)
+    assert k[0, 0, -1] == 0 and torch.allclose(k.abs()[..., :10], torch.ones(2, 1, 10, dtype=torch.float64))  # evanescent beyond n_b/λ, unit modulus below

@@ -401,3 +401,23 @@ def test_image_metrics() -> None:
     same = image_metrics(meas, meas)
     assert same["image_psnr"] == math.inf and same["image_relative_error"] == 0.0
     assert same["image_ssim"] == pytest.approx(1.0, abs=1e-12)
+
+
+def test_least_squares_gain() -> None:
+    """The closed-form gain minimises Σ m·(g·pred − meas)² per image; masked pixels do not count; a blank prediction gives 0."""
+    from napari_fdt.model.gain import least_squares_gain
+
+    gen = torch.Generator().manual_seed(0)
+    pred = torch.rand(3, 8, 9, generator=gen, dtype=torch.float64)
+    meas = pred * torch.tensor([2.0, 0.5, 3.0], dtype=torch.float64)[:, None, None]
+    assert torch.allclose(least_squares_gain(pred, meas), torch.tensor([2.0, 0.5, 3.0], dtype=torch.float64))
+    noisy = meas + 0.1 * torch.rand(3, 8, 9, generator=gen, dtype=torch.float64)
+    g = least_squares_gain(noisy, pred)
+    ref = [float(np.linalg.lstsq(n.reshape(-1, 1).numpy(), p.reshape(-1).numpy(), rcond=None)[0][0]) for n, p in zip(noisy, pred)]
+    assert np.allclose(g.numpy(), ref, rtol=1e-12)
+    mask = torch.zeros_like(pred)
+    mask[:, :4] = 1
+    spoiled = meas.clone()
+    spoiled[:, 4:] = 100.0
+    assert torch.allclose(least_squares_gain(pred, spoiled, mask), least_squares_gain(pred, meas))
+    assert least_squares_gain(torch.zeros(2, 3), torch.ones(2, 3)).item() == 0.0

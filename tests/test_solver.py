@@ -47,7 +47,7 @@ def test_default_settings_reconstruct_the_sample() -> None:
     for _ in rec.run():
         pass
     err = relative_delta_n_error(rec.delta_n_full(), truth - acq.optics.n_background)
-    src = source_errors(rec.calibrated_sources().detach().numpy(), true_src)
+    src = source_errors(rec.sources_um(), true_src)
     initial = source_errors(acq.sources_um, true_src)
     assert initial["lateral_rms_um"] > 1.0  # the starting point really is jittered
     assert err <= 0.3, err
@@ -60,7 +60,7 @@ def test_same_seed_same_result_on_cpu(tiny) -> None:
         rec = Reconstructor(tiny.acquisition, _tiny_config(), device="cpu")
         for _ in rec.run():
             pass
-        results.append((rec.delta_n_full(), rec.calibrated_sources().detach().numpy()))
+        results.append((rec.delta_n_full(), rec.sources_um()))
     assert np.array_equal(results[0][0], results[1][0])
     assert np.array_equal(results[0][1], results[1][1])
 
@@ -91,7 +91,7 @@ def test_cancel_keeps_the_last_complete_stage(tiny) -> None:
     assert stage1.stage == 0 and stage1.stage_complete
     rec.restore_last_complete()
     assert np.allclose(rec.volume.delta_n().detach().numpy(), stage1.delta_n)
-    assert np.allclose(rec.calibrated_sources().detach().numpy(), stage1.sources_um)
+    assert np.allclose(rec.sources_um(), stage1.sources_um)
 
 
 def test_resume_from_checkpoint_gives_the_same_result(tiny, tmp_path: Path) -> None:
@@ -108,7 +108,33 @@ def test_resume_from_checkpoint_gives_the_same_result(tiny, tmp_path: Path) -> N
     for _ in resumed.run():
         pass
     assert np.array_equal(resumed.delta_n_full(), full.delta_n_full())
-    assert np.array_equal(resumed.calibrated_sources().detach().numpy(), full.calibrated_sources().detach().numpy())
+    assert np.array_equal(resumed.sources_um(), full.sources_um())
+
+
+def test_predict_is_the_evaluation_and_the_calibration_has_its_own_state(tiny) -> None:
+    """predict(indices) gives evaluate_images' rows (acquisition units); the calibration's state dict restores it."""
+    from napari_fdt.recon.calibration import Calibration
+    from napari_fdt.recon.report import evaluate_images
+
+    rec = Reconstructor(tiny.acquisition, _tiny_config(), device="cpu")
+    with pytest.raises(RuntimeError):
+        rec.predict([0])
+    for _ in rec.run():
+        pass
+    preds, fit = evaluate_images(rec, batch_size=4)
+    two = rec.predict([5, 2])
+    assert two.shape == (2, 32, 32) and two.dtype == np.float32
+    assert np.allclose(two, preds[[5, 2]], rtol=1e-5, atol=1e-6 * float(preds.max()))
+    assert 0 < fit["image_relative_error"] < 0.5  # 10 iterations on the tiny scene: 0.235
+    cal = Calibration(rec.initial_sources_um, rec.config, rec.acquisition.optics, device=rec.device, dtype=rec.dtype)
+    cal.load_state_dict(rec.calibration.state_dict(), 1)
+    assert np.array_equal(cal.sources_um(), rec.sources_um()) and np.array_equal(cal.gains() * rec.image_scale, rec.gains())
+    assert cal.gain_initialised and cal.summary() == rec.calibration.summary()
+    assert cal.optimiser.state_dict()["state"].keys() == rec.calibration.optimiser.state_dict()["state"].keys()
+    cal.set_trainable(0)  # calibration_from_stage = 1: only the gains train in stage 0
+    assert cal.log_gain.requires_grad and not cal.sources.requires_grad and not cal.depth_offset_um.requires_grad
+    cal.set_trainable(1)
+    assert cal.sources.requires_grad and cal.depth_offset_um.requires_grad and not cal.pixel_scale.requires_grad
 
 
 @pytest.mark.parametrize("coherence", ["mask", "spectral", "mask+spectral"])
@@ -124,7 +150,7 @@ def test_global_calibration_moves_and_is_reported(tiny) -> None:
     rec = Reconstructor(tiny.acquisition, cfg, device="cpu")
     for _ in rec.run():
         pass
-    cal = rec.calibration()
+    cal = rec.calibration.summary()
     assert cal["pixel_size_um"] != 0.33 and abs(cal["pixel_size_um"] / 0.33 - 1) < 0.2
     assert cal["slice_spacing_um"] != 2.0 and abs(cal["slice_spacing_um"] / 2.0 - 1) < 0.2
 
@@ -234,14 +260,14 @@ def test_a_stage_may_have_its_own_batch_size(tiny) -> None:
     cfg = _tiny_config(stages=[StageConfig(2, 3, batch_size=7), StageConfig(1, 2)], batch_size=4)
     rec = Reconstructor(tiny.acquisition, cfg, device="cpu")
     sizes = []
-    real = rec._next_batch
+    real = rec.batches.next
 
     def spy(b):
         idx = real(b)
         sizes.append(len(idx))
         return idx
 
-    rec._next_batch = spy
+    rec.batches.next = spy
     for _ in rec.run():
         pass
     assert sizes == [7, 7, 7, 4, 4]

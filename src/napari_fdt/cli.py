@@ -254,8 +254,11 @@ def _cmd_info(args: argparse.Namespace) -> int:
 
 
 def _cmd_forward(args: argparse.Namespace) -> int:
+    import torch
+
     from napari_fdt.data.io import read_acquisition, read_volume_tiff, write_volume_tiff
     from napari_fdt.model.forward import MultiSliceModel
+    from napari_fdt.model.gain import least_squares_gain
     from napari_fdt.model.render import render_images
     from napari_fdt.physics.grid import plan_for_sources
 
@@ -282,8 +285,7 @@ def _cmd_forward(args: argparse.Namespace) -> int:
     seconds = time.perf_counter() - t0
     meas = acq.images_float32().astype(np.float64)
     p = pred.astype(np.float64)
-    # Least-squares gain per image (brightness is unknown per fluorophore).
-    gain = (p * meas).sum(axis=(1, 2)) / np.maximum((p * p).sum(axis=(1, 2)), 1e-30)
+    gain = least_squares_gain(torch.from_numpy(p), torch.from_numpy(meas)).numpy()  # brightness is unknown per fluorophore
     fit = p * gain[:, None, None]
     rel = np.linalg.norm((fit - meas).reshape(len(meas), -1), axis=1) / np.maximum(
         np.linalg.norm(meas.reshape(len(meas), -1), axis=1), 1e-30)

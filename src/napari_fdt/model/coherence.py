@@ -25,7 +25,7 @@ import torch
 import torch.nn.functional as F
 
 from napari_fdt.errors import FDTInputError
-from napari_fdt.model.forward import MultiSliceModel
+from napari_fdt.model.protocol import ImageModel
 
 __all__ = ["FWHM_PER_SIGMA", "emission_spectrum", "spectral_images", "coherence_masks", "coherence_length_um"]
 
@@ -75,7 +75,7 @@ def coherence_length_um(wavelength_um: float, fwhm_um: float, n_background: floa
     return float(wavelength_um) ** 2 / (float(n_background) * float(fwhm_um))
 
 
-def _is_acquisition_wavelength(model: MultiSliceModel, lam) -> bool:
+def _is_acquisition_wavelength(model: ImageModel, lam) -> bool:
     if isinstance(lam, torch.Tensor):
         if lam.requires_grad:
             return False  # keep the gradient path through the override
@@ -84,7 +84,7 @@ def _is_acquisition_wavelength(model: MultiSliceModel, lam) -> bool:
 
 
 def spectral_images(
-    model: MultiSliceModel,
+    model: ImageModel,
     delta_n: torch.Tensor,
     sources_um: torch.Tensor,
     gain: torch.Tensor | None = None,
@@ -142,7 +142,7 @@ def _gaussian_blur(images: torch.Tensor, sigma_px: float) -> torch.Tensor:
 
 
 def coherence_masks(
-    model: MultiSliceModel,
+    model: ImageModel,
     sources_um: torch.Tensor | np.ndarray,
     *,
     threshold: float = 0.5,

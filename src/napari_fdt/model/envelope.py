@@ -30,13 +30,13 @@ import torch
 import torch.nn.functional as F
 
 from napari_fdt.physics.optics import Optics
-from napari_fdt.physics.propagation import pupil
+from napari_fdt.physics.propagation import axial_frequency_offset, pupil
 
 __all__ = ["EnvelopeModel"]
 
 
 class EnvelopeModel:
-    """Coarse forward model on a stage grid.
+    """Coarse forward model on a stage grid (an :class:`~napari_fdt.model.protocol.ImageModel`).
 
     Parameters
     ----------
@@ -108,19 +108,18 @@ class EnvelopeModel:
         return a[..., self.pad : self.pad + h, self.pad : self.pad + w]
 
     @staticmethod
-    def _kernel(f2p: torch.Tensor, h0: torch.Tensor, h1: torch.Tensor, lam_medium) -> torch.Tensor:
-        """Envelope step from height h0 to h1 (per source): the Fresnel-scaled angular-spectrum kernel.
+    def _kernel(f2p: torch.Tensor, h0: torch.Tensor, h1: torch.Tensor, n_background: float,
+                wavelength_um: float | torch.Tensor) -> torch.Tensor:
+        """Envelope step from height h0 to h1 (per source, (B,) µm): the Fresnel-scaled angular-spectrum kernel.
 
         In the frame of the scaling theorem the envelope at h0 propagates over ``Δz·h0/h1`` with physical
-        frequency ``f = f_p/h0``; the exact kernel ``exp(i2π·Δz_eff·(q_z(f) − 1/λ'))`` replaces the paraxial
+        frequency ``f = f_p/h0``; the exact kernel ``exp(i2π·Δz_eff·(q_z(f) − n_b/λ))`` replaces the paraxial
         ``exp(−iπ·λ'·f_p²·Δz/(h0·h1))`` (equal to leading order), evanescent frequencies set to 0.
+        ``f2p``: (B, hp, wp) squared frequencies conjugate to p; returns (B, hp, wp) complex.
         """
-        k = 1.0 / lam_medium
         f2 = f2p / (h0 * h0)[:, None, None]
         dz_eff = ((h1 - h0) * h0 / h1)[:, None, None]
-        prop = f2 < k * k
-        q = torch.sqrt(torch.clamp(k * k - f2, min=1e-30))
-        offset = torch.where(prop, -f2 / (q + k), torch.zeros_like(f2))
+        offset, prop = axial_frequency_offset(f2, n_background, wavelength_um)
         return torch.polar(prop.to(f2.dtype), 2 * math.pi * dz_eff * offset)
 
     def __call__(self, delta_n: torch.Tensor, sources_um: torch.Tensor, gain: torch.Tensor | None = None,
@@ -129,7 +128,6 @@ class EnvelopeModel:
         o = self.optics
         dz = o.slice_spacing_um if slice_spacing_um is None else slice_spacing_um
         lam = o.wavelength_um if wavelength_um is None else wavelength_um
-        lam_medium = lam / o.n_background
         src = sources_um.to(self.device, self.dtype)
         dn = delta_n.to(self.device, self.dtype)
         b = src.shape[0]
@@ -157,8 +155,8 @@ class EnvelopeModel:
             if a is None:
                 a = screen
             else:
-                a = torch.fft.ifft2(torch.fft.fft2(a) * self._kernel(f2, heights[k - 1], hk, lam_medium)) * screen
-        a = torch.fft.ifft2(torch.fft.fft2(a) * self._kernel(f2, heights[-1], h_cam, lam_medium))
+                a = torch.fft.ifft2(torch.fft.fft2(a) * self._kernel(f2, heights[k - 1], hk, o.n_background, lam)) * screen
+        a = torch.fft.ifft2(torch.fft.fft2(a) * self._kernel(f2, heights[-1], h_cam, o.n_background, lam))
         p2 = py[:, :, None] ** 2 + px[:, None, :] ** 2
         sin2 = p2 / (1 + p2)
         aperture = pupil(sin2 * (o.n_background / lam) ** 2, o.na, lam, self.pupil_taper)

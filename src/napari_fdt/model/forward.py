@@ -50,7 +50,7 @@ class Kernels:
 
 
 class MultiSliceModel:
-    """The forward model for one optics and grid plan.
+    """The forward model for one optics and grid plan (an :class:`~napari_fdt.model.protocol.ImageModel`).
 
     Parameters
     ----------

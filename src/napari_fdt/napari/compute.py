@@ -15,6 +15,7 @@ from napari_fdt.data.acquisition import Acquisition
 from napari_fdt.errors import FDTInputError
 from napari_fdt.model.coherence import coherence_masks
 from napari_fdt.model.forward import MultiSliceModel
+from napari_fdt.model.gain import least_squares_gain
 from napari_fdt.model.render import iter_batches, render_images
 from napari_fdt.physics.grid import plan_for_sources
 from napari_fdt.physics.optics import Optics
@@ -81,7 +82,7 @@ def forward_preview(
     model = MultiSliceModel(o, plan_for_sources(o, acq.image_shape, src), device=device)
     pred = render_images(model, dn, src)[0].astype(np.float64)
     meas = acq.images_float32()[index].astype(np.float64)
-    gain = float((pred * meas).sum() / max(float((pred * pred).sum()), 1e-30))
+    gain = float(least_squares_gain(torch.from_numpy(pred), torch.from_numpy(meas)))
     return (pred * gain).astype(np.float32), meas.astype(np.float32), gain
 
 
@@ -105,16 +106,9 @@ def predicted_vs_measured(rec, index: int) -> tuple[np.ndarray, np.ndarray]:
     ``rec`` is a :class:`~napari_fdt.recon.solver.Reconstructor` that holds a volume; this is one image of
     :func:`napari_fdt.recon.report.evaluate_images`. Returns two (H, W) float32 images in the acquisition's units.
     """
-    from napari_fdt.recon.stages import build_stage
-
     acq = rec.acquisition
     index = check_index(index, acq.n_images)
     if rec.volume is None:
         raise FDTInputError("reconstruction", "holds no volume yet", "run a reconstruction first")
-    src = rec.calibrated_sources().detach().cpu().double().numpy()
-    stage = build_stage(-1, 1, 0, acq.optics, rec.images, src, device=rec.device)
-    dn = torch.from_numpy(rec.delta_n_full()).to(rec.device)
-    with torch.no_grad():
-        idx = torch.tensor([index], device=rec.device)
-        pred = (rec._predict(stage, dn, idx) * rec.image_scale)[0].cpu().numpy()
+    pred = rec.predict([index])[0]
     return pred.astype(np.float32), acq.images_float32()[index].astype(np.float32)

@@ -90,7 +90,7 @@ def reconstruction_job(
             rec.restore_last_complete()
         yield Update("evaluating")
         report = build_report(rec, acquisition_path=acquisition_path, cancelled=cancelled)
-        sources = rec.calibrated_sources().detach().cpu().double().numpy()
+        sources = rec.sources_um()
         return JobResult(rec, cancelled, rec.completed_stages, ri=rec.ri_full(), sources_um=sources, report=report)
     finally:
         if done is not None:

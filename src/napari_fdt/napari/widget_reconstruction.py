@@ -484,7 +484,7 @@ class ReconstructionWidget(Container):
             layer = self.layer.value
             acq = acquisition_of(layer)
             if self._rec is not None and layer is self._acq_layer and not self.running:
-                sources = self._rec.calibrated_sources().detach().cpu().double().numpy()
+                sources = self._rec.sources_um()
             else:
                 sources = sources_for(self._viewer, layer, acq)
             job = lambda: illumination_coverage(acq.optics, acq.image_shape, sources)  # noqa: E731

@@ -19,7 +19,6 @@ from napari_fdt.data.io import report_path, write_json_atomic, write_volume_tiff
 from napari_fdt.model.render import iter_batches
 from napari_fdt.recon.metrics import image_metrics, ri_metrics
 from napari_fdt.recon.solver import Reconstructor
-from napari_fdt.recon.stages import build_stage
 
 __all__ = ["evaluate_images", "build_report", "write_result", "source_errors"]
 
@@ -30,15 +29,11 @@ def evaluate_images(rec: Reconstructor, batch_size: int | None = None) -> tuple[
     Predictions are in the acquisition's intensity units (calibrated gains applied).
     """
     acq = rec.acquisition
-    src = rec.calibrated_sources().detach().cpu().double().numpy()
-    stage = build_stage(-1, 1, 0, acq.optics, rec.images, src, device=rec.device)
-    dn = torch.from_numpy(rec.delta_n_full()).to(rec.device)
+    stage = rec.evaluation_stage()
     preds = np.empty(acq.images.shape, dtype=np.float32)
     bs = batch_size or rec.config.batch_size
-    with torch.no_grad():
-        for sl in iter_batches(acq.n_images, bs):
-            idx = torch.arange(sl.start, sl.stop, device=rec.device)
-            preds[sl] = (rec._predict(stage, dn, idx) * rec.image_scale).cpu().numpy()
+    for sl in iter_batches(acq.n_images, bs):
+        preds[sl] = rec.predict(np.arange(sl.start, sl.stop), stage)
     return preds, image_metrics(preds, acq.images_float32())
 
 
@@ -65,7 +60,7 @@ def build_report(
     from napari_fdt._version import __version__
 
     o = rec.acquisition.optics
-    src = rec.calibrated_sources().detach().cpu().double().numpy()
+    src = rec.sources_um()
     report: dict[str, Any] = {
         "format": "napari-fdt-report",
         "version": 1,
@@ -84,10 +79,10 @@ def build_report(
                "voxel_size_um": [o.slice_spacing_um, o.pixel_size_um, o.pixel_size_um],
                "slice_order": "slice 0 nearest the sources"},
         "calibration": {
-            **rec.calibration(),
+            **rec.calibration.summary(),
             "sources_um": src.tolist(),
             "initial_sources_um": rec.initial_sources_um.tolist(),
-            "gains": (torch.exp(rec.log_gain.detach()).cpu().double().numpy() * rec.image_scale).tolist(),
+            "gains": rec.gains().tolist(),
         },
         "stages": [r.to_dict() for r in rec.stages],
         "seconds_total": rec.elapsed_s,

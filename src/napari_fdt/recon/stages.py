@@ -25,6 +25,7 @@ import torch.nn.functional as F
 
 from napari_fdt.model.envelope import EnvelopeModel
 from napari_fdt.model.forward import MultiSliceModel
+from napari_fdt.model.protocol import ImageModel
 from napari_fdt.physics.grid import DEFAULT_PUPIL_TAPER, GridPlan, plan_grid
 from napari_fdt.physics.optics import Optics
 from napari_fdt.recon.volume import upsample_to
@@ -78,7 +79,7 @@ class Stage:
     field_factor: int
     iterations: int
     optics: Optics
-    model: MultiSliceModel | EnvelopeModel
+    model: ImageModel
     images: torch.Tensor
     shift_um: tuple[float, float]
     grid_shape: tuple[int, int]

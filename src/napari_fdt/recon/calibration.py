@@ -1,0 +1,163 @@
+"""The self-calibration parameters of a reconstruction, with their optimiser and their state.
+
+Besides the RI grid the solver fits (``docs/solver.md``): the lateral position of every source, a log-gain
+per image, a common offset of the source plane's depth, and optionally the pixel size and the slice
+spacing as global scales of the acquisition's values. :class:`Calibration` holds them as tensors on the
+solver's device, switches them on per stage, and keeps one Adam optimiser for them over the whole run.
+Lengths in µm; gains in the solver's normalised image units (images divided by the acquisition's mean).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import torch
+
+from napari_fdt.physics.optics import Optics
+from napari_fdt.recon.config import SolverConfig
+
+__all__ = ["Calibration"]
+
+#: The tensors of :class:`Calibration`, in the order of its state dict (and of the checkpoint's keys).
+PARAMETERS = ("sources", "log_gain", "pixel_scale", "spacing_scale", "depth_offset_um")
+
+
+class Calibration:
+    """Per-source positions and gains, and the global optical scales, as optimised parameters.
+
+    Parameters
+    ----------
+    sources_um: (N, 3) start positions [x, y, depth] (acquisition coordinates).
+    config: the solver settings (``calibrate_*`` switches, ``calibration_from_stage``, ``lr_*`` rates).
+    optics: the acquisition's optics (the scales multiply its pixel size and slice spacing).
+    device, dtype: of the tensors.
+
+    Tensors: ``sources`` (N, 3) µm, ``log_gain`` (N,), ``pixel_scale`` and ``spacing_scale`` () (1 = the
+    acquisition's value), ``depth_offset_um`` () µm added to every source's depth.
+    """
+
+    def __init__(self, sources_um: np.ndarray, config: SolverConfig, optics: Optics, *, device: torch.device,
+                 dtype: torch.dtype) -> None:
+        self.config = config
+        self.optics = optics
+        n = len(sources_um)
+        self.sources = torch.tensor(np.asarray(sources_um, dtype=np.float64), device=device, dtype=dtype)
+        self.log_gain = torch.zeros(n, device=device, dtype=dtype)
+        self.pixel_scale = torch.ones((), device=device, dtype=dtype)
+        self.spacing_scale = torch.ones((), device=device, dtype=dtype)
+        self.depth_offset_um = torch.zeros((), device=device, dtype=dtype)
+        #: whether the gains hold their least-squares start (:meth:`set_gains`)
+        self.gain_initialised = False
+        #: one Adam for the whole run, built by the first :meth:`set_trainable`
+        self.optimiser: torch.optim.Adam | None = None
+
+    # -- values --------------------------------------------------------------------------------
+    def calibrated_sources(self) -> torch.Tensor:
+        """(N, 3) positions with the common depth offset applied (acquisition coordinates, µm), differentiable."""
+        offset = torch.stack([torch.zeros_like(self.depth_offset_um), torch.zeros_like(self.depth_offset_um), self.depth_offset_um])
+        return self.sources + offset
+
+    def sources_um(self) -> np.ndarray:
+        """(N, 3) calibrated positions as float64 numpy (µm, acquisition coordinates)."""
+        return self.calibrated_sources().detach().cpu().double().numpy()
+
+    def gains(self) -> np.ndarray:
+        """(N,) gains ``exp(log_gain)`` as float64 numpy (normalised image units per model unit)."""
+        return torch.exp(self.log_gain.detach()).cpu().double().numpy()
+
+    def summary(self) -> dict[str, float]:
+        """The calibrated global parameters: pixel size and slice spacing (µm), depth offset of the sources (µm)."""
+        optics = self.optics
+        return {
+            "pixel_size_um": optics.pixel_size_um * float(self.pixel_scale.detach()),
+            "slice_spacing_um": optics.slice_spacing_um * float(self.spacing_scale.detach()),
+            "source_depth_offset_um": float(self.depth_offset_um.detach()),
+        }
+
+    def optics_overrides(self, stage_optics: Optics, envelope: bool) -> dict[str, torch.Tensor]:
+        """Keyword overrides of a stage model's optics for the calibrated scales (see :class:`~napari_fdt.model.protocol.ImageModel`).
+
+        The envelope model's pixel is tied to its stage grid, so it gets no pixel-size override.
+        """
+        cfg = self.config
+        out = {}
+        if cfg.calibrate_pixel_size and not envelope:
+            out["pixel_size_um"] = stage_optics.pixel_size_um * self.pixel_scale
+        if cfg.calibrate_slice_spacing:
+            out["slice_spacing_um"] = stage_optics.slice_spacing_um * self.spacing_scale
+        return out
+
+    def set_gains(self, gains: torch.Tensor) -> None:
+        """Start the gains at ``gains`` (N,) (> 0), e.g. least-squares fits to the homogeneous medium."""
+        with torch.no_grad():
+            self.log_gain.copy_(torch.log(gains))
+        self.gain_initialised = True
+
+    # -- optimisation --------------------------------------------------------------------------
+    def set_trainable(self, stage_index: int) -> None:
+        """Switch each parameter's gradient on or off for stage ``stage_index``; build the optimiser on first use.
+
+        Positions, depth offset and global scales train from ``calibration_from_stage`` on (each if its
+        ``calibrate_*`` switch is on); the gains in every stage if ``calibrate_gain``.
+        """
+        cfg = self.config
+        on = stage_index >= cfg.calibration_from_stage
+        self.sources.requires_grad_(on and cfg.calibrate_sources)
+        self.depth_offset_um.requires_grad_(on and cfg.calibrate_source_depth)
+        self.pixel_scale.requires_grad_(on and cfg.calibrate_pixel_size)
+        self.spacing_scale.requires_grad_(on and cfg.calibrate_slice_spacing)
+        self.log_gain.requires_grad_(cfg.calibrate_gain)
+        if self.optimiser is None:
+            self.optimiser = torch.optim.Adam(
+                [
+                    {"params": [self.sources], "lr": cfg.lr_sources_um},
+                    {"params": [self.log_gain], "lr": cfg.lr_log_gain},
+                    {"params": [self.pixel_scale, self.spacing_scale], "lr": cfg.lr_global},
+                    {"params": [self.depth_offset_um], "lr": cfg.lr_sources_um},
+                ],
+                betas=(0.9, 0.99),
+            )
+
+    def shared_parameters(self) -> list[torch.Tensor]:
+        """The parameters every image's gradient reaches (summed over ranks in a distributed run)."""
+        return [self.pixel_scale, self.spacing_scale, self.depth_offset_um]
+
+    def per_source_parameters(self) -> list[torch.Tensor]:
+        """The parameters with one row per image (each row's gradient comes from its own image only)."""
+        return [self.sources, self.log_gain]
+
+    def per_source_rows(self, optimiser_state: bool = False) -> list[torch.Tensor | None]:
+        """The per-image tensors, and with ``optimiser_state`` their Adam moments (None where not yet made)."""
+        tensors: list[torch.Tensor | None] = list(self.per_source_parameters())
+        if optimiser_state and self.optimiser is not None:
+            for p in self.per_source_parameters():
+                state = self.optimiser.state.get(p, {})
+                tensors += [state.get("exp_avg"), state.get("exp_avg_sq")]
+        return tensors
+
+    # -- state ---------------------------------------------------------------------------------
+    def copy_values(self) -> dict[str, torch.Tensor]:
+        """Copies of the five tensors (on their device), for :meth:`restore_values` after a cancel."""
+        return {name: getattr(self, name).detach().clone() for name in PARAMETERS}
+
+    def restore_values(self, values: dict[str, torch.Tensor]) -> None:
+        """Set the five tensors in place from :meth:`copy_values` or :meth:`state_dict`."""
+        with torch.no_grad():
+            for name in PARAMETERS:
+                getattr(self, name).copy_(values[name])
+
+    def state_dict(self) -> dict[str, Any]:
+        """The tensors (on the CPU), whether the gains were initialised (``gain_initialised``) and the optimiser's state (``cal_opt``)."""
+        state: dict[str, Any] = {name: getattr(self, name).detach().cpu() for name in PARAMETERS}
+        state["gain_initialised"] = self.gain_initialised
+        state["cal_opt"] = None if self.optimiser is None else self.optimiser.state_dict()
+        return state
+
+    def load_state_dict(self, state: dict[str, Any], stage_index: int) -> None:
+        """Restore :meth:`state_dict`; ``stage_index`` is the stage whose trainable switches the optimiser state belongs to."""
+        self.restore_values(state)
+        self.gain_initialised = bool(state["gain_initialised"])
+        if state["cal_opt"] is not None:
+            self.set_trainable(stage_index)
+            self.optimiser.load_state_dict(state["cal_opt"])

@@ -1,0 +1,82 @@
+"""Checkpoints of a reconstruction: the state at the end of a stage, written atomically, and read back to resume.
+
+A checkpoint (``stage_<i>.pt``, ``torch.save`` of a dict; ``format`` ``"napari-fdt-checkpoint"``, version 1)
+holds the configuration, the completed stages, the RI grid, the calibration parameters and their Adam
+state (:meth:`~napari_fdt.recon.calibration.Calibration.state_dict`, its keys at the top level), the batch
+order, the stage records, the history and the elapsed time, and the acquisition's size (checked on resume).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import torch
+
+from napari_fdt.data.acquisition import Acquisition
+from napari_fdt.errors import FDTInputError
+
+if TYPE_CHECKING:
+    from napari_fdt.recon.solver import Reconstructor
+
+__all__ = ["FORMAT", "checkpoint_path", "checkpoint_state", "write_checkpoint", "read_checkpoint", "restore_checkpoint"]
+
+FORMAT = "napari-fdt-checkpoint"
+
+
+def checkpoint_path(directory: str | Path, stage_index: int) -> Path:
+    """Where the checkpoint of stage ``stage_index`` goes in ``directory``: ``stage_<i>.pt``."""
+    return Path(directory) / f"stage_{stage_index}.pt"
+
+
+def checkpoint_state(rec: Reconstructor) -> dict[str, Any]:
+    """The state of ``rec`` as a checkpoint dict (tensors on the CPU)."""
+    return {
+        "format": FORMAT, "version": 1,
+        "config": rec.config.to_dict(), "completed_stages": rec.completed_stages,
+        "volume": None if rec.volume is None else rec.volume.state_dict(), "volume_factor": rec.volume_factor,
+        **rec.calibration.state_dict(),
+        **rec.batches.state_dict(),
+        "stages": [r.to_dict() for r in rec.stages], "history": rec.history, "elapsed_s": rec.elapsed_s,
+        "initial_sources_um": rec.initial_sources_um, "n_images": rec.acquisition.n_images,
+        "image_shape": list(rec.full_shape),
+    }
+
+
+def write_checkpoint(state: dict[str, Any], path: str | Path) -> Path:
+    """Write ``state`` to ``path`` atomically (temporary file in the same folder, then rename); returns the path."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp")
+    torch.save(state, tmp)
+    tmp.replace(path)
+    return path
+
+
+def read_checkpoint(path: str | Path, acquisition: Acquisition) -> dict[str, Any]:
+    """Read a checkpoint and check that it belongs to an acquisition of ``acquisition``'s size (FDTInputError if not)."""
+    try:
+        state = torch.load(Path(path), map_location="cpu", weights_only=False)
+    except (OSError, RuntimeError, EOFError) as exc:
+        raise FDTInputError("resume", f"cannot read checkpoint {path}: {exc}", "point --resume at a stage_*.pt file") from None
+    if not isinstance(state, dict) or state.get("format") != FORMAT:
+        raise FDTInputError("resume", f"{path} is not a napari-fdt checkpoint", "point --resume at a stage_*.pt file")
+    if state["n_images"] != acquisition.n_images or tuple(state["image_shape"]) != acquisition.image_shape:
+        raise FDTInputError("resume", "the checkpoint belongs to an acquisition of another size", "resume with the same acquisition")
+    return state
+
+
+def restore_checkpoint(rec: Reconstructor, state: dict[str, Any]) -> None:
+    """Put a checkpoint's state into ``rec`` (made with the checkpoint's configuration and initial sources)."""
+    from napari_fdt.recon.solver import StageRecord
+    from napari_fdt.recon.volume import RIVolume
+
+    rec.completed_stages = state["completed_stages"]
+    rec.calibration.load_state_dict(state, max(0, rec.completed_stages - 1))
+    if state["volume"] is not None:
+        rec.volume = RIVolume.from_state_dict(state["volume"], rec.device, rec.dtype)
+    rec.volume_factor = state["volume_factor"]
+    rec.batches.load_state_dict(state)
+    rec.stages = [StageRecord.from_dict(r) for r in state["stages"]]
+    rec.history = list(state["history"])
+    rec.elapsed_s = float(state["elapsed_s"])

@@ -1,0 +1,91 @@
+"""Checks of an acquisition and a configuration before a reconstruction allocates anything.
+
+* :func:`warn_about_images`: blank images and saturated pixels (FDTWarning), which the intensity model
+  cannot explain;
+* :func:`warn_about_sampling`: sampling problems of the acquisition's grid for these sources (FDTWarning);
+* :func:`check_memory`: refuse (FDTInputError) a batch whose finest multi-slice stage would not fit in the
+  device's free memory, and say which batch size would.
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import torch
+
+from napari_fdt.data.acquisition import Acquisition
+from napari_fdt.errors import FDTInputError, FDTWarning
+from napari_fdt.physics.grid import plan_for_sources
+from napari_fdt.recon.config import SolverConfig
+
+__all__ = ["warn_about_images", "warn_about_sampling", "check_memory"]
+
+
+def warn_about_images(acquisition: Acquisition, stacklevel: int = 3) -> None:
+    """Warn (FDTWarning) about blank images and saturated pixels, which the intensity model cannot explain.
+
+    ``stacklevel`` points the warning at the caller's caller (the code that made the reconstruction).
+    """
+    imgs = acquisition.images
+    n = imgs.shape[0]
+    blank = np.flatnonzero(imgs.reshape(n, -1).max(axis=1) <= 0)
+    if blank.size:
+        listed = ", ".join(map(str, blank[:10])) + (" …" if blank.size > 10 else "")
+        warnings.warn(f"images: {blank.size} of {n} images are blank (no positive pixel): {listed}; they carry no "
+                      "information and their gain goes to about 0: drop them from the acquisition", FDTWarning, stacklevel=stacklevel)
+    top = np.iinfo(imgs.dtype).max if imgs.dtype.kind == "u" else float(imgs.max())
+    if top > 0:
+        at_top = int(np.count_nonzero(imgs == top))
+        if at_top > max(10, 1e-3 * imgs.size):
+            warnings.warn(f"images: {at_top} pixels ({100 * at_top / imgs.size:.2f} %) sit at the maximum value {top:g}: "
+                          "saturated pixels break the intensity model; mask them or re-acquire with less exposure",
+                          FDTWarning, stacklevel=stacklevel)
+
+
+def warn_about_sampling(acquisition: Acquisition, sources_um: np.ndarray) -> None:
+    """Warn (FDTWarning, from :func:`napari_fdt.physics.grid.plan_for_sources`) about sampling problems for ``sources_um`` (N, 3) µm."""
+    plan_for_sources(acquisition.optics, acquisition.image_shape, sources_um)
+
+
+def check_memory(acquisition: Acquisition, config: SolverConfig, sources_um: np.ndarray, device: torch.device,
+                 n_wavelengths: int) -> None:
+    """Refuse, before any allocation, a batch whose finest multi-slice stage would not fit in memory.
+
+    ``sources_um``: (N, 3) µm (they set the window); ``n_wavelengths``: of the spectral sum (1 without).
+    Raises :class:`~napari_fdt.errors.FDTInputError` (field ``batch_size``) with the batch size that would fit.
+    """
+    from napari_fdt.device import available_bytes
+    from napari_fdt.model.memory import grid_is_unitary, leanest_mode, training_bytes
+    from napari_fdt.recon.stages import multislice_plan
+
+    cfg = config
+    o = acquisition.optics
+    full_shape = acquisition.image_shape
+    free = available_bytes(device)
+    if free is None:
+        return
+    finest_index = min(range(len(cfg.stages)), key=lambda i: cfg.stages[i].factor)
+    _, opt, _, plan = multislice_plan(o, cfg.stages[finest_index].factor, full_shape, sources_um)
+    k = n_wavelengths
+    batch = min(cfg.stage_batch(finest_index), acquisition.n_images)
+    mode = cfg.backward_mode
+    if mode == "auto":  # auto falls back to the leanest mode when one field per slice does not fit
+        mode = leanest_mode(grid_is_unitary(opt.pixel_size_um, o.n_background, o.wavelength_um))
+    # the finest stage's images live on the device too (float32, all of them)
+    images = 4 * acquisition.n_images * full_shape[0] * full_shape[1]
+    need = training_bytes(plan.padded_shape, o.n_slices, batch, k, mode) + images
+    if need <= 0.9 * free:
+        return
+    fits = int((0.9 * free - images) // max(1, training_bytes(plan.padded_shape, o.n_slices, 1, k, mode)))
+    gib = 2.0**30
+    fix = (f"lower batch_size to {fits}" if fits >= 1 else
+           "crop the images, use fewer slices or fewer wavelengths, or a device with more memory")
+    raise FDTInputError(
+        "batch_size",
+        f"a batch of {batch} images needs about {need / gib:.1f} GiB on {device} "
+        f"({plan.padded_shape[0]}x{plan.padded_shape[1]} window, {o.n_slices} slices, {k} wavelength(s), "
+        f"backward mode {mode}); "
+        f"{free / gib:.1f} GiB are free",
+        fix,
+    )
