@@ -81,3 +81,90 @@ def test_best_iterate_keeps_the_minimum_and_detects_a_rise() -> None:
     for i, e in enumerate([0.2, 0.19, 0.195, 0.196, 0.197]):  # within 5 %: noise, not a rise
         flat.update(i, e, dict)
     assert not flat.stalled(3)
+
+
+# --------------------------------------------------------------------------------------------
+# In the solver
+# --------------------------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def scene16():
+    """A 32×32, 4-slice letters scene with 16 noisy images: 3 can be held out (a few seconds to reconstruct)."""
+    from napari_fdt import Optics, simulate, source_grid
+    from napari_fdt.sim.phantoms import text_phantom
+
+    o = Optics(wavelength_um=0.635, n_background=1.33, na=0.8, pixel_size_um=0.33, n_slices=4,
+               slice_spacing_um=2.0, image_plane_um=0.0)
+    return simulate(text_phantom((32, 32), 4, text="UC", delta_n=0.05), o, source_grid(4, 8.0, 15.0), seed=2, device="cpu")
+
+
+def _config(**kw):
+    from napari_fdt.recon.config import SolverConfig, StageConfig
+
+    base = dict(stages=[StageConfig(2, 6), StageConfig(1, 8)], batch_size=4, snapshot_every=2, validation_fraction=0.2)
+    base.update(kw)
+    return SolverConfig(**base)
+
+
+def test_held_out_images_never_train_and_their_error_is_reported(scene16) -> None:
+    from napari_fdt.recon.solver import Reconstructor
+
+    acq = scene16.acquisition
+    rec = Reconstructor(acq, _config(early_stopping="off"), device="cpu")
+    held = rec.validation_indices
+    assert len(held) == 3
+    drawn = []
+    draw = rec.batches.next
+    rec.batches.next = lambda b: drawn.append(draw(b).tolist()) or torch.tensor(drawn[-1])
+    snaps = list(rec.run())
+    assert not set(held) & {i for batch in drawn for i in batch}
+    assert all(s.validation_error is not None and np.isfinite(s.validation_error) for s in snaps)
+    assert all(s.train_error is not None for s in snaps)
+    # held-out positions moved only by the common depth offset
+    moved = rec.sources_um()[held] - acq.sources_um[held]
+    assert np.allclose(moved[:, :2], 0.0, atol=1e-5) and np.allclose(moved[:, 2], moved[0, 2], atol=1e-5)
+    # the final stage's validation error is the held-out images' relative error, predicted independently through
+    # the public predict() with their gains fitted here
+    pred = rec.predict(held).astype(np.float64)
+    meas = acq.images_float32()[held].astype(np.float64)
+    g = (pred * meas).sum(axis=(1, 2)) / (pred * pred).sum(axis=(1, 2))
+    expected = np.sqrt(((g[:, None, None] * pred - meas) ** 2).sum() / (meas**2).sum())
+    record = rec.stages[-1].to_dict()
+    assert record["validation_error"] == pytest.approx(expected, rel=1e-3)
+    assert snaps[-1].validation_error == record["validation_error"]
+    assert any(h.get("validation_error") is not None for h in rec.history)
+
+
+def test_no_split_leaves_the_run_as_before(scene16) -> None:
+    from napari_fdt.recon.solver import Reconstructor
+
+    runs = []
+    for frac in (0.0, 0.0):
+        rec = Reconstructor(scene16.acquisition, _config(validation_fraction=frac), device="cpu")
+        snaps = list(rec.run())
+        assert all(s.validation_error is None for s in snaps) and rec.validation_indices.size == 0
+        runs.append(rec.delta_n_full())
+    assert np.array_equal(runs[0], runs[1])
+
+
+def test_stop_ends_a_stage_on_a_rise_and_keeps_its_best_iterate(scene16, monkeypatch) -> None:
+    """A scripted validation signal: best at the 2nd snapshot, then rising; "stop" with patience 2 ends the stage
+    two snapshots later and returns to the state captured at the best one."""
+    from napari_fdt.recon.config import StageConfig
+    from napari_fdt.recon.solver import Reconstructor
+
+    cfg = _config(stages=[StageConfig(1, 20)], early_stopping="stop", early_stopping_patience=2, snapshot_every=2)
+    rec = Reconstructor(scene16.acquisition, cfg, device="cpu")
+    signal = iter([0.5, 0.3, 0.4, 0.45, 0.6, 0.7, 0.8, 0.9, 1.0, 1.1, 1.2])
+    monkeypatch.setattr(rec, "validation_error", lambda stage, mask=None: next(signal))
+    states = {}
+    capture = rec._capture
+    monkeypatch.setattr(rec, "_capture", lambda: states.setdefault(len(states), capture()))
+    snaps = list(rec.run())
+    record = rec.stages[-1]
+    assert record.stopped_at == 8  # snapshots at 2, 4 (best), 6, 8: two above the best
+    assert record.best_iteration == 4 and record.validation_error == 0.3
+    best_state = states[1]  # captured at iterations 2 and 4
+    assert torch.equal(rec.volume.x.detach(), best_state["x"])
+    assert snaps[-1].stage_complete and snaps[-1].validation_error == 0.3
+    assert snaps[-1].global_iteration == 20  # progress counts the skipped iterations

@@ -306,6 +306,8 @@ def _progress_line(snap) -> str:
     done = int(width * snap.progress)
     loss = snap.losses.get("total")
     loss_txt = f" loss {loss:.4g}" if loss is not None else ""
+    if snap.validation_error is not None:
+        loss_txt += f" val {snap.validation_error:.4f}"
     return (f"\rstage {snap.stage + 1}/{snap.n_stages} (x{snap.factor}) [{'#' * done}{'.' * (width - done)}] "
             f"{100 * snap.progress:5.1f}% it {snap.global_iteration}/{snap.total_iterations}{loss_txt} "
             f"elapsed {snap.elapsed_s:.0f}s left {snap.eta_s:.0f}s ")
@@ -393,11 +395,15 @@ def _run_and_write(args, config, acq, out: Path, json_out: Path, truth, truth_sr
     report = build_report(rec, output=str(out), acquisition_path=str(args.acquisition), truth_ri=truth,
                           truth_sources_um=truth_src, cancelled=cancelled)
     write_result(rec, out, report, overwrite=args.overwrite)
-    st = ", ".join(f"x{r['factor']}: {r['iterations']} it, {r['seconds_per_iteration']:.3f} s/it" for r in report["stages"])
+    st = ", ".join(f"x{r['factor']}: {r.get('stopped_at') or r['iterations']} it, {r['seconds_per_iteration']:.3f} s/it" for r in report["stages"])
     print(f"wrote {out} and {json_out}: {report['seconds_total']:.1f} s on {rec.device} ({st})")
     fit = report.get("image_fit")
     if fit:
         print(f"image fit: relative error {fit['image_relative_error']:.4f}, PSNR {fit['image_psnr']:.1f} dB, SSIM {fit['image_ssim']:.3f}")
+    val = report.get("validation")
+    if val:
+        print(f"validation: relative error {val['error']:.4f} on {val['n_images']} held-out images (the image fit's counterpart "
+              f"on images the volume was not fitted to)")
     m = report.get("metrics", {})
     if "relative_delta_n_error" in m:
         print(f"against the truth: relative Δn error {m['relative_delta_n_error']:.3f}, RI RMSE {m['ri_rmse']:.2e}, "

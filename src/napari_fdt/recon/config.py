@@ -28,6 +28,9 @@ CoarseModel = Literal["auto", "envelope", "multislice"]
 #: How the multi-slice model forms gradients (:mod:`napari_fdt.model.slice_loop`); "autograd" is the plain reference.
 BackwardMode = Literal["auto", "stored", "reversible", "checkpoint", "autograd"]
 Activation = Literal["paper", "signed"]
+#: What the held-out images' error does to a stage: "best" returns to the stage's iterate of lowest validation error,
+#: "stop" also ends the stage once it has risen for ``early_stopping_patience`` snapshots, "off" ignores it.
+EarlyStopping = Literal["best", "stop", "off"]
 
 COHERENCE_MODELS: tuple[str, ...] = typing.get_args(CoherenceModel)
 COARSE_MODELS: tuple[str, ...] = typing.get_args(CoarseModel)
@@ -109,6 +112,21 @@ class SolverConfig:
     obliquity_correction: bool = setting(
         False, description="scale each source's phase screens by 1/cos θ of its ray (the thin screen's obliquity error, `docs/physics.md` "
         "§6); multi-slice stages, plain autograd")
+    # validation
+    validation_fraction: float = setting(
+        0.0, ge=0.0, le=0.25, description="share of the images held out of training, spread over the field (at least 3, at most a quarter; "
+        "0: none). Their error, predicted through the volume with closed-form gains, is the validation error of every snapshot and of "
+        "RI.json: how far to trust the volume without ground truth. Off by default until held-out positions are fitted: they keep "
+        "their initial estimate, which the report's source errors then include", fix="0.1 holds out 10 %; 0 turns validation off")
+    early_stopping: EarlyStopping = setting(
+        "best", strict=False, description="`\"best\"`: each stage ends on its iterate of lowest validation error (when the last is worse "
+        "by more than `early_stopping_tolerance`); `\"stop\"`: also ends a stage once the error has stayed above its best for "
+        "`early_stopping_patience` snapshots; `\"off\"`: the last iterate. Needs a validation split",
+        fix="choose best, stop or off")
+    early_stopping_patience: int = setting(3, ge=1, description="snapshots above the best validation error before `\"stop\"` ends a stage")
+    early_stopping_tolerance: float = setting(
+        0.02, ge=0.0, description="relative rise of the validation error over its best that counts as worse (below it: noise of the "
+        "optimisation, the later iterate is kept)")
 
     @model_validator(mode="after")
     def _cross_field(self) -> "SolverConfig":

@@ -86,12 +86,18 @@ def build_report(
         },
         "stages": [r.to_dict() for r in rec.stages],
         "seconds_total": rec.elapsed_s,
+        "history": rec.history,
         "final_losses": rec.final_losses,
     }
     if rec.group is not None:
         report["distributed"] = rec.group.describe()
     if evaluate and rec.volume is not None:
         _, report["image_fit"] = evaluate_images(rec)
+    held = rec.validation_indices
+    if len(held) and rec.stages and rec.stages[-1].validation_error is not None:
+        # the last stage's held-out error: how well the volume predicts images it was not fitted to
+        report["validation"] = {"error": rec.stages[-1].validation_error, "n_images": int(len(held)), "indices": [int(i) for i in held],
+                                "best_iteration": rec.stages[-1].best_iteration, "early_stopping": rec.config.early_stopping}
     metrics: dict[str, Any] = {}
     if truth_ri is not None and rec.volume is not None:
         metrics.update(ri_metrics(rec.ri_full(), truth_ri, o.n_background))

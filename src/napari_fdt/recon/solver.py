@@ -41,6 +41,7 @@ from napari_fdt.recon.config import SolverConfig, resolve_coarse_model
 from napari_fdt.recon.losses import BatchShare, LossWeights, as_floats, total_loss
 from napari_fdt.recon.preflight import check_memory, warn_about_images, warn_about_sampling
 from napari_fdt.recon.stages import Stage, build_stage
+from napari_fdt.recon.validation import BestIterate, holdout_indices, relative_image_error
 from napari_fdt.recon.volume import RIVolume, upsample_to
 
 if TYPE_CHECKING:
@@ -56,7 +57,8 @@ class Snapshot:
     ``delta_n`` is Δn on the stage grid (n_slices, h, w) (``delta_n_full()`` upsamples it to the
     acquisition grid); ``sources_um`` (N, 3) the calibrated positions (acquisition coordinates);
     ``gains`` (N,); ``calibration`` the global parameters; ``losses`` the loss terms of the last
-    iteration (unweighted); times in seconds.
+    iteration (unweighted); ``validation_error`` / ``train_error`` the relative image errors of the held-out
+    images and of the last batch (:mod:`napari_fdt.recon.validation`); times in seconds.
     """
 
     stage: int
@@ -75,6 +77,10 @@ class Snapshot:
     eta_s: float
     stage_complete: bool
     full_shape: tuple[int, int]
+    #: relative RMS error of the held-out images predicted through the volume (closed-form gains; None: no split)
+    validation_error: float | None = None
+    #: the same error on the last training batch (its trained gains; this rank's part in a distributed run)
+    train_error: float | None = None
 
     def delta_n_full(self) -> np.ndarray:
         """Δn on the acquisition grid (n_slices, H, W), float32."""
@@ -99,21 +105,28 @@ class StageRecord:
     iterations: int
     seconds: float = 0.0
     model: str = "multislice"
+    #: validation error the stage ended on, its iteration (earlier than ``iterations`` when the best iterate was
+    #: kept), and the iteration early stopping ended the stage at (None: it ran to the end)
+    validation_error: float | None = None
+    best_iteration: int | None = None
+    stopped_at: int | None = None
 
     @property
     def seconds_per_iteration(self) -> float:
-        return self.seconds / self.iterations if self.iterations else 0.0
+        ran = self.stopped_at or self.iterations  # early stopping ends a stage before its iterations
+        return self.seconds / ran if ran else 0.0
 
     def to_dict(self) -> dict[str, Any]:
         return {"stage": self.stage, "factor": self.factor, "field_factor": self.field_factor, "grid": list(self.grid), "window": list(self.window),
                 "na": self.na, "model": self.model, "iterations": self.iterations, "seconds": self.seconds,
-                "seconds_per_iteration": self.seconds_per_iteration}
+                "seconds_per_iteration": self.seconds_per_iteration, "validation_error": self.validation_error,
+                "best_iteration": self.best_iteration, "stopped_at": self.stopped_at}
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "StageRecord":
         """The inverse of :meth:`to_dict`."""
         return cls(d["stage"], d["factor"], d["field_factor"], tuple(d["grid"]), tuple(d["window"]), d["na"], d["iterations"],
-                   d["seconds"], d["model"])
+                   d["seconds"], d["model"], d.get("validation_error"), d.get("best_iteration"), d.get("stopped_at"))
 
 
 class Reconstructor:
@@ -181,7 +194,10 @@ class Reconstructor:
         self.calibration = Calibration(src, cfg, o, device=self.device, dtype=self.dtype)
         self.volume: RIVolume | None = None
         self.volume_factor: int | None = None
-        self.batches = BatchOrder(n_img, cfg.seed, self.device)
+        #: (V,) indices of the held-out images, spread over the field (empty: no validation); the rest train
+        self.validation_indices = holdout_indices(src, cfg.validation_fraction)
+        train = np.setdiff1d(np.arange(n_img), self.validation_indices) if len(self.validation_indices) else None
+        self.batches = BatchOrder(n_img, cfg.seed, self.device, train)
         self.completed_stages = 0
         self.stages: list[StageRecord] = []
         self.history: list[dict[str, Any]] = []
@@ -220,23 +236,32 @@ class Reconstructor:
             batch_size = cfg.stage_batch(si)
             data_range = float(stage.images.max())
             record = self._record(stage)
+            best = BestIterate(tolerance=cfg.early_stopping_tolerance)
             t0 = time.perf_counter()
             terms: dict = {}
+            train_error = None
+            it = 0
             for it in range(1, stage.iterations + 1):
                 if self._stop_requested(should_stop):
                     self.elapsed_s += time.perf_counter() - t0
                     return
                 progress = global_it / max(1, cfg.total_iterations)
-                terms = self._step(stage, mask, vol_opt, batch_size, data_range, progress)
+                terms, train_error = self._step(stage, mask, vol_opt, batch_size, data_range, progress)
                 global_it += 1
                 if it == stage.iterations:
                     break
                 if it % cfg.snapshot_every == 0:
-                    snap = self._snapshot(stage, it, global_it, terms, t0, False)
+                    val = self._track_validation(stage, mask, best, it)
+                    snap = self._snapshot(stage, it, global_it, terms, t0, False, val, train_error)
                     paused = time.perf_counter()
                     yield snap
                     t0 += time.perf_counter() - paused  # time spent by the consumer is not the solver's
-            snap = self._complete_stage(stage, record, global_it, terms, t0)
+                    if cfg.early_stopping == "stop" and best.stalled(cfg.early_stopping_patience):
+                        record.stopped_at = it
+                        global_it += stage.iterations - it  # progress and later stages' numbering as if it had run
+                        break
+            val = self._end_on_best(stage, mask, best, it, record)
+            snap = self._complete_stage(stage, record, global_it, terms, t0, val, train_error)
             if checkpoint_dir is not None and (self.group is None or self.group.is_writer):
                 self.save_checkpoint(checkpoint_path(checkpoint_dir, si))
             yield snap
@@ -301,10 +326,11 @@ class Reconstructor:
         return self.group.any(should_stop()) if self.group else should_stop()
 
     def _step(self, stage: Stage, mask: torch.Tensor | None, vol_opt: torch.optim.Optimizer, batch_size: int,
-              data_range: float, progress: float) -> dict[str, torch.Tensor]:
+              data_range: float, progress: float) -> tuple[dict[str, torch.Tensor], float | None]:
         """One iteration: next batch, prediction, loss, gradients (summed over ranks), one step of both optimisers.
 
-        Returns the loss terms (tensors, unweighted; this rank's part of the data terms in a distributed run).
+        Returns the loss terms (tensors, unweighted; this rank's part of the data terms in a distributed run) and the
+        batch's relative image error (None for a rank with no image in the batch).
         """
         idx = self.batches.next(batch_size)
         dn = self.volume.delta_n()
@@ -328,7 +354,8 @@ class Reconstructor:
                                         self.calibration.per_source_parameters())
         vol_opt.step()
         cal_opt.step()
-        return terms
+        train_error = relative_image_error(pred.detach(), stage.images[idx], m) if len(idx) else None
+        return terms, train_error
 
     def _predict_normalised(self, stage: Stage, dn: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
         """Images (B, h_f, w_f) of images ``idx`` (B,) on the stage's field grid, in normalised units, differentiable.
@@ -342,11 +369,53 @@ class Reconstructor:
         return spectral_images(stage.model, stage.to_field_grid(dn), src, gain, self.wavelengths, self.weights,
                                **cal.optics_overrides(stage.optics, stage.envelope))
 
+    # -- validation -------------------------------------------------------------------------------
+    def validation_error(self, stage: Stage, mask: torch.Tensor | None = None) -> float | None:
+        """Relative RMS error of the held-out images at ``stage`` (None without a validation split).
+
+        Predicted through the current volume with their positions as calibrated (never trained: the initial
+        estimate plus the common depth offset) and their gains fitted in closed form; ``mask`` (N, h_f, w_f) as the
+        loss's. Every rank computes the same number (no collective).
+        """
+        held = self.validation_indices
+        if not len(held):
+            return None
+        cal = self.calibration
+        preds = []
+        with torch.no_grad():
+            dn_field = stage.to_field_grid(self.volume.delta_n())
+            for sl in iter_batches(len(held), self.config.batch_size):
+                idx = torch.as_tensor(held[sl], device=self.device)
+                src = stage.stage_sources(cal.calibrated_sources()[idx])
+                preds.append(spectral_images(stage.model, dn_field, src, None, self.wavelengths, self.weights,
+                                             **cal.optics_overrides(stage.optics, stage.envelope)))
+        idx = torch.as_tensor(held, device=self.device)
+        return relative_image_error(torch.cat(preds), stage.images[idx], None if mask is None else mask[idx], fit_gain=True)
+
+    def _track_validation(self, stage: Stage, mask: torch.Tensor | None, best: BestIterate, it: int) -> float | None:
+        """The validation error now, recorded in ``best`` (with a copy of the state when it is the lowest yet)."""
+        val = self.validation_error(stage, mask)
+        if val is not None and self.config.early_stopping != "off":
+            best.update(it, val, self._capture)
+        return val
+
+    def _end_on_best(self, stage: Stage, mask: torch.Tensor | None, best: BestIterate, it: int, record: StageRecord) -> float | None:
+        """The stage's final validation error; with early stopping, first return to the stage's best iterate when the
+        last one is worse than it by more than the tolerance. Fills the record's validation fields."""
+        val = self._track_validation(stage, mask, best, it)
+        record.best_iteration = it
+        if val is not None and self.config.early_stopping != "off" and val > best.best_error * (1.0 + best.tolerance):
+            self._restore(best.state, keep_bookkeeping=True)
+            val, record.best_iteration = best.best_error, best.best_iteration
+        record.validation_error = val
+        return val
+
     # -- end of a stage, snapshots ----------------------------------------------------------------
-    def _complete_stage(self, stage: Stage, record: StageRecord, global_it: int, terms: dict, t0: float) -> Snapshot:
+    def _complete_stage(self, stage: Stage, record: StageRecord, global_it: int, terms: dict, t0: float,
+                        validation_error: float | None, train_error: float | None) -> Snapshot:
         """Close the stage's record and time, take its snapshot and remember it as the last complete state."""
         record.seconds = time.perf_counter() - t0
-        snap = self._snapshot(stage, stage.iterations, global_it, terms, t0, True)
+        snap = self._snapshot(stage, stage.iterations, global_it, terms, t0, True, validation_error, train_error)
         self.elapsed_s += record.seconds
         snap.elapsed_s = self.elapsed_s
         self.completed_stages = stage.index + 1
@@ -363,7 +432,8 @@ class Reconstructor:
         h, w = self.full_shape
         return (h / g) * (w / g)
 
-    def _snapshot(self, stage: Stage, it: int, global_it: int, terms: dict, stage_t0: float, complete: bool) -> Snapshot:
+    def _snapshot(self, stage: Stage, it: int, global_it: int, terms: dict, stage_t0: float, complete: bool,
+                  validation_error: float | None = None, train_error: float | None = None) -> Snapshot:
         cfg = self.config
         terms = self._gather(terms, optimiser_state=complete)
         now = time.perf_counter()
@@ -380,10 +450,10 @@ class Reconstructor:
             delta_n=self.volume.delta_n().detach().cpu().numpy().astype(np.float32),
             sources_um=self.sources_um(), gains=self.gains(),
             calibration=self.calibration.summary(), losses=losses, elapsed_s=elapsed, eta_s=remaining,
-            stage_complete=complete, full_shape=self.full_shape,
+            stage_complete=complete, full_shape=self.full_shape, validation_error=validation_error, train_error=train_error,
         )
         self.history.append({"stage": stage.index, "iteration": it, "global_iteration": global_it,
-                             "elapsed_s": elapsed, **losses})
+                             "elapsed_s": elapsed, **losses, "validation_error": validation_error, "train_error": train_error})
         return snap
 
     # -- distributed ----------------------------------------------------------------------------
@@ -414,12 +484,18 @@ class Reconstructor:
         state = getattr(self, "_last_complete_state", None)
         if state is None:
             raise RuntimeError("no stage has completed yet")
+        self._restore(state)
+
+    def _restore(self, state: dict[str, Any], keep_bookkeeping: bool = False) -> None:
+        """Return the volume and calibration to a :meth:`_capture`; also its stage records and time unless
+        ``keep_bookkeeping`` (returning to a stage's best iterate keeps the time spent reaching the last)."""
         with torch.no_grad():
             self.volume.x = state["x"].clone().requires_grad_()
         self.volume_factor = state["factor"]
         self.calibration.restore_values(state["calibration"])
-        self.stages = list(state["stages"])
-        self.elapsed_s = state["elapsed_s"]
+        if not keep_bookkeeping:
+            self.stages = list(state["stages"])
+            self.elapsed_s = state["elapsed_s"]
 
     # -- results ------------------------------------------------------------------------------
     def delta_n_full(self) -> np.ndarray:
