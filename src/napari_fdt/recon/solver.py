@@ -380,15 +380,10 @@ class Reconstructor:
         held = self.validation_indices
         if not len(held):
             return None
-        cal = self.calibration
-        preds = []
-        with torch.no_grad():
-            dn_field = stage.to_field_grid(self.volume.delta_n())
-            for sl in iter_batches(len(held), self.config.batch_size):
-                idx = torch.as_tensor(held[sl], device=self.device)
-                src = stage.stage_sources(cal.calibrated_sources()[idx])
-                preds.append(spectral_images(stage.model, dn_field, src, None, self.wavelengths, self.weights,
-                                             **cal.optics_overrides(stage.optics, stage.envelope)))
+        with torch.no_grad():  # the gains they carry are refitted: the fit is invariant to a scale per image
+            dn = self.volume.delta_n()
+            preds = [self._predict_normalised(stage, dn, torch.as_tensor(held[sl], device=self.device))
+                     for sl in iter_batches(len(held), self.config.batch_size)]
         idx = torch.as_tensor(held, device=self.device)
         return relative_image_error(torch.cat(preds), stage.images[idx], None if mask is None else mask[idx], fit_gain=True)
 

@@ -17,6 +17,7 @@ import numpy as np
 import torch
 
 from napari_fdt.errors import FDTWarning
+from napari_fdt.model.gain import least_squares_gain
 
 __all__ = ["holdout_indices", "spread_picks", "relative_image_error", "BestIterate", "MIN_VALIDATION_IMAGES"]
 
@@ -88,9 +89,7 @@ def relative_image_error(pred: torch.Tensor, measured: torch.Tensor, mask: torch
     """
     m = torch.ones_like(measured) if mask is None else mask
     if fit_gain:
-        num = (pred * measured * m).sum(dim=(-2, -1))
-        den = (pred * pred * m).sum(dim=(-2, -1)).clamp_min(1e-30)
-        pred = pred * (num / den).clamp_min(0.0)[:, None, None]
+        pred = pred * least_squares_gain(pred, measured, mask).clamp_min(0.0)[:, None, None]
     err = ((pred - measured) ** 2 * m).sum()
     ref = (measured * measured * m).sum().clamp_min(1e-30)
     return float(torch.sqrt(err / ref))
