@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Any, Sequence
+from typing import Any
 
 import torch
 
@@ -10,28 +10,24 @@ __all__ = ["BatchOrder"]
 
 
 class BatchOrder:
-    """Batches of image indices: one random permutation of the training images after another (a seeded
-    generator), cut into consecutive batches, so that every image is visited once per pass whatever the batch size.
+    """Batches of image indices: one random permutation of the N images after another (a seeded generator),
+    cut into consecutive batches, so that every image is visited once per pass whatever the batch size.
 
-    ``n_images``: N; ``seed``: of the generator; ``device``: where the index tensors go; ``train``: the indices
-    to draw from (default all N; the solver leaves its held-out validation images out).
+    ``n_images``: N; ``seed``: of the generator; ``device``: where the index tensors go.
     """
 
-    def __init__(self, n_images: int, seed: int, device: torch.device, train: Sequence[int] | None = None) -> None:
+    def __init__(self, n_images: int, seed: int, device: torch.device) -> None:
         self.n_images = n_images
         self.device = device
-        #: the images batches are drawn from, or None for all of them (the permutation is then of range(N) itself)
-        self.train = None if train is None else [int(i) for i in train]
         self.generator = torch.Generator().manual_seed(seed)
         self.order: list[int] = []
 
     def next(self, batch_size: int) -> torch.Tensor:
-        """The next ``min(batch_size, number of training images)`` indices, (B,) int64 on the device."""
-        n = self.n_images if self.train is None else len(self.train)
+        """The next ``min(batch_size, N)`` indices, (B,) int64 on the device."""
+        n = self.n_images
         b = min(batch_size, n)
         while len(self.order) < b:
-            perm = torch.randperm(n, generator=self.generator).tolist()
-            self.order.extend(perm if self.train is None else [self.train[i] for i in perm])
+            self.order.extend(torch.randperm(n, generator=self.generator).tolist())
         idx, self.order = self.order[:b], self.order[b:]
         t = torch.tensor(idx)
         if self.device.type == "cuda":  # pinned + non-blocking: no wait for the GPU's queue to drain

@@ -53,9 +53,13 @@ class Calibration:
         self.optimiser: torch.optim.Adam | None = None
 
     # -- values --------------------------------------------------------------------------------
-    def calibrated_sources(self) -> torch.Tensor:
-        """(N, 3) positions with the common depth offset applied (acquisition coordinates, µm), differentiable."""
-        offset = torch.stack([torch.zeros_like(self.depth_offset_um), torch.zeros_like(self.depth_offset_um), self.depth_offset_um])
+    def calibrated_sources(self, shared_frozen: bool = False) -> torch.Tensor:
+        """(N, 3) positions with the common depth offset applied (acquisition coordinates, µm), differentiable.
+
+        ``shared_frozen``: the offset enters as a constant (held-out images' gradients reach their own rows only).
+        """
+        d = self.depth_offset_um.detach() if shared_frozen else self.depth_offset_um
+        offset = torch.stack([torch.zeros_like(d), torch.zeros_like(d), d])
         return self.sources + offset
 
     def sources_um(self) -> np.ndarray:
@@ -75,17 +79,19 @@ class Calibration:
             "source_depth_offset_um": float(self.depth_offset_um.detach()),
         }
 
-    def optics_overrides(self, stage_optics: Optics, envelope: bool) -> dict[str, torch.Tensor]:
+    def optics_overrides(self, stage_optics: Optics, envelope: bool, shared_frozen: bool = False) -> dict[str, torch.Tensor]:
         """Keyword overrides of a stage model's optics for the calibrated scales (see :class:`~napari_fdt.model.protocol.ImageModel`).
 
-        The envelope model's pixel is tied to its stage grid, so it gets no pixel-size override.
+        The envelope model's pixel is tied to its stage grid, so it gets no pixel-size override. ``shared_frozen``:
+        the scales enter as constants.
         """
         cfg = self.config
+        pixel, spacing = (self.pixel_scale.detach(), self.spacing_scale.detach()) if shared_frozen else (self.pixel_scale, self.spacing_scale)
         out = {}
         if cfg.calibrate_pixel_size and not envelope:
-            out["pixel_size_um"] = stage_optics.pixel_size_um * self.pixel_scale
+            out["pixel_size_um"] = stage_optics.pixel_size_um * pixel
         if cfg.calibrate_slice_spacing:
-            out["slice_spacing_um"] = stage_optics.slice_spacing_um * self.spacing_scale
+            out["slice_spacing_um"] = stage_optics.slice_spacing_um * spacing
         return out
 
     def set_gains(self, gains: torch.Tensor) -> None:

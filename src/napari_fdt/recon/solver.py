@@ -194,10 +194,13 @@ class Reconstructor:
         self.calibration = Calibration(src, cfg, o, device=self.device, dtype=self.dtype)
         self.volume: RIVolume | None = None
         self.volume_factor: int | None = None
-        #: (V,) indices of the held-out images, spread over the field (empty: no validation); the rest train
+        #: (V,) indices of the held-out images, spread over the field (empty: no validation). They are drawn in
+        #: batches like the others, but their loss reaches only their own position and gain: never the volume
+        #: nor the shared calibration (a fit of their positions that does not touch the volume).
         self.validation_indices = holdout_indices(src, cfg.validation_fraction)
-        train = np.setdiff1d(np.arange(n_img), self.validation_indices) if len(self.validation_indices) else None
-        self.batches = BatchOrder(n_img, cfg.seed, self.device, train)
+        self._held_out = torch.zeros(n_img, dtype=torch.bool, device=self.device)
+        self._held_out[torch.as_tensor(self.validation_indices, dtype=torch.long, device=self.device)] = True
+        self.batches = BatchOrder(n_img, cfg.seed, self.device)
         self.completed_stages = 0
         self.stages: list[StageRecord] = []
         self.history: list[dict[str, Any]] = []
@@ -339,8 +342,16 @@ class Reconstructor:
             share = BatchShare.of_batch(None if mask is None else mask[idx], (len(idx), *stage.images.shape[1:]),
                                         regularisers=self.group.is_writer)
             idx = self.group.local(idx)
-        # A rank with no image in this batch predicts none (and still joins the gradient sum).
-        pred = self._predict_normalised(stage, dn, idx) if len(idx) else stage.images[idx]
+        held = self._held_out[idx]
+        if bool(held.any()):  # held-out images last, predicted through a constant volume and shared calibration
+            idx = torch.cat([idx[~held], idx[held]])
+            n_train = int((~held).sum())
+            pred = torch.cat([self._predict_normalised(stage, dn, idx[:n_train]),
+                              self._predict_normalised(stage, dn, idx[n_train:], held_out=True)])
+        else:
+            n_train = len(idx)
+            # A rank with no image in this batch predicts none (and still joins the gradient sum).
+            pred = self._predict_normalised(stage, dn, idx) if len(idx) else stage.images[idx]
         m = None if mask is None else mask[idx]
         loss, terms = total_loss(pred, stage.images[idx], dn, self.loss_weights, progress, mask=m,
                                  data_range=data_range, share=share)
@@ -354,28 +365,31 @@ class Reconstructor:
                                         self.calibration.per_source_parameters())
         vol_opt.step()
         cal_opt.step()
-        train_error = relative_image_error(pred.detach(), stage.images[idx], m) if len(idx) else None
+        train_error = (relative_image_error(pred[:n_train].detach(), stage.images[idx[:n_train]], None if m is None else m[:n_train])
+                       if n_train else None)
         return terms, train_error
 
-    def _predict_normalised(self, stage: Stage, dn: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
+    def _predict_normalised(self, stage: Stage, dn: torch.Tensor, idx: torch.Tensor, held_out: bool = False) -> torch.Tensor:
         """Images (B, h_f, w_f) of images ``idx`` (B,) on the stage's field grid, in normalised units, differentiable.
 
-        ``dn``: Δn on the stage grid (n_slices, h, w). Only the lateral position of each source is
-        calibrated per image; depth moves through the common offset.
+        ``dn``: Δn on the stage grid (n_slices, h, w). Each image's position and gain are its own rows; depth also
+        moves through the common offset. ``held_out``: the volume and the shared calibration enter as constants, so
+        these images' loss fits their own rows only (validation images).
         """
         cal = self.calibration
-        src = stage.stage_sources(cal.calibrated_sources()[idx])
+        src = stage.stage_sources(cal.calibrated_sources(shared_frozen=held_out)[idx])
         gain = torch.exp(cal.log_gain[idx])
-        return spectral_images(stage.model, stage.to_field_grid(dn), src, gain, self.wavelengths, self.weights,
-                               **cal.optics_overrides(stage.optics, stage.envelope))
+        field_dn = stage.to_field_grid(dn.detach() if held_out else dn)
+        return spectral_images(stage.model, field_dn, src, gain, self.wavelengths, self.weights,
+                               **cal.optics_overrides(stage.optics, stage.envelope, shared_frozen=held_out))
 
     # -- validation -------------------------------------------------------------------------------
     def validation_error(self, stage: Stage, mask: torch.Tensor | None = None) -> float | None:
         """Relative RMS error of the held-out images at ``stage`` (None without a validation split).
 
-        Predicted through the current volume with their positions as calibrated (never trained: the initial
-        estimate plus the common depth offset) and their gains fitted in closed form; ``mask`` (N, h_f, w_f) as the
-        loss's. Every rank computes the same number (no collective).
+        Predicted through the current volume with their positions as fitted to their own images (a fit that never
+        reaches the volume) and their gains refitted in closed form; ``mask`` (N, h_f, w_f) as the loss's. Every
+        rank computes the same number (no collective; in a distributed run after the rows are shared).
         """
         held = self.validation_indices
         if not len(held):
