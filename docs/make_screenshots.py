@@ -120,6 +120,7 @@ def main() -> int:
     for layer in viewer.layers:
         layer.visible = False
     rec_w.stages.value = STAGES
+    rec_w.validation_fraction.value = 0.1  # shows the validation curve (orange) beside the training one
     rec_w.device.value = "cpu"
     rec_w.start()
     ri = viewer.layers["letters RI"]

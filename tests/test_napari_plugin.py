@@ -620,3 +620,28 @@ def test_settings_widgets_are_generated_from_the_schema(make_napari_viewer) -> N
     assert schema_widget(Optics, "n_background", clamp=True).min == 1
     with pytest.raises(TypeError):
         schema_widget(SolverConfig, "stages")
+
+
+def test_error_curve_updates_during_a_run(make_napari_viewer, qtbot, tmp_path) -> None:
+    """With a validation share, the widget's curve gets training and validation points while the worker runs."""
+    sim = simulate(text_phantom((32, 32), 4, text="UC", delta_n=0.05), tiny_sim_optics(), source_grid(4, 8.0, 15.0), seed=3,
+                   device="cpu")
+    folder = write_acquisition(sim.acquisition, tmp_path / "sixteen")
+    viewer = make_napari_viewer()
+    _open(viewer, folder)
+    w = _docked(viewer, ReconstructionWidget(viewer))
+    _settings(w, "2x10, 1x40")
+    w.validation_fraction.value = 0.2
+    w.run_button.clicked.emit()
+    qtbot.waitUntil(lambda: len(w.curve.curve.validation) >= 3, timeout=60_000)
+    assert w.running or len(w.curve.curve.validation) < 50  # points arrive before the run ends, one per snapshot
+    _wait_done(qtbot, w)
+    assert w.feedback.last_error is None
+    curve = w.curve.curve
+    assert len(curve.validation) == 50 and len(curve.train) == 50  # snapshot_every 1: 10 + 40 iterations
+    assert all(0 < v < 1 for _, v in curve.validation)
+    assert w._report["validation"]["n_images"] == 3 and "validation" in w.curve_caption.value
+
+
+def tiny_sim_optics() -> Optics:
+    return Optics(wavelength_um=0.635, n_background=1.33, na=0.8, pixel_size_um=0.33, n_slices=4, slice_spacing_um=2.0)

@@ -175,3 +175,30 @@ def test_stop_ends_a_stage_on_a_rise_and_keeps_its_best_iterate(scene16, monkeyp
     assert torch.equal(rec.volume.x.detach(), best_state["x"])
     assert snaps[-1].stage_complete and snaps[-1].validation_error == 0.3
     assert snaps[-1].global_iteration == 20  # progress counts the skipped iterations
+
+
+# --------------------------------------------------------------------------------------------
+# The error curve of the reconstruction widget (Qt-free part)
+# --------------------------------------------------------------------------------------------
+
+def test_error_curve_maps_iterations_and_log_errors_to_pixels() -> None:
+    from types import SimpleNamespace
+
+    from napari_fdt.napari.curve import ErrorCurve
+
+    curve = ErrorCurve(margin_px=0)
+    curve.reset(100)
+    for it, train, val in [(10, 0.1, None), (50, 0.01, 0.02), (100, 0.001, 0.04), (100, float("nan"), None)]:
+        curve.add(SimpleNamespace(global_iteration=it, train_error=train, validation_error=val))
+    assert len(curve.train) == 3 and len(curve.validation) == 2  # None and NaN skipped
+    assert curve.error_range() == (0.001, 0.1)
+    lines = curve.polylines(200, 100)
+    # x: iteration / total of the width; y: log10 position from the top (0.1 at the top, 0.001 at the bottom)
+    assert lines["train"] == [(20.0, 0.0), (100.0, pytest.approx(50.0)), (200.0, 100.0)]
+    x, y = lines["validation"][0]
+    assert x == 100.0 and y == pytest.approx(100 * (1 - np.log10(0.02 / 0.001) / 2))
+    assert curve.caption() == "train 0.001, validation 0.04 (best 0.02 at 50)"
+    narrow = ErrorCurve()
+    narrow.add(SimpleNamespace(global_iteration=1, train_error=0.5, validation_error=0.6))
+    lo, hi = narrow.error_range()
+    assert hi / lo == pytest.approx(10.0) and lo < 0.5 and hi > 0.6  # widened to a decade around the values

@@ -52,6 +52,7 @@ from napari_fdt.napari.widget_common import (
     sources_for,
     track_thread,
 )
+from napari_fdt.napari.widget_curve import ErrorCurveWidget
 from napari_fdt.recon.config import SolverConfig, load_config
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -65,7 +66,8 @@ UPDATE_INTERVAL_S = 0.5
 #: Settings the widget edits, by widget attribute (= SolverConfig field).
 _FIELDS = ("stages", "coarse_model", "batch_size", "l1_l2_total", "ssim_weight", "tv_xy_weight", "tv_z_weight",
            "calibrate_sources", "calibrate_gain", "calibrate_source_depth", "calibrate_pixel_size",
-           "calibrate_slice_spacing", "calibration_from_stage", "coherence", "mask_threshold", "seed", "snapshot_every")
+           "calibrate_slice_spacing", "calibration_from_stage", "coherence", "mask_threshold", "seed", "snapshot_every",
+           "validation_fraction", "early_stopping")
 
 
 def device_choices() -> list[str]:
@@ -105,6 +107,8 @@ class ReconstructionWidget(Container):
         self.device = ComboBox(label="device", choices=device_choices(), value="auto")
         self.seed = f("seed", "seed")
         self.snapshot_every = f("snapshot_every", "progress every (it)")
+        self.validation_fraction = f("validation_fraction", "validation share", step=0.05)
+        self.early_stopping = f("early_stopping", "early stopping")
         self.save_settings_button = PushButton(text="Save settings…")
         self.load_settings_button = PushButton(text="Load settings…")
         self.run_button = PushButton(text="Reconstruct")
@@ -112,6 +116,8 @@ class ReconstructionWidget(Container):
         self.progress = ProgressBar(label="progress", value=0, min=0, max=1)
         self.status = Label(value="")
         self.losses = Label(value="")
+        self.curve = ErrorCurveWidget()
+        self.curve_caption = Label(value="")
         self.save_button = PushButton(text="Save RI…", enabled=False)
         self.compare_index = SpinBox(label="image", min=0, max=0)
         self.compare_button = PushButton(text="Predicted vs measured", enabled=False)
@@ -124,15 +130,20 @@ class ReconstructionWidget(Container):
             Label(value="<b>Self-calibration</b>"), self.calibrate_sources, self.calibrate_gain,
             self.calibrate_source_depth, self.calibrate_pixel_size, self.calibrate_slice_spacing,
             self.calibration_from_stage, Label(value="<b>Coherence and run</b>"), self.coherence, self.mask_threshold,
-            self.device, self.seed, self.snapshot_every,
+            self.device, self.seed, self.snapshot_every, Label(value="<b>Validation</b>"), self.validation_fraction,
+            self.early_stopping,
             Container(widgets=[self.save_settings_button, self.load_settings_button], layout="horizontal", labels=False),
             Container(widgets=[self.run_button, self.cancel_button], layout="horizontal", labels=False),
-            self.progress, self.status, self.losses,
+            self.progress, self.status, self.losses, self.curve_caption,
             Label(value="<b>Results</b>"), self.save_button, self.compare_index, self.compare_button,
             self.coverage_button, self.feedback.label,
         ])
-        for w in (self.status, self.losses):
+        for w in (self.status, self.losses, self.curve_caption):
             w.native.setWordWrap(True)
+        # the error curve sits under its caption (a plain Qt widget in the magicgui container's layout, after the
+        # caption's labelled row)
+        layout = self.native.layout()
+        layout.insertWidget(layout.indexOf(self.curve_caption.native.parentWidget()) + 1, self.curve)
         # run state
         self._worker = None
         self._rec = None
@@ -263,6 +274,8 @@ class ReconstructionWidget(Container):
             self._stop, self._done, self._closing = stop, done, closing
             self.progress.max = max(1, config.total_iterations)
             self.progress.value = 0
+            self.curve.reset(config.total_iterations)
+            self.curve_caption.value = ""
             self._set_running(True)
             self.feedback.info(f"reconstructing {layer.name} on {device}…")
             self._watch_close()
@@ -343,6 +356,8 @@ class ReconstructionWidget(Container):
                              f"{snap.iteration}/{snap.stage_iterations}; {snap.elapsed_s:.0f} s elapsed, "
                              f"about {snap.eta_s:.0f} s left")
         self.losses.value = "loss: " + ", ".join(f"{k} {v:.4g}" for k, v in snap.losses.items())
+        self.curve.add(snap)
+        self.curve_caption.value = "error: " + self.curve.curve.caption()
         if update.ri is not None and self._ri_layer is not None:
             self._show_ri(update.ri)
             self.layer_updates.append((snap.stage, snap.iteration, snap.stage_complete))
