@@ -249,7 +249,9 @@ class Reconstructor:
                     self.elapsed_s += time.perf_counter() - t0
                     return
                 progress = global_it / max(1, cfg.total_iterations)
-                terms, train_error = self._step(stage, mask, vol_opt, batch_size, data_range, progress)
+                snapshot_due = it == stage.iterations or it % cfg.snapshot_every == 0
+                terms, err = self._step(stage, mask, vol_opt, batch_size, data_range, progress, snapshot_due)
+                train_error = err if snapshot_due else train_error
                 global_it += 1
                 if it == stage.iterations:
                     break
@@ -329,11 +331,12 @@ class Reconstructor:
         return self.group.any(should_stop()) if self.group else should_stop()
 
     def _step(self, stage: Stage, mask: torch.Tensor | None, vol_opt: torch.optim.Optimizer, batch_size: int,
-              data_range: float, progress: float) -> tuple[dict[str, torch.Tensor], float | None]:
+              data_range: float, progress: float, with_error: bool = False) -> tuple[dict[str, torch.Tensor], float | None]:
         """One iteration: next batch, prediction, loss, gradients (summed over ranks), one step of both optimisers.
 
-        Returns the loss terms (tensors, unweighted; this rank's part of the data terms in a distributed run) and the
-        batch's relative image error (None for a rank with no image in the batch).
+        Returns the loss terms (tensors, unweighted; this rank's part of the data terms in a distributed run) and,
+        with ``with_error`` (snapshots only: it waits for the device), the training images' relative error (None
+        otherwise and for a rank with no training image in the batch).
         """
         idx = self.batches.next(batch_size)
         dn = self.volume.delta_n()
@@ -342,8 +345,8 @@ class Reconstructor:
             share = BatchShare.of_batch(None if mask is None else mask[idx], (len(idx), *stage.images.shape[1:]),
                                         regularisers=self.group.is_writer)
             idx = self.group.local(idx)
-        held = self._held_out[idx]
-        if bool(held.any()):  # held-out images last, predicted through a constant volume and shared calibration
+        held = self._held_out[idx] if len(self.validation_indices) else None
+        if held is not None and bool(held.any()):  # held-out images last, through a constant volume and shared calibration
             idx = torch.cat([idx[~held], idx[held]])
             n_train = int((~held).sum())
             pred = torch.cat([self._predict_normalised(stage, dn, idx[:n_train]),
@@ -365,8 +368,9 @@ class Reconstructor:
                                         self.calibration.per_source_parameters())
         vol_opt.step()
         cal_opt.step()
-        train_error = (relative_image_error(pred[:n_train].detach(), stage.images[idx[:n_train]], None if m is None else m[:n_train])
-                       if n_train else None)
+        train_error = None
+        if with_error and n_train:
+            train_error = relative_image_error(pred[:n_train].detach(), stage.images[idx[:n_train]], None if m is None else m[:n_train])
         return terms, train_error
 
     def _predict_normalised(self, stage: Stage, dn: torch.Tensor, idx: torch.Tensor, held_out: bool = False) -> torch.Tensor:
