@@ -43,12 +43,15 @@ def test_auto_is_the_default_and_numbers_still_work() -> None:
     assert args.tv_xy_weight == "auto" and args.tv_z_weight == 2.5
 
 
-def test_pick_takes_the_lowest_error_or_the_smoother_of_a_tie_band() -> None:
-    trials = [{"tau": 0.0, "validation_error": 0.0310}, {"tau": 1.0, "validation_error": 0.0300},
-              {"tau": 3.0, "validation_error": 0.0301}, {"tau": 10.0, "validation_error": 0.0400}]
-    assert pick(trials)["tau"] == pick(trials, tolerance=0.0)["tau"] == 1.0  # the default: the lowest error
-    assert pick(trials, tolerance=0.005)["tau"] == 3.0  # 0.0301 is within 0.5 % of 0.0300
-    assert pick(trials, tolerance=0.5)["tau"] == 10.0
+def test_pick_is_the_one_standard_error_rule() -> None:
+    """The largest weight whose error is within one standard error of the lowest (the lowest itself without one)."""
+    trials = [{"tau": 0.0, "validation_error": 0.0310, "standard_error": 0.001},
+              {"tau": 1.0, "validation_error": 0.0300, "standard_error": 0.002},
+              {"tau": 3.0, "validation_error": 0.0319, "standard_error": 0.001},
+              {"tau": 10.0, "validation_error": 0.0321, "standard_error": 0.001}]
+    assert pick(trials)["tau"] == 3.0  # 0.0319 <= 0.0300 + 0.002 < 0.0321
+    assert pick(trials, standard_errors=0.0)["tau"] == 1.0
+    assert pick([{**t, "standard_error": 0.0} for t in trials])["tau"] == 1.0
 
 
 def test_candidate_weights_follow_the_auto_fields() -> None:
