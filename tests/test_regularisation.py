@@ -43,15 +43,19 @@ def test_auto_is_the_default_and_numbers_still_work() -> None:
     assert args.tv_xy_weight == "auto" and args.tv_z_weight == 2.5
 
 
-def test_pick_is_the_one_standard_error_rule() -> None:
-    """The largest weight whose error is within one standard error of the lowest (the lowest itself without one)."""
-    trials = [{"tau": 0.0, "validation_error": 0.0310, "standard_error": 0.001},
-              {"tau": 1.0, "validation_error": 0.0300, "standard_error": 0.002},
-              {"tau": 3.0, "validation_error": 0.0319, "standard_error": 0.001},
-              {"tau": 10.0, "validation_error": 0.0321, "standard_error": 0.001}]
-    assert pick(trials)["tau"] == 3.0  # 0.0319 <= 0.0300 + 0.002 < 0.0321
+def test_pick_is_a_paired_one_standard_error_rule() -> None:
+    """The largest weight not significantly worse than the lowest error, image by image (mean paired difference at
+    most one standard error of it)."""
+    ref = [0.10, 0.20, 0.30, 0.40]
+    trials = [{"tau": 0.0, "validation_error": 0.252, "image_errors": [0.101, 0.202, 0.303, 0.404]},
+              {"tau": 1.0, "validation_error": 0.250, "image_errors": ref},
+              # differences -0.01, +0.02, -0.01, +0.02: mean 0.005, standard error 0.0087: as good
+              {"tau": 3.0, "validation_error": 0.252, "image_errors": [0.09, 0.22, 0.29, 0.42]},
+              # every image worse by 0.004 to 0.006: mean 0.005, standard error 0.0004: worse
+              {"tau": 10.0, "validation_error": 0.255, "image_errors": [0.104, 0.206, 0.305, 0.405]}]
+    assert pick(trials)["tau"] == 3.0
     assert pick(trials, standard_errors=0.0)["tau"] == 1.0
-    assert pick([{**t, "standard_error": 0.0} for t in trials])["tau"] == 1.0
+    assert pick(trials[:2] + trials[3:])["tau"] == 1.0  # τ 10 is worse on every image, though by less than τ 3 on some
 
 
 def test_candidate_weights_follow_the_auto_fields() -> None:

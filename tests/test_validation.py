@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from napari_fdt.errors import FDTWarning
-from napari_fdt.recon.validation import MIN_VALIDATION_IMAGES, BestIterate, holdout_indices, relative_image_error, standard_error
+from napari_fdt.recon.validation import MIN_VALIDATION_IMAGES, BestIterate, holdout_indices, per_image_errors, relative_image_error
 
 
 def _grid(n: int, pitch_um: float = 5.0, depth_um: float = 20.0) -> np.ndarray:
@@ -16,14 +16,12 @@ def _grid(n: int, pitch_um: float = 5.0, depth_um: float = 20.0) -> np.ndarray:
     return np.c_[xx.ravel(), yy.ravel(), np.full(n * n, depth_um)]
 
 
-def test_standard_error_is_the_spread_of_the_per_image_errors() -> None:
+def test_per_image_errors_are_each_images_relative_error() -> None:
     rng = np.random.default_rng(3)
     measured = torch.from_numpy(rng.uniform(1.0, 2.0, (4, 8, 8)))
-    pred = measured * torch.tensor([1.0, 1.1, 0.8, 1.3])[:, None, None]  # per-image errors 0, 0.1, 0.2, 0.3 without gain fit
-    per_image = np.array([0.0, 0.1, 0.2, 0.3])
-    assert standard_error(pred, measured) == pytest.approx(per_image.std(ddof=1) / 2.0, rel=1e-6)
-    assert standard_error(pred, measured, fit_gain=True) == pytest.approx(0.0, abs=1e-9)  # a gain per image fits each exactly
-    assert standard_error(pred[:1], measured[:1]) == 0.0
+    pred = measured * torch.tensor([1.0, 1.1, 0.8, 1.3], dtype=torch.float64)[:, None, None]
+    assert per_image_errors(pred, measured) == pytest.approx([0.0, 0.1, 0.2, 0.3], abs=1e-12)
+    assert per_image_errors(pred, measured, fit_gain=True) == pytest.approx([0.0] * 4, abs=1e-9)  # a gain per image fits each
 
 
 @pytest.mark.parametrize("side", [8, 14, 20])

@@ -7,10 +7,13 @@ before it trains a stage for good (the rule and its measured cost are in ``docs/
    starting state (volume, calibration and their optimisers, batch order: common random numbers, so that the
    candidates differ only by their weight) for a share of the stage's iterations; each ends with the validation
    error of the held-out images (:mod:`napari_fdt.recon.validation`).
-2. The one-standard-error rule (:func:`pick`): the largest weight whose validation error is within one standard
-   error (over the held-out images) of the lowest. Differences smaller than that are not resolved by the held-out
-   images, and among them the smoother volume is the one that does not fill with what the data cannot constrain;
-   measured, the plain lowest error regularised less than the RI error wanted on beads, cells and deep sources.
+2. The weight of lowest validation error is the reference; a larger weight wins if it is not significantly worse
+   than it, image by image (:func:`pick`): the mean over the held-out images of its error minus the reference's is at
+   most one standard error of that mean (a paired one-standard-error rule: the candidates are compared on the same
+   images from the same state, so their differences are measured far more precisely than each error). Of such
+   volumes the smoother one is the one that has not filled with what the data cannot constrain; measured, the plain
+   lowest error regularised less than the RI error wanted on beads, cells and deep sources, and the unpaired rule
+   (the spread of each error over the images) more than it wanted on the sample and cells.
 3. The stage then trains from the same starting state with the chosen weight, and so do the later stages.
 
 τ_z follows τ_xy at the ratio :data:`TV_Z_RATIO` when both are ``"auto"``; a weight given as a number stays fixed
@@ -22,6 +25,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
+import numpy as np
+
 from napari_fdt.recon.config import AUTO, SolverConfig
 
 __all__ = ["TV_PATH", "TV_Z_RATIO", "STANDARD_ERRORS", "PROBE_SHARE", "TVChoice", "tv_is_auto", "candidate_weights", "pick",
@@ -32,8 +37,7 @@ __all__ = ["TV_PATH", "TV_Z_RATIO", "STANDARD_ERRORS", "PROBE_SHARE", "TVChoice"
 TV_PATH: tuple[float, ...] = (0.0, 1.0, 3.0, 10.0, 30.0, 100.0)
 #: τ_z / τ_xy when both are chosen (the issue's "TV 50/25").
 TV_Z_RATIO = 0.5
-#: Standard errors of the lowest validation error within which a larger weight still counts as good (the
-#: one-standard-error rule of cross-validation; Hastie, Tibshirani & Friedman, "Elements of Statistical Learning" §7.10).
+#: Standard errors of the paired difference within which a larger weight still counts as not worse than the best.
 STANDARD_ERRORS = 1.0
 #: Share of the selection stage's iterations each candidate trains for.
 PROBE_SHARE = 0.3
@@ -57,11 +61,21 @@ def candidate_weights(config: SolverConfig, tau_xy: float) -> tuple[float, float
 
 
 def pick(trials: list[dict[str, Any]], standard_errors: float = STANDARD_ERRORS) -> dict[str, Any]:
-    """The winning trial: of those whose ``validation_error`` is at most the lowest one plus ``standard_errors`` times
-    its ``standard_error``, the one with the largest weight (``tau``)."""
+    """The winning trial. The reference is the lowest ``validation_error``; a trial with a larger weight (``tau``) is
+    as good when the mean of its per-image errors (``image_errors``) minus the reference's, over the same images, is
+    at most ``standard_errors`` standard errors of that mean. The largest such weight wins."""
     best = min(trials, key=lambda t: t["validation_error"])
-    limit = best["validation_error"] + standard_errors * best.get("standard_error", 0.0)
-    return max((t for t in trials if t["validation_error"] <= limit), key=lambda t: t["tau"])
+    ref = np.asarray(best.get("image_errors", []), dtype=np.float64)
+
+    def as_good(t: dict[str, Any]) -> bool:
+        d = np.asarray(t.get("image_errors", []), dtype=np.float64) - ref
+        if t is best:
+            return True
+        if d.size < 2:
+            return t["validation_error"] <= best["validation_error"]
+        return d.mean() <= standard_errors * d.std(ddof=1) / np.sqrt(d.size)
+
+    return max((t for t in trials if t["tau"] >= best["tau"] and as_good(t)), key=lambda t: t["tau"])
 
 
 def selection_stages(config: SolverConfig) -> list[int]:

@@ -45,7 +45,7 @@ from napari_fdt.recon.losses import BatchShare, LossWeights, as_floats, total_lo
 from napari_fdt.recon.preflight import check_memory, warn_about_images, warn_about_sampling
 from napari_fdt.recon.regularisation import PROBE_SHARE, TV_PATH, TVChoice, candidate_weights, pick, selection_stages, tv_is_auto
 from napari_fdt.recon.stages import Stage, build_stage
-from napari_fdt.recon.validation import BestIterate, holdout_indices, relative_image_error, standard_error
+from napari_fdt.recon.validation import BestIterate, holdout_indices, per_image_errors, relative_image_error
 from napari_fdt.recon.volume import RIVolume, upsample_to
 
 if TYPE_CHECKING:
@@ -313,8 +313,8 @@ class Reconstructor:
                     self._restore_branch(start)
                     return False
                 self._step(stage, mask, vol_opt, batch_size, data_range, (global_it + it) / max(1, cfg.total_iterations))
-            err, se = self._validation(stage, mask, with_standard_error=True)
-            trials.append({"tau": tau, "tv_xy_weight": xy, "tv_z_weight": z, "validation_error": err, "standard_error": se})
+            err, each = self._validation(stage, mask, per_image=True)
+            trials.append({"tau": tau, "tv_xy_weight": xy, "tv_z_weight": z, "validation_error": err, "image_errors": each})
         self._restore_branch(start)
         win = pick(trials)
         self.loss_weights = dataclasses.replace(self.loss_weights, tv_xy=win["tv_xy_weight"], tv_z=win["tv_z_weight"])
@@ -464,8 +464,8 @@ class Reconstructor:
         out = self._validation(stage, mask)
         return None if out is None else out[0]
 
-    def _validation(self, stage: Stage, mask: torch.Tensor | None, with_standard_error: bool = False) -> tuple[float, float] | None:
-        """(validation error, its standard error over the held-out images (0 unless asked)); None without a split."""
+    def _validation(self, stage: Stage, mask: torch.Tensor | None, per_image: bool = False) -> tuple[float, list[float]] | None:
+        """(validation error, each held-out image's error (empty unless asked)); None without a split."""
         held = self.validation_indices
         if not len(held):
             return None
@@ -475,8 +475,8 @@ class Reconstructor:
                      for sl in iter_batches(len(held), self.config.batch_size)]
         idx = torch.as_tensor(held, device=self.device)
         pred, measured, m = torch.cat(preds), stage.images[idx], None if mask is None else mask[idx]
-        se = standard_error(pred, measured, m, fit_gain=True) if with_standard_error else 0.0
-        return relative_image_error(pred, measured, m, fit_gain=True), se
+        each = per_image_errors(pred, measured, m, fit_gain=True) if per_image else []
+        return relative_image_error(pred, measured, m, fit_gain=True), each
 
     def _track_validation(self, stage: Stage, mask: torch.Tensor | None, best: BestIterate, it: int) -> float | None:
         """The validation error now, recorded in ``best`` (with a copy of the state when it is the lowest yet)."""

@@ -19,7 +19,7 @@ import torch
 from napari_fdt.errors import FDTWarning
 from napari_fdt.model.gain import least_squares_gain
 
-__all__ = ["holdout_indices", "spread_picks", "relative_image_error", "standard_error", "BestIterate", "MIN_VALIDATION_IMAGES"]
+__all__ = ["holdout_indices", "spread_picks", "relative_image_error", "per_image_errors", "BestIterate", "MIN_VALIDATION_IMAGES"]
 
 #: Fewest held-out images a split may have; with fewer, the error of one badly placed source would dominate.
 MIN_VALIDATION_IMAGES = 3
@@ -95,15 +95,11 @@ def relative_image_error(pred: torch.Tensor, measured: torch.Tensor, mask: torch
     return float(torch.sqrt(err / ref))
 
 
-def standard_error(pred: torch.Tensor, measured: torch.Tensor, mask: torch.Tensor | None = None, *, fit_gain: bool = False) -> float:
-    """Standard error of :func:`relative_image_error` over a stack's images: ``std(r_i) / sqrt(B)`` of the per-image
-    relative errors ``r_i`` (same gains and mask), sample standard deviation; 0 for a single image."""
-    b = measured.shape[0]
-    if b < 2:
-        return 0.0
-    m = [None if mask is None else mask[i:i + 1] for i in range(b)]
-    r = torch.tensor([relative_image_error(pred[i:i + 1], measured[i:i + 1], m[i], fit_gain=fit_gain) for i in range(b)], dtype=torch.float64)
-    return float(r.std(unbiased=True) / math.sqrt(b))
+def per_image_errors(pred: torch.Tensor, measured: torch.Tensor, mask: torch.Tensor | None = None, *,
+                     fit_gain: bool = False) -> list[float]:
+    """:func:`relative_image_error` of each image of a stack (B,), as floats (same gains and mask)."""
+    return [relative_image_error(pred[i:i + 1], measured[i:i + 1], None if mask is None else mask[i:i + 1], fit_gain=fit_gain)
+            for i in range(measured.shape[0])]
 
 
 @dataclass
