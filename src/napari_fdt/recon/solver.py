@@ -235,7 +235,52 @@ class Reconstructor:
         grid, make the loss mask, start the gains (once), switch the calibration on or off; then iterate
         (batch, predict, loss, step; a snapshot every ``snapshot_every``), and end with a snapshot and a
         checkpoint (``checkpoint_dir/stage_<i>.pt``).
+
+        With ``"auto"`` TV weights, a pilot first runs the stages up to the selection stage and tries the weights there
+        (:meth:`_pilot`), without snapshots; the run then starts from the beginning with the chosen weights.
         """
+        if self.tv_choice is None and tv_is_auto(self.config) and self.completed_stages == 0:
+            if not self._pilot(should_stop):
+                return
+        yield from self._run_stages(should_stop, checkpoint_dir)
+
+    def _pilot(self, should_stop: Callable[[], bool] | None) -> bool:
+        """Choose the "auto" TV weights: run the stages before the selection stage as the run would (TV off), try the
+        weights at the selection stage (:meth:`_choose_tv`), then return to the initial state with the weights set, so
+        that the run equals one given them as numbers from its first stage on. False when cancelled meanwhile."""
+        t0 = time.perf_counter()
+        cancelled = False
+
+        def stop() -> bool:
+            nonlocal cancelled
+            cancelled = self.tv_choice is None and self._stop_requested(should_stop)
+            return cancelled or self.tv_choice is not None
+
+        for _ in self._run_stages(stop, None):
+            pass
+        choice = self.tv_choice
+        self._restart()
+        if choice is None or cancelled:
+            self.tv_choice = None
+            return False
+        choice.seconds = time.perf_counter() - t0
+        self.tv_choice = choice
+        self.loss_weights = dataclasses.replace(self.loss_weights, tv_xy=choice.tv_xy_weight, tv_z=choice.tv_z_weight)
+        self.elapsed_s = choice.seconds  # the pilot's time is the run's
+        return True
+
+    def _restart(self) -> None:
+        """Back to the state before any stage ran (volume, calibration and its optimiser, batch order, records)."""
+        cfg = self.config
+        self.calibration = Calibration(self.initial_sources_um, cfg, self.acquisition.optics, device=self.device, dtype=self.dtype)
+        self.batches = BatchOrder(self.acquisition.n_images, cfg.seed, self.device)
+        self.volume, self.volume_factor = None, None
+        self.completed_stages, self.stages, self.history = 0, [], []
+        self.last_complete, self.final_losses = None, {}
+        self.__dict__.pop("_last_complete_state", None)
+
+    def _run_stages(self, should_stop: Callable[[], bool] | None, checkpoint_dir: str | Path | None) -> Iterator[Snapshot]:
+        """The stages from the first not yet completed (the body of :meth:`run`)."""
         cfg = self.config
         torch.manual_seed(cfg.seed + self.completed_stages)
         global_it = sum(s.iterations for s in cfg.stages[: self.completed_stages])
