@@ -40,7 +40,7 @@ from napari_fdt.recon.checkpoint import checkpoint_path, checkpoint_state, read_
 from napari_fdt.recon.config import SolverConfig, resolve_coarse_model
 from napari_fdt.recon.losses import BatchShare, LossWeights, as_floats, total_loss
 from napari_fdt.recon.preflight import check_memory, warn_about_images, warn_about_sampling
-from napari_fdt.recon.stages import Stage, build_stage
+from napari_fdt.recon.stages import Stage, build_stage, camera_model_options
 from napari_fdt.recon.validation import BestIterate, holdout_indices, relative_image_error
 from napari_fdt.recon.volume import RIVolume, upsample_to
 
@@ -191,7 +191,8 @@ class Reconstructor:
         #: (N, H, W) float32 images / image_scale, on the CPU (each stage averages them to its grid)
         self.images = torch.from_numpy(imgs / mean)
         self.full_shape = acquisition.image_shape
-        self.calibration = Calibration(src, cfg, o, device=self.device, dtype=self.dtype)
+        self.calibration = Calibration(src, cfg, o, device=self.device, dtype=self.dtype,
+                                       pupil_edge=camera_model_options(cfg, acquisition)["pupil_edge"])
         self.volume: RIVolume | None = None
         self.volume_factor: int | None = None
         #: (V,) indices of the held-out images, spread over the field (empty: no validation). They are drawn in
@@ -279,7 +280,8 @@ class Reconstructor:
         return build_stage(stage_index, sc.factor, sc.iterations, self.acquisition.optics, self.images,
                            self.calibration.sources_um(), device=self.device,
                            coarse_model=self.coarse_model, backward_mode=cfg.backward_mode,
-                           obliquity="per_source" if cfg.obliquity_correction else "none")
+                           obliquity="per_source" if cfg.obliquity_correction else "none",
+                           **camera_model_options(cfg, self.acquisition))
 
     def _carry_volume_to(self, stage: Stage) -> None:
         """Make the RI grid on the stage's grid (first stage) or resample it there from the previous stage's."""
