@@ -25,7 +25,9 @@ from napari_fdt.model.memory import grid_is_unitary
 from napari_fdt.model.slice_loop import MODES, choose_mode, loop_forward, slice_loop
 from napari_fdt.physics.aberrations import RADIAL_MODES, ZERNIKE_MODES, coefficients_vector, zernike_phase
 from napari_fdt.physics.camera import fine_field, pixel_average_from_fine
-from napari_fdt.physics.free_field import DEFAULT_RHO_STEP_UM, free_field_profile, interpolate_profile, radial_nodes
+from napari_fdt.physics.free_field import (
+    DEFAULT_RHO_STEP_UM, angular_harmonics, bessel_orders, free_field_profile, interpolate_profile, radial_nodes,
+)
 from napari_fdt.physics.grid import GridPlan, frequency_grid
 from napari_fdt.physics.optics import Optics
 from napari_fdt.physics.propagation import phase_screen, propagation_kernel, pupil, screen_phase
@@ -65,6 +67,16 @@ class Kernels:
     pupil_edge: Scalar = 0.0
     zernike: torch.Tensor | None = None
     free_kernel: torch.Tensor | None = None
+
+
+def _has_nonradial(coeffs: torch.Tensor | None) -> bool:
+    """Whether Zernike coefficients (of :data:`ZERNIKE_MODES`) include a non-rotationally-symmetric mode (or may: trained)."""
+    if coeffs is None:
+        return False
+    if coeffs.requires_grad:
+        return True
+    idx = [i for i, m in enumerate(ZERNIKE_MODES) if m not in RADIAL_MODES]
+    return bool((coeffs.detach()[idx] != 0).any())
 
 
 class MultiSliceModel:
@@ -207,7 +219,8 @@ class MultiSliceModel:
         free_kernel = None
         if self.exact_free_field:
             free_distance = o.n_slices * dz - 0.5 * dz - o.image_plane_um  # first screen → focal plane
-            free_kernel = propagation_kernel(f2, free_distance, o.n_background, lam) * radial
+            full = _has_nonradial(coeffs)  # the exact field then holds every mode (angular harmonics)
+            free_kernel = propagation_kernel(f2, free_distance, o.n_background, lam) * (aperture if full else radial)
         return Kernels(fy, fx, window, slice_kernel, exit_kernel, dx, dz, lam, na_, edge, coeffs, free_kernel)
 
     # -- pieces -------------------------------------------------------------------------------
@@ -299,7 +312,7 @@ class MultiSliceModel:
         f_max = float(edges[-1])
         s_max = min(0.999, f_max * float(lam) / o.n_background)
         tan_max = s_max / math.sqrt(1.0 - s_max * s_max)
-        per_unit = 2.0 * (float(h.detach().max()) * tan_max + rho_max) + 4.0
+        per_unit = 1.25 * (float(h.detach().max()) * tan_max + rho_max) + 4.0
         per_unit = 2.0 ** math.ceil(math.log2(per_unit))  # few distinct node sets: the Bessel table is reused
         f, wts = radial_nodes(edges, per_unit, device=self.device, dtype=self.dtype)
         radii = torch.arange(n_rho, device=self.device, dtype=self.dtype) * step
@@ -314,12 +327,36 @@ class MultiSliceModel:
                 self._bessel_cache[key] = bessel
         amp = pupil(f * f, k.na, lam, edge)
         amp = torch.complex(amp, torch.zeros_like(amp))
-        if k.zernike is not None:
-            keep = [ZERNIKE_MODES.index(m) for m in RADIAL_MODES]
-            w_r = zernike_phase(torch.zeros_like(f), f, o.na, o.wavelength_um, torch.stack([k.zernike[i] for i in keep]), RADIAL_MODES)
-            amp = amp * torch.polar(torch.ones_like(w_r), w_r)
-        profile = free_field_profile(radii, src[:, 2], h, f, wts, amp, n_background=o.n_background, wavelength_um=lam, bessel=bessel)
-        return interpolate_profile(profile, step, rho)
+        if not _has_nonradial(k.zernike):
+            if k.zernike is not None:
+                keep = [ZERNIKE_MODES.index(m) for m in RADIAL_MODES]
+                w_r = zernike_phase(torch.zeros_like(f), f, o.na, o.wavelength_um, torch.stack([k.zernike[i] for i in keep]), RADIAL_MODES)
+                amp = amp * torch.polar(torch.ones_like(w_r), w_r)
+            profile = free_field_profile(radii, src[:, 2], h, f, wts, amp, n_background=o.n_background, wavelength_um=lam, bessel=bessel)
+            return interpolate_profile(profile, step, rho)
+        # Angular harmonics: exp(i·W(f, φ)) = Σ_m c_m(f)·exp(i·m·φ) → E(ρ, θ) = Σ_m i^m·exp(i·m·θ)·2π∫A·c_m·J_m(2πfρ)·f df
+        n_phi = 64
+        ang = torch.arange(n_phi, device=self.device, dtype=self.dtype) * (2.0 * math.pi / n_phi)
+        w_full = zernike_phase(f[:, None] * torch.sin(ang)[None, :], f[:, None] * torch.cos(ang)[None, :], o.na, o.wavelength_um, k.zernike)
+        coeffs, order = angular_harmonics(torch.polar(torch.ones_like(w_full), w_full))  # (2M+1, F)
+        cplx = torch.complex128 if self.dtype == torch.float64 else torch.complex64
+        unit = torch.complex(dxx, dy) / rho  # exp(i·θ) of each pixel seen from its source
+        unit = unit.expand(src.shape[0], -1, -1) if unit.shape[0] != src.shape[0] else unit
+        z = 2.0 * math.pi * f.detach()[:, None] * radii[None, :]
+        out = None
+        power = torch.ones_like(unit)
+        for m, jm in bessel_orders(z, order):
+            jm = jm.to(self.dtype)
+            for sign in ((1,) if m == 0 else (1, -1)):
+                c_m = coeffs[order + sign * m]
+                bes = jm if (sign > 0 or m % 2 == 0) else -jm  # J_{-m} = (−1)^m·J_m
+                prof = free_field_profile(radii, src[:, 2], h, f, wts, amp * c_m, n_background=o.n_background,
+                                          wavelength_um=lam, bessel=bes)
+                phase_m = (1j) ** (sign * m)
+                term = interpolate_profile(prof, step, rho) * (power if sign > 0 else power.conj()) * torch.tensor(phase_m, dtype=cplx)
+                out = term if out is None else out + term
+            power = power * unit
+        return out
 
     def camera_field(
         self,

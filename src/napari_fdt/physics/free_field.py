@@ -26,7 +26,13 @@ import torch
 
 from napari_fdt.physics.propagation import axial_frequency_offset
 
-__all__ = ["radial_nodes", "free_field_profile", "interpolate_profile", "DEFAULT_RHO_STEP_UM"]
+__all__ = ["radial_nodes", "free_field_profile", "interpolate_profile", "bessel_orders", "angular_harmonics",
+           "DEFAULT_RHO_STEP_UM", "MAX_HARMONIC"]
+
+#: Largest angular harmonic |m| of a non-rotationally-symmetric pupil phase that is kept.
+MAX_HARMONIC = 24
+#: Harmonics are kept until the rest holds less than this fraction of the pupil function's energy.
+HARMONIC_TAIL = 1e-9
 
 #: Spacing of the tabulated radial profile, µm.
 DEFAULT_RHO_STEP_UM = 0.01
@@ -98,3 +104,54 @@ def interpolate_profile(profile: torch.Tensor, rho_step_um: float, rho_um: torch
     v1 = torch.gather(profile, 1, i0 + 1)
     out = v0 + (v1 - v0) * t.to(profile.real.dtype)
     return out.reshape(rho_um.shape)
+
+
+def angular_harmonics(pupil_function: torch.Tensor) -> tuple[torch.Tensor, int]:
+    """Fourier coefficients over the angle of a pupil function sampled at (F, Nφ) points ``φ_k = 2πk/Nφ``.
+
+    Returns ``(c, M)`` with ``c`` (2M+1, F) complex: ``c[M + m]`` the coefficient of ``exp(+i·m·φ)``, and M the
+    smallest order whose omitted harmonics hold less than :data:`HARMONIC_TAIL` of the energy (at most
+    :data:`MAX_HARMONIC`, and below Nφ/2).
+    """
+    n_phi = pupil_function.shape[-1]
+    c = torch.fft.fft(pupil_function, dim=-1) / n_phi  # index m (mod Nφ) ↔ exp(+i·m·φ)
+    energy = (c.real.square() + c.imag.square()).detach().sum(dim=0)  # (Nφ,)
+    total = float(energy.sum())
+    top = min(MAX_HARMONIC, n_phi // 2 - 1)
+    order = top
+    for m in range(top + 1):
+        kept = float(energy[0]) + sum(float(energy[j]) + float(energy[-j]) for j in range(1, m + 1))
+        if total - kept <= HARMONIC_TAIL * total:
+            order = m
+            break
+    idx = [(m % n_phi) for m in range(-order, order + 1)]
+    return c[:, idx].transpose(0, 1), order
+
+
+def bessel_orders(z: torch.Tensor, max_order: int):
+    """Yield ``(m, J_m(z))`` for m = 0 … ``max_order`` (z ≥ 0, any shape), computed in float64.
+
+    Upward recurrence ``J_{m+1} = (2m/z)·J_m − J_{m−1}`` from torch's J₀ and J₁ where it is stable (z ≥ m + 2);
+    the power series ``Σ_k (−1)^k (z/2)^(2k+m)/(k!(k+m)!)`` below (40 terms: exact to rounding for z < 26).
+    """
+    z64 = z.to(torch.float64)
+    j_prev = torch.special.bessel_j0(z64)
+    yield 0, j_prev
+    if max_order == 0:
+        return
+    j_cur = torch.special.bessel_j1(z64)
+    half = 0.5 * z64
+    safe = torch.clamp(z64, min=1e-300)
+    for m in range(1, max_order + 1):
+        if m > 1:
+            j_prev, j_cur = j_cur, (2.0 * (m - 1) / safe) * j_cur - j_prev
+        small = z64 < m + 2.0
+        if bool(small.any()):
+            zs = torch.where(small, half, torch.zeros_like(half))
+            term = zs**m / float(math.factorial(m))
+            series = term.clone()
+            for k in range(1, 40):
+                term = -term * zs * zs / (k * (k + m))
+                series = series + term
+            j_cur = torch.where(small, series, j_cur)
+        yield m, j_cur
