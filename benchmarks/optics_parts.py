@@ -22,7 +22,6 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 import independent_reference_optics as ref  # noqa: E402
-
 from napari_fdt.model.forward import MultiSliceModel  # noqa: E402
 from napari_fdt.physics.grid import plan_for_sources  # noqa: E402
 from napari_fdt.physics.optics import Optics  # noqa: E402

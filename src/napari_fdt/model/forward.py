@@ -26,7 +26,12 @@ from napari_fdt.model.slice_loop import MODES, choose_mode, loop_forward, slice_
 from napari_fdt.physics.aberrations import RADIAL_MODES, ZERNIKE_MODES, coefficients_vector, zernike_phase
 from napari_fdt.physics.camera import fine_field, pixel_average_from_fine
 from napari_fdt.physics.free_field import (
-    DEFAULT_RHO_STEP_UM, angular_harmonics, bessel_orders, free_field_profile, interpolate_profile, radial_nodes,
+    DEFAULT_RHO_STEP_UM,
+    angular_harmonics,
+    bessel_orders,
+    free_field_profile,
+    interpolate_profile,
+    radial_nodes,
 )
 from napari_fdt.physics.grid import GridPlan, frequency_grid
 from napari_fdt.physics.optics import Optics
