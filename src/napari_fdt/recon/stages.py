@@ -23,6 +23,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from napari_fdt.errors import FDTInputError
 from napari_fdt.model.envelope import EnvelopeModel
 from napari_fdt.model.forward import MultiSliceModel
 from napari_fdt.model.protocol import ImageModel
@@ -198,7 +199,11 @@ def camera_model_options(config, acquisition) -> dict:
     optics = acquisition.optics
     edge = config.pupil_edge
     if edge is None:
-        edge = float(extra.get("pupil_edge", DEFAULT_PUPIL_TAPER))
+        edge = extra.get("pupil_edge", DEFAULT_PUPIL_TAPER)
+        if isinstance(edge, bool) or not isinstance(edge, (int, float)) or not (0.0 <= edge < 0.5):
+            raise FDTInputError("pupil_edge", f"acquisition.json's pupil_edge must be a number in [0, 0.5), got {edge!r}",
+                                "0 for a hard pupil, 0.03 the default soft edge, or remove the key")
+        edge = float(edge)
     setting_ = config.pixel_integration
     if setting_ == "auto":
         if "pixel_integration" in extra:
