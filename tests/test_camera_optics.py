@@ -63,7 +63,7 @@ def test_camera_options_follow_the_acquisition() -> None:
     assert camera_model_options(cfg, real) == {"pupil_edge": 0.03, "pixel_integration": True}
     assert camera_model_options(cfg, old_sim) == {"pupil_edge": 0.03, "pixel_integration": False}
     assert camera_model_options(cfg, new_sim) == {"pupil_edge": 0.0, "pixel_integration": True}
-    assert camera_model_options(SolverConfig(pixel_integration=False, pupil_edge=0.01), new_sim) == {"pupil_edge": 0.01, "pixel_integration": False}
+    assert camera_model_options(SolverConfig(pixel_integration="false", pupil_edge=0.01), new_sim) == {"pupil_edge": 0.01, "pixel_integration": False}
     with pytest.raises(FDTInputError, match="pupil_edge"):
         camera_model_options(cfg, SimpleNamespace(optics=optics, extra={"pupil_edge": "hard"}))
 

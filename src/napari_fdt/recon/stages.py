@@ -212,4 +212,5 @@ def camera_model_options(config, acquisition) -> dict:
             setting_ = False
         else:
             setting_ = needs_pixel_integration(optics.na, optics.wavelength_um, optics.pixel_size_um)
-    return {"pupil_edge": edge, "pixel_integration": bool(setting_)}
+    setting_ = resolve_pixel_integration(setting_, optics.na, optics.wavelength_um, optics.pixel_size_um)
+    return {"pupil_edge": edge, "pixel_integration": setting_}
