@@ -26,7 +26,7 @@ import torch
 
 from napari_fdt.physics.propagation import axial_frequency_offset
 
-__all__ = ["radial_nodes", "free_field_profile", "interpolate_profile", "bessel_orders", "angular_harmonics",
+__all__ = ["bessel_j0", "radial_nodes", "free_field_profile", "interpolate_profile", "bessel_orders", "angular_harmonics",
            "DEFAULT_RHO_STEP_UM", "MAX_HARMONIC"]
 
 #: Largest angular harmonic |m| of a non-rotationally-symmetric pupil phase that is kept.
@@ -61,6 +61,26 @@ def radial_nodes(edges: list, panels_per_unit: float, *, device=None, dtype=torc
     return torch.cat(nodes), torch.cat(weights)
 
 
+class _BesselJ0(torch.autograd.Function):
+    """``J₀(z)`` with its derivative ``−J₁(z)`` (torch's ``special.bessel_j0`` has none: gradients in the NA and the
+    pupil edge move the quadrature nodes, hence the Bessel arguments)."""
+
+    @staticmethod
+    def forward(ctx, z):
+        ctx.save_for_backward(z)
+        return torch.special.bessel_j0(z)
+
+    @staticmethod
+    def backward(ctx, grad):
+        (z,) = ctx.saved_tensors
+        return -torch.special.bessel_j1(z) * grad
+
+
+def bessel_j0(z: torch.Tensor) -> torch.Tensor:
+    """``J₀(z)``, differentiable in z."""
+    return _BesselJ0.apply(z) if z.requires_grad else torch.special.bessel_j0(z)
+
+
 def free_field_profile(
     rho_um: torch.Tensor,
     depth_um: torch.Tensor,
@@ -87,7 +107,7 @@ def free_field_profile(
     mag = (2.0 * math.pi * weights * f / qz * prop.to(f.dtype))[None, :] * depth_um.reshape(-1, 1)
     spec = torch.complex(mag * torch.cos(phase), mag * torch.sin(phase)) * amplitude[None, :]  # (B, F)
     if bessel is None:
-        bessel = torch.special.bessel_j0(2.0 * math.pi * f[:, None] * rho_um[None, :])
+        bessel = bessel_j0(2.0 * math.pi * f[:, None] * rho_um[None, :])
     return spec @ bessel.to(spec.dtype)
 
 
