@@ -129,7 +129,7 @@ def test_held_out_images_never_reach_the_volume_and_their_error_is_reported(scen
     snaps = list(rec.run())
     altered_images = acq.images.copy()
     altered_images[held] = altered_images[held][:, ::-1, ::-1]
-    altered = Acquisition(altered_images, acq.optics, acq.sources_um)
+    altered = Acquisition(altered_images, acq.optics, acq.sources_um, extra=acq.extra)  # same camera model (pixel_integration auto)
     other = Reconstructor(altered, _config(early_stopping="off"), device="cpu")
     assert np.array_equal(other.validation_indices, held)
     list(other.run())

@@ -97,6 +97,13 @@ def build_parser() -> argparse.ArgumentParser:
                         "fringes beyond the coherence length λ²/(n_b·FWHM) wash out")
     m.add_argument("--n-wavelengths", type=int, default=9,
                    help="wavelengths sampling the emission spectrum when --bandwidth-um > 0 (default 9; costs that many forward passes)")
+    m.add_argument("--pixel-integration", choices=("auto", "true", "false"), default="false",
+                   help="average the intensity over each camera pixel (auto: when 2·NA/λ > 1/(2·pixel); default false)")
+    m.add_argument("--pupil-edge", type=float, default=None,
+                   help="half-width of the pupil's soft edge relative to NA/λ (default 0.03; 0: a hard pupil)")
+    m.add_argument("--aberrations", default=None,
+                   help="pupil phase, Zernike modes in radians (Noll RMS), e.g. spherical=0.5,defocus=-0.2; modes: defocus, "
+                        "astigmatism_oblique, astigmatism_vertical, coma_vertical, coma_horizontal, spherical")
     sc = sim.add_argument_group("scene")
     sc.add_argument("--delta-n", type=float, default=None, help="index contrast of the objects (scene default)")
     sc.add_argument("--text", default="UCDAVIS", help="letters of the letters scene (A-Z, 0-9)")
@@ -193,6 +200,7 @@ def _check_forward_memory(plan, n_slices: int, batch: int, n_images: int, device
 
 def _cmd_simulate(args: argparse.Namespace) -> int:
     from napari_fdt.data.io import write_acquisition, write_json_atomic, write_volume_tiff
+    from napari_fdt.physics.aberrations import parse_aberrations
     from napari_fdt.sim.simulate import make_scene, simulate, source_grid
 
     optics = _optics_from_args(args)
@@ -219,7 +227,9 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     sim = simulate(delta_n, optics, sources, photons=args.photons, read_noise=args.read_noise,
                    brightness_spread=args.brightness_spread, jitter_xy_um=args.jitter_um, jitter_depth_um=args.jitter_um,
                    noise=not args.no_noise, seed=args.seed, device=args.device, uint16=args.uint16,
-                   bandwidth_um=args.bandwidth_um, n_wavelengths=args.n_wavelengths, batch_size=batch)
+                   bandwidth_um=args.bandwidth_um, n_wavelengths=args.n_wavelengths, batch_size=batch,
+                   pixel_integration=args.pixel_integration, pupil_edge=args.pupil_edge,
+                   aberrations=parse_aberrations(args.aberrations))
     seconds = time.perf_counter() - t0
     sim.acquisition.extra["simulated"].update(scene=args.scene, text=args.text if args.scene == "letters" else None)
     write_acquisition(sim.acquisition, out, overwrite=args.overwrite)

@@ -14,7 +14,7 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import Any, Literal, Optional
 
-from pydantic import Field, model_validator
+from pydantic import BeforeValidator, Field, model_validator
 
 from napari_fdt.errors import FDTInputError
 from napari_fdt.schema import markdown_table, schema_dataclass, setting
@@ -29,6 +29,16 @@ CoarseModel = Literal["auto", "envelope", "multislice"]
 #: How the multi-slice model forms gradients (:mod:`napari_fdt.model.slice_loop`); "autograd" is the plain reference.
 BackwardMode = Literal["auto", "stored", "reversible", "checkpoint", "autograd"]
 Activation = Literal["paper", "signed"]
+
+
+def _bool_to_text(value: Any) -> Any:
+    """JSON ``true``/``false`` (and Python bools) as the strings of the ``Literal``."""
+    return ("true" if value else "false") if isinstance(value, bool) else value
+
+
+#: Pixel integration of the camera: "auto" (the acquisition's statement, else the physical rule), "true", "false"
+#: (JSON booleans are accepted and stored as these strings).
+PixelIntegration = typing.Annotated[Literal["auto", "true", "false"], BeforeValidator(_bool_to_text)]
 #: What the held-out images' error does to a stage: "best" returns to the stage's iterate of lowest validation error,
 #: "stop" also ends the stage once it has risen for ``early_stopping_patience`` snapshots, "off" ignores it.
 EarlyStopping = Literal["best", "stop", "off"]
@@ -139,6 +149,21 @@ class SolverConfig:
     early_stopping_tolerance: float = setting(
         0.02, ge=0.0, description="relative rise of the validation error over its best that counts as worse (below it: noise of the "
         "optimisation, the later iterate is kept)")
+    # camera and objective (docs/physics.md §3; issue 13)
+    pixel_integration: PixelIntegration = setting(
+        "auto", strict=False, description="record each pixel's mean intensity over its area instead of the value at its centre: "
+        "`\"auto\"`: what `acquisition.json`'s `pixel_integration` says, else (real cameras) on when the intensity's band 2·NA/λ "
+        "exceeds the camera's Nyquist 1/(2·pixel_size_um); `true`, `false` (JSON booleans or strings). Multi-slice stages",
+        fix="use \"auto\", true or false")
+    pupil_edge: Optional[typing.Annotated[float, Field(ge=0.0, lt=0.5)]] = setting(
+        None, strict=False, description="half-width of the pupil's raised-cosine edge relative to NA/λ (0: a hard pupil, held "
+        "exactly); null: `acquisition.json`'s `pupil_edge`, else 0.03", fix="0 for a hard pupil, 0.03 the default soft edge")
+    calibrate_pupil: bool = setting(False, description="fit the pupil's NA (a global scale) and edge width (multi-slice stages)")
+    calibrate_aberrations: bool = setting(
+        False, description="fit a pupil phase of Zernike modes: defocus, astigmatism, coma, primary spherical (radians, Noll; "
+        "multi-slice stages)")
+    lr_pupil: float = setting(1e-3, gt=0, description="Adam step of the NA scale (relative) and the pupil edge width")
+    lr_aberrations: float = setting(0.02, gt=0, description="Adam step of the Zernike coefficients, radians")
 
     @model_validator(mode="after")
     def _cross_field(self) -> "SolverConfig":

@@ -44,7 +44,7 @@ from napari_fdt.recon.config import SolverConfig, resolve_coarse_model
 from napari_fdt.recon.losses import BatchShare, LossWeights, as_floats, total_loss
 from napari_fdt.recon.preflight import check_memory, warn_about_images, warn_about_sampling
 from napari_fdt.recon.regularisation import PROBE_SHARE, TV_PATH, TVChoice, candidate_weights, pick, selection_stages, tv_is_auto
-from napari_fdt.recon.stages import Stage, build_stage
+from napari_fdt.recon.stages import Stage, build_stage, camera_model_options
 from napari_fdt.recon.validation import BestIterate, holdout_indices, per_image_errors, relative_image_error
 from napari_fdt.recon.volume import RIVolume, upsample_to
 
@@ -195,7 +195,7 @@ class Reconstructor:
         #: (N, H, W) float32 images / image_scale, on the CPU (each stage averages them to its grid)
         self.images = torch.from_numpy(imgs / mean)
         self.full_shape = acquisition.image_shape
-        self.calibration = Calibration(src, cfg, o, device=self.device, dtype=self.dtype)
+        self.calibration = self._new_calibration()
         self.volume: RIVolume | None = None
         self.volume_factor: int | None = None
         #: (V,) indices of the held-out images, spread over the field (empty: no validation). They are drawn in
@@ -272,12 +272,17 @@ class Reconstructor:
     def _restart(self) -> None:
         """Back to the state before any stage ran (volume, calibration and its optimiser, batch order, records)."""
         cfg = self.config
-        self.calibration = Calibration(self.initial_sources_um, cfg, self.acquisition.optics, device=self.device, dtype=self.dtype)
+        self.calibration = self._new_calibration()
         self.batches = BatchOrder(self.acquisition.n_images, cfg.seed, self.device)
         self.volume, self.volume_factor = None, None
         self.completed_stages, self.stages, self.history = 0, [], []
         self.last_complete, self.final_losses = None, {}
         self.__dict__.pop("_last_complete_state", None)
+
+    def _new_calibration(self) -> Calibration:
+        """The calibration parameters at their start (the initial sources, the acquisition's optics)."""
+        return Calibration(self.initial_sources_um, self.config, self.acquisition.optics, device=self.device, dtype=self.dtype,
+                           pupil_edge=camera_model_options(self.config, self.acquisition)["pupil_edge"])
 
     def _run_stages(self, should_stop: Callable[[], bool] | None, checkpoint_dir: str | Path | None) -> Iterator[Snapshot]:
         """The stages from the first not yet completed (the body of :meth:`run`)."""
@@ -390,7 +395,8 @@ class Reconstructor:
         return build_stage(stage_index, sc.factor, sc.iterations, self.acquisition.optics, self.images,
                            self.calibration.sources_um(), device=self.device,
                            coarse_model=self.coarse_model, backward_mode=cfg.backward_mode,
-                           obliquity="per_source" if cfg.obliquity_correction else "none")
+                           obliquity="per_source" if cfg.obliquity_correction else "none",
+                           **camera_model_options(cfg, self.acquisition))
 
     def _carry_volume_to(self, stage: Stage) -> None:
         """Make the RI grid on the stage's grid (first stage) or resample it there from the previous stage's."""
