@@ -8,6 +8,7 @@ format of ``fdt reconstruct --config``.
 from __future__ import annotations
 
 import re
+from pathlib import Path
 from typing import Any
 
 from napari_fdt.errors import FDTInputError
@@ -16,7 +17,7 @@ from napari_fdt.recon.config import SolverConfig, StageConfig
 
 __all__ = [
     "format_stages", "parse_stages", "merge_config", "OPTICS_LABELS", "OPTICS_OPTIONAL", "format_entry", "missing_optics",
-    "optics_from_entries",
+    "optics_from_entries", "unique_path", "reconstruct_command",
 ]
 
 _STAGE = re.compile(r"^\s*(\d+)\s*[x×:*]\s*(\d+)\s*(?:@\s*(\d+)\s*)?$")
@@ -139,3 +140,26 @@ def optics_from_entries(entries: dict[str, str]) -> Optics:
     except FDTInputError as exc:
         label = OPTICS_LABELS.get(exc.field, exc.field)
         raise FDTInputError(label, exc.problem.replace("n_background", "n background"), exc.fix) from None
+
+
+def unique_path(path: Path) -> Path:
+    """``path``, or ``stem_2.suffix``, ``stem_3.suffix``, … : the first that does not exist (nothing is overwritten)."""
+    path = Path(path)
+    if not path.exists():
+        return path
+    name = path.name
+    stem, dot, suffix = name.partition(".")
+    n = 2
+    while True:
+        candidate = path.with_name(f"{stem}_{n}{dot}{suffix}")
+        if not candidate.exists():
+            return candidate
+        n += 1
+
+
+def reconstruct_command(acquisition_dir: str | Path, config_path: str | Path, out: str | Path, device: str = "auto") -> str:
+    """The ``fdt reconstruct`` line that runs ``config_path``'s settings on ``acquisition_dir`` (shell-quoted)."""
+    import shlex
+
+    parts = ["fdt", "reconstruct", str(acquisition_dir), "--config", str(config_path), "--device", device, "--out", str(out)]
+    return " ".join(shlex.quote(p) for p in parts)
