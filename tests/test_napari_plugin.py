@@ -737,3 +737,117 @@ def test_error_curve_updates_during_a_run(make_napari_viewer, qtbot, tmp_path) -
 
 def tiny_sim_optics() -> Optics:
     return Optics(wavelength_um=0.635, n_background=1.33, na=0.8, pixel_size_um=0.33, n_slices=4, slice_spacing_um=2.0)
+
+
+# -- issue 14/15: nothing a user made is lost, the hand-off to the command line, the screen ---------------------------
+
+
+def test_a_second_run_keeps_the_first_and_calibration_keeps_the_edited_points(make_napari_viewer, qtbot, tiny_dir,
+                                                                             tmp_path) -> None:
+    viewer = make_napari_viewer()
+    layer = _open(viewer, tiny_dir)
+    a = _docked(viewer, AcquisitionWidget(viewer))
+    w = _docked(viewer, ReconstructionWidget(viewer))
+    a.sources_from_file()
+    points = viewer.layers[f"{layer.name} sources"]
+    edited = points.data.copy()
+    edited[0] = (-14.0, 0.5, -0.5)
+    points.data = edited
+    _settings(w, "2x2, 1x2")  # calibration from the second stage
+    w.run_button.clicked.emit()
+    _wait_done(qtbot, w)
+    first = viewer.layers[f"{layer.name} RI #1 (2x2, 1x2, seed 0)"]
+    first_data = np.array(first.data)
+    w.seed.value = 5
+    w.stages.value = "2x2, 1x3"
+    w.run_button.clicked.emit()
+    _wait_done(qtbot, w)
+    assert w.feedback.last_error is None, w.feedback.label.value
+    second = viewer.layers[f"{layer.name} RI #2 (2x2, 1x3, seed 5)"]
+    assert first in viewer.layers and np.array_equal(first.data, first_data)  # the first run is untouched
+    assert not np.array_equal(second.data, first_data)
+    # the calibration went to layers of their own; the hand-edited points are as the user left them
+    assert np.array_equal(points.data, edited)
+    cal1 = viewer.layers[f"{layer.name} sources calibrated #1"]
+    cal2 = viewer.layers[f"{layer.name} sources calibrated #2"]
+    assert np.allclose(cal2.data[:, 2], w._rec.sources_um()[:, 0], atol=1e-5) and not np.array_equal(cal1.data, cal2.data)
+    assert not np.allclose(cal2.data, edited)  # the calibration moved the sources (in its own layer)
+    # Save RI… without an extension gets one that our reader opens
+    w.save_result_in_background(tmp_path / "my_cells_RI")
+    _wait_tasks(qtbot, w)
+    assert (tmp_path / "my_cells_RI.ome.tif").is_file() and (tmp_path / "my_cells_RI.json").is_file()
+    assert np.allclose(read_volume_tiff(tmp_path / "my_cells_RI.ome.tif")[0], second.data)
+
+
+def test_gui_save_acquisition_then_the_command_line_reproduces_the_run(make_napari_viewer, qtbot, tiny_dir, tmp_path) -> None:
+    """GUI: edit a source, Save acquisition…, Copy command; the command on the saved folder gives the widget's volume."""
+    import shlex
+
+    from napari_fdt.cli import main
+
+    viewer = make_napari_viewer()
+    layer = _open(viewer, tiny_dir)
+    a = _docked(viewer, AcquisitionWidget(viewer))
+    w = _docked(viewer, ReconstructionWidget(viewer))
+    a.sources_from_file()
+    points = viewer.layers[f"{layer.name} sources"]
+    edited = points.data.copy()
+    edited[3] = (-14.5, edited[3, 1] + 0.3, edited[3, 2] - 0.2)
+    points.data = edited
+    assert w.copy_command() is None and "differ from" in w.feedback.last_error  # not what the folder holds
+    saved = tmp_path / "saved"
+    a.save_acquisition(saved)
+    _wait_tasks(qtbot, a)
+    assert a.feedback.last_error is None, a.feedback.label.value
+    a.save_acquisition(saved)  # never over an existing folder
+    assert a.feedback.last_error.startswith("Save acquisition: ") and "exists" in a.feedback.last_error
+    _settings(w, "2x2, 1x2")
+    w.seed.value = 7
+    command = w.copy_command()
+    assert command is not None and command.startswith(f"fdt reconstruct {saved} --config ")
+    w.run_button.clicked.emit()
+    _wait_done(qtbot, w)
+    assert w.feedback.last_error is None, w.feedback.label.value
+    args = shlex.split(command)[1:]
+    assert main(args) == 0
+    out = args[args.index("--out") + 1]
+    volume, _ = read_volume_tiff(out)
+    assert np.allclose(volume, w._rec.ri_full(), atol=1e-5)
+    report = json.loads(open(out.replace(".ome.tif", ".json")).read())
+    assert np.allclose(report["sources_um"]["initial"] if isinstance(report.get("sources_um"), dict) else w._rec.initial_sources_um,
+                       w._rec.initial_sources_um)
+    assert np.allclose(w._rec.initial_sources_um[3], (edited[3, 2], edited[3, 1], 14.5))
+
+
+def test_both_widgets_fit_a_1600x1000_window(make_napari_viewer, qtbot) -> None:
+    """Docked together in a 1600×1000 window, Reconstruct, Cancel, the progress bar and Save RI are on screen."""
+    from qtpy.QtCore import QPoint, QRect
+
+    viewer = make_napari_viewer(show=True)
+    viewer.open_sample(PLUGIN, "beads")
+    a = AcquisitionWidget(viewer)
+    r = ReconstructionWidget(viewer)
+    viewer.window.add_dock_widget(a, name="FDT acquisition", area="right")
+    viewer.window.add_dock_widget(r, name="FDT reconstruction", area="right")
+    window = r.native.window()
+    window.resize(1600, 1000)
+    qtbot.wait(200)
+    assert window.height() <= 1000 and window.width() <= 1600  # the widgets let the window be this small
+    screen = QRect(0, 0, window.width(), window.height())
+    for name, widget in [("Reconstruct", r.run_button), ("Cancel", r.cancel_button), ("progress", r.progress),
+                         ("Save RI", r.save_button), ("Copy command", r.command_button), ("Apply optics", a.apply_button)]:
+        native = widget.native
+        rect = QRect(native.mapTo(window, QPoint(0, 0)), native.size())
+        assert native.isVisible() and screen.contains(rect), (name, rect, screen)
+        if widget is not a.apply_button:  # pinned: never inside a scroll area that could hide them
+            assert not native.visibleRegion().isEmpty() and native.visibleRegion().boundingRect().height() == native.height(), name
+
+
+def test_a_folder_opened_with_the_wrong_reader_points_to_ours(make_napari_viewer, tiny_dir) -> None:
+    from napari.utils.notifications import Notification, NotificationSeverity, notification_manager
+
+    viewer = make_napari_viewer()
+    a = _docked(viewer, AcquisitionWidget(viewer))
+    notification_manager.dispatch(Notification(f"Could not find a backend to open {tiny_dir / 'acquisition.json'}",
+                                               severity=NotificationSeverity.ERROR))
+    assert "choose napari-fdt in the Choose reader dialog" in a.feedback.label.value
