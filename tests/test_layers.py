@@ -26,7 +26,6 @@ from napari_fdt.napari.layers import (
     META_ACQUISITION,
     META_NEEDS_OPTICS,
     META_REPORT,
-    UNITS,
     points_to_sources,
     sources_to_points,
     volume_scale,

@@ -661,7 +661,7 @@ def test_any_optics_typed_into_the_widget_is_applied_or_explained(make_napari_vi
     from napari_fdt.physics.optics import OPTICS_FIELDS
 
     viewer = make_napari_viewer()
-    layer = _open(viewer, tiny_dir)
+    _open(viewer, tiny_dir)
     w = _docked(viewer, AcquisitionWidget(viewer))
     good = {name: getattr(w, name).value for name in OPTICS_FIELDS}
     from napari_fdt.napari.settings import OPTICS_LABELS
