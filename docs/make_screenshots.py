@@ -63,6 +63,16 @@ def grab(widget, name: str, width: int = 400) -> None:
     save_png(arr, name, width)
 
 
+def grab_floating(widget, dock, name: str, height: int = 980) -> None:
+    """Save a widget whole: its dock floated for a moment at ``height`` px (docked, its sections scroll)."""
+    dock.setFloating(True)
+    dock.resize(420, height)
+    pump(0.5)
+    grab(widget, name)
+    dock.setFloating(False)
+    pump(0.3)
+
+
 def shot(viewer, name: str, width: int, canvas_only: bool = True, crop: bool = False) -> None:
     """Save the canvas (or the whole window); cropped shots leave the scale bar out."""
     for toast in WINDOW[0].findChildren(QWidget):
@@ -97,9 +107,9 @@ def main() -> int:
     viewer.scale_bar.visible = True
 
     acq_w = AcquisitionWidget(viewer)
-    viewer.window.add_dock_widget(acq_w, name="FDT acquisition", area="right")
+    acq_dock = viewer.window.add_dock_widget(acq_w, name="FDT acquisition", area="right")
     rec_w = ReconstructionWidget(viewer)
-    viewer.window.add_dock_widget(rec_w, name="FDT reconstruction", area="right")
+    rec_dock = viewer.window.add_dock_widget(rec_w, name="FDT reconstruction", area="right")
     WINDOW.append(rec_w.native.window())
     WINDOW[0].resize(1600, 1000)
     pump(0.5)
@@ -112,7 +122,7 @@ def main() -> int:
     wait_tasks(acq_w)
     wait_tasks(rec_w)
     pump(0.5)
-    grab(acq_w, "acquisition_widget.png")
+    grab_floating(acq_w, acq_dock, "acquisition_widget.png")
     viewer.layers.selection = {acq_layer}
     viewer.dims.set_point(0, 0.0)  # image 0 (the image axis): a corner source, its disc edge inside the image
     for layer in viewer.layers:
@@ -149,7 +159,7 @@ def main() -> int:
     if rec_w.feedback.last_error:
         print("reconstruction failed:", rec_w.feedback.last_error, file=sys.stderr)
         return 1
-    grab(rec_w, "reconstruction_widget.png")
+    grab_floating(rec_w, rec_dock, "reconstruction_widget.png")
 
     # The RI volume in 3D: alone, then with the sources 40 µm below it
     ri.contrast_limits = (1.33, 1.38)

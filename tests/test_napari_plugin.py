@@ -851,3 +851,31 @@ def test_a_folder_opened_with_the_wrong_reader_points_to_ours(make_napari_viewer
     notification_manager.dispatch(Notification(f"Could not find a backend to open {tiny_dir / 'acquisition.json'}",
                                                severity=NotificationSeverity.ERROR))
     assert "choose napari-fdt in the Choose reader dialog" in a.feedback.label.value
+
+
+def test_widgets_use_only_public_napari_api(make_napari_viewer, qtbot, tiny_dir, monkeypatch) -> None:
+    """Docked through the manifest (napari hands plugins a proxy that flags private access), a fit, a run and a cancel
+    touch no private napari attribute, and register no napari task (the close question is the widget's own)."""
+    from napari.utils._proxies import PublicOnlyProxy
+
+    private: list[str] = []
+    monkeypatch.setattr(PublicOnlyProxy, "_private_attr_warning", staticmethod(lambda name, typ: private.append(f"{typ}.{name}")))
+    viewer = make_napari_viewer()
+    _open(viewer, tiny_dir)
+    _, a = viewer.window.add_plugin_dock_widget(PLUGIN, "FDT acquisition")
+    _, w = viewer.window.add_plugin_dock_widget(PLUGIN, "FDT reconstruction")
+    a.depth_um.value = "15"
+    a.fit_sources()
+    _wait_tasks(qtbot, a)
+    _settings(w, "2x2, 1x2000")
+    w.run_button.clicked.emit()
+    qtbot.waitUntil(lambda: "stage 2/2" in w.status.value, timeout=60_000)
+    asked = []
+    from qtpy.QtWidgets import QMessageBox
+
+    monkeypatch.setattr(QMessageBox, "question", staticmethod(lambda parent, title, text, *a: asked.append(text) or QMessageBox.StandardButton.No))
+    assert w._confirm_close() is False and "tiny RI #1 (2x2, 1x2000, seed 0) is running" in asked[0]
+    w.cancel_button.clicked.emit()
+    _wait_done(qtbot, w)
+    assert w.feedback.last_error is None and a.feedback.last_error is None
+    assert private == []

@@ -108,7 +108,7 @@ class AcquisitionWidget(Container):
         preview_box = Container(widgets=[self.image_index, self.preview_button])
         self.extend([Container(widgets=[self.layer]), self.feedback.label])
         self.sections = sections_panel([("Optics", optics_box, True), ("Sources", sources_box, True),
-                                        ("Forward preview", preview_box, False)])
+                                        ("Forward preview", preview_box, False)], height_px=200)
         layout = self.native.layout()
         layout.insertWidget(1, self.sections, 1)
         self.tasks = BackgroundTasks(napari_viewer, self.feedback, self.native, refresh=self._update_buttons)

@@ -442,15 +442,17 @@ class BackgroundTasks:
         return True
 
 
-def sections_panel(sections: list[tuple[str, Any, bool]]):
-    """A scroll area of collapsible sections ``(title, magicgui container, expanded)``: the widget fits any screen height."""
+def sections_panel(sections: list[tuple[str, Any, bool]], height_px: int = 260):
+    """A scroll area of collapsible sections ``(title, magicgui container, expanded)``: the widget fits any screen height.
+
+    ``height_px``: the height it asks for (napari shares the dock's height by what its widgets ask)."""
     from qtpy.QtCore import QSize, Qt
     from qtpy.QtWidgets import QFrame, QScrollArea, QVBoxLayout, QWidget
     from superqt import QCollapsible
 
     class _Scroll(QScrollArea):
         def sizeHint(self) -> QSize:  # noqa: N802 (Qt name): ask for a modest height, scroll for the rest
-            return QSize(super().sizeHint().width(), 260)
+            return QSize(super().sizeHint().width(), height_px)
 
     inner = QWidget()
     layout = QVBoxLayout(inner)

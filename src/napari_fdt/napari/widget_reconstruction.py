@@ -180,7 +180,7 @@ class ReconstructionWidget(Container):
         self.sections = sections_panel([
             ("Solver", solver, True), ("Self-calibration", calibration, False), ("Coherence", coherence, False),
             ("Run settings", run, True), ("Run details (losses, error curve)", self.details, True),
-            ("Results", results, False)])
+            ("Results", results, False)], height_px=420)
         self.native.layout().insertWidget(1, self.sections, 1)
         self.masks_button.changed.connect(self.preview_masks)
         self.command_button.changed.connect(self.copy_command)
