@@ -184,6 +184,9 @@ class ReconstructionWidget(Container):
         self.native.layout().insertWidget(1, self.sections, 1)
         self.masks_button.changed.connect(self.preview_masks)
         self.command_button.changed.connect(self.copy_command)
+        for name in _FIELDS:  # an error about a setting goes once the settings are edited
+            getattr(self, name).changed.connect(self._clear_stale_error)
+        self.device.changed.connect(self._clear_stale_error)
         # run state
         self._worker = None
         self._rec = None
@@ -233,6 +236,10 @@ class ReconstructionWidget(Container):
             for event in (layer.events.scale, layer.events.translate):  # Apply optics changes them: re-check
                 event.connect(self._update_run_state)
         self._update_run_state()
+
+    def _clear_stale_error(self, _value=None) -> None:
+        if self.feedback.last_error is not None:
+            self.feedback.info("")
 
     def run_problem(self) -> str | None:
         """Why Reconstruct is disabled (no image stack, or its optics missing, naming the fields), or None."""
