@@ -98,18 +98,22 @@ def reconstruction_job(
             done.set()
 
 
-def stage_costs(optics: Optics, image_shape: tuple[int, int], config: SolverConfig, n_images: int | None = None) -> list[float]:
+def stage_costs(optics: Optics, image_shape: tuple[int, int], config: SolverConfig, n_images: int | None = None,
+                device_type: str = "cpu") -> list[float]:
     """Relative cost of one iteration of every stage, known before the run: field-grid pixels × images per batch.
 
     A stage of factor f works on a field grid of ``(H/g)·(W/g)`` pixels (``g`` the field factor of
-    :func:`napari_fdt.recon.stages.field_factor`, or f itself for the envelope model), one image of the batch at a time.
+    :func:`napari_fdt.recon.stages.field_factor`, or f itself for the envelope model, which ``coarse_model`` ``auto``
+    picks off CUDA), one image of the batch at a time.
     """
+    from napari_fdt.recon.config import resolve_coarse_model
     from napari_fdt.recon.stages import field_factor
 
+    coarse = resolve_coarse_model(config.coarse_model, device_type)
     h, w = image_shape
     out = []
     for s in config.stages:
-        g = s.factor if (s.factor > 1 and config.coarse_model == "envelope") else field_factor(optics, s.factor)
+        g = s.factor if (s.factor > 1 and coarse == "envelope") else field_factor(optics, s.factor)
         batch = s.batch_size or config.batch_size
         if n_images is not None:
             batch = min(batch, n_images)

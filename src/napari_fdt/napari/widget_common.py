@@ -478,15 +478,12 @@ def sections_panel(sections: list[tuple[str, Any, bool]], height_px: int = 260):
 
 #: Kinds hidden in 3D: image stacks and their masks are images, not volumes (3D shows the RI volume and the sources).
 _HIDDEN_IN_3D = frozenset({"acquisition", "stack", "masks"})
-_NDISPLAY_FOLLOWED: set[int] = set()
 
 
 def follow_ndisplay(viewer) -> None:
-    """In 3D hide the image stacks (and masks) the plugin knows; back in 2D show again those it hid."""
-    key = id(viewer.dims)
-    if key in _NDISPLAY_FOLLOWED:
-        return
-    _NDISPLAY_FOLLOWED.add(key)
+    """In 3D hide the image stacks (and masks) the plugin knows; back in 2D show again those it hid.
+
+    Each widget connects its own follower; they agree (a layer already hidden is left to the one that hid it)."""
     hidden: list = []
 
     def on_ndisplay(event=None) -> None:

@@ -325,7 +325,7 @@ class ReconstructionWidget(Container):
             device = self.device.value
             from napari_fdt.device import resolve_device
 
-            resolve_device(device)
+            device_type = resolve_device(device).type
             self.feedback.info("")
             self._acq_layer = layer
             self._rec, self._report, self.cancelled = None, None, False
@@ -340,7 +340,8 @@ class ReconstructionWidget(Container):
             kwargs["metadata"]["fdt_run"] = self._runs
             self._ri_layer = self._viewer.add_image(data, **kwargs)  # one layer per run: earlier runs are kept
             self._stage_iterations = [s.iterations for s in config.stages]
-            self._time_left = TimeLeft(self._stage_iterations, stage_costs(acq.optics, acq.image_shape, config, acq.n_images))
+            self._time_left = TimeLeft(self._stage_iterations, stage_costs(acq.optics, acq.image_shape, config, acq.n_images,
+                                                                                device_type))
             worker = GeneratorWorker(
                 reconstruction_job, acq, config, device=device, initial_sources_um=sources, stop=stop,
                 done=done, closing=closing, min_interval_s=UPDATE_INTERVAL_S,
