@@ -879,3 +879,17 @@ def test_widgets_use_only_public_napari_api(make_napari_viewer, qtbot, tiny_dir,
     _wait_done(qtbot, w)
     assert w.feedback.last_error is None and a.feedback.last_error is None
     assert private == []
+
+
+def test_3d_shows_the_volume_and_the_sources_not_the_stack(make_napari_viewer, tiny_dir) -> None:
+    viewer = make_napari_viewer()
+    layer = _open(viewer, tiny_dir)
+    a = _docked(viewer, AcquisitionWidget(viewer))
+    a.sources_from_file()
+    points = viewer.layers[f"{layer.name} sources"]
+    assert viewer.dims.axis_labels[:2] == ("image", "z") and viewer.dims.ndim == 4  # separate sliders
+    assert np.allclose(points.size, max(3 * 0.33, 0.03 * 32 * 0.33))  # 3 % of the field, at least 3 pixels
+    viewer.dims.ndisplay = 3
+    assert not layer.visible and points.visible
+    viewer.dims.ndisplay = 2
+    assert layer.visible and points.visible
