@@ -197,7 +197,6 @@ class ReconstructionWidget(Container):
         self._closing = threading.Event()
         self._ri_layer = None
         self._acq_layer = None
-        self._task_id = None
         self._close_watcher = None
         self._time_left: TimeLeft | None = None
         self._run_name = ""
