@@ -706,7 +706,8 @@ def test_settings_widgets_are_generated_from_the_schema(make_napari_viewer) -> N
     assert w.batch_size.min == 1 and w.snapshot_every.min == 1 and w.snapshot_every.value == SolverConfig().snapshot_every
     assert tuple(w.coarse_model.choices) == COARSE_MODELS and tuple(w.coherence.choices) == COHERENCE_MODELS
     assert w.mask_threshold.min == 0 and w.mask_threshold.max == 1
-    assert w.tv_xy_weight.tooltip == fields["tv_xy_weight"].description
+    assert w.tv_xy_weight.tooltip == fields["tv_xy_weight"].description.replace("`", "")  # markdown quotes dropped
+    assert w.tv_xy_weight.value == "auto" and w.tv_xy_weight.number.enabled is False
     assert w.calibrate_gain.value is True and w.calibrate_pixel_size.value is False
     assert w.calibration_from_stage.value == SolverConfig().calibration_from_stage + 1  # numbered from 1, as the status
     assert schema_widget(Optics, "n_background", clamp=True).min == 1

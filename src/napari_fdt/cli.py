@@ -31,11 +31,19 @@ def _schema_help(info, default) -> str:
     return text.replace("%", "%%")
 
 
+def _number_or_auto(kind: type):
+    """An argparse type for a number that may also be ``auto``."""
+    def parse(text: str):
+        return "auto" if text.strip().lower() == "auto" else kind(text)
+    parse.__name__ = f"{kind.__name__} or auto"
+    return parse
+
+
 def _add_schema_args(group, model, defaults: dict | None = None) -> None:
     """One flag per scalar field of a settings class (``--tv-xy-weight``; booleans as ``--x/--no-x``), typed,
     with the ``Literal`` choices and the description as help. With ``defaults`` None every flag defaults to
     None (unset: it overrides nothing); else the flag's default is ``defaults[name]``."""
-    from napari_fdt.schema import choices, scalar_type, schema_fields
+    from napari_fdt.schema import accepts_auto, choices, scalar_type, schema_fields
 
     for name, info in schema_fields(model).items():
         kind, _ = scalar_type(info)
@@ -47,7 +55,7 @@ def _add_schema_args(group, model, defaults: dict | None = None) -> None:
         if kind is bool:
             kwargs["action"] = argparse.BooleanOptionalAction
         else:
-            kwargs["type"] = kind
+            kwargs["type"] = _number_or_auto(kind) if accepts_auto(info) else kind
             if choices(info) is not None:
                 kwargs["choices"] = choices(info)
         group.add_argument("--" + name.replace("_", "-"), **kwargs)
@@ -400,6 +408,14 @@ def _run_and_write(args, config, acq, out: Path, json_out: Path, truth, truth_sr
     fit = report.get("image_fit")
     if fit:
         print(f"image fit: relative error {fit['image_relative_error']:.4f}, PSNR {fit['image_psnr']:.1f} dB, SSIM {fit['image_ssim']:.3f}")
+    reg = report.get("regularisation", {})
+    chosen = reg.get("chosen")
+    if chosen and chosen.get("trials"):
+        tried = ", ".join(f"{t['tv_xy_weight']:g}: {t['validation_error']:.4f}" for t in chosen["trials"])
+        print(f"TV weights chosen by the validation error: τ_xy {chosen['tv_xy_weight']:g}, τ_z {chosen['tv_z_weight']:g} "
+              f"(stage {chosen['stage'] + 1}, {chosen['probe_iterations']} iterations per candidate, {chosen['seconds']:.1f} s; τ_xy: error {tried})")
+    elif chosen:
+        print(f"TV weights: τ_xy {chosen['tv_xy_weight']:g}, τ_z {chosen['tv_z_weight']:g} ({chosen['reason']})")
     val = report.get("validation")
     if val:
         print(f"validation: relative error {val['error']:.4f} on {val['n_images']} held-out images (the image fit's counterpart "
