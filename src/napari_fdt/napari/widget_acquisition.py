@@ -57,6 +57,7 @@ from napari_fdt.napari.widget_common import (
     sections_panel,
     set_sources,
     sources_for,
+    tighten,
     watch_wrong_reader,
 )
 from napari_fdt.physics.optics import OPTICS_FIELDS, Optics
@@ -108,7 +109,12 @@ class AcquisitionWidget(Container):
         preview_box = Container(widgets=[self.image_index, self.preview_button])
         self.extend([Container(widgets=[self.layer]), self.feedback.label])
         self.sections = sections_panel([("Optics", optics_box, True), ("Sources", sources_box, True),
-                                        ("Forward preview", preview_box, False)], height_px=200)
+                                        ("Forward preview", preview_box, False)], height_px=600)
+        tighten(self, (4, 2, 4, 2))
+        from qtpy.QtWidgets import QSizePolicy
+
+        # no taller than its content: the height left in the dock area goes to the reconstruction widget
+        self.native.setSizePolicy(QSizePolicy.Policy.Preferred, QSizePolicy.Policy.Maximum)
         layout = self.native.layout()
         layout.insertWidget(1, self.sections, 1)
         self.tasks = BackgroundTasks(napari_viewer, self.feedback, self.native, refresh=self._update_buttons)

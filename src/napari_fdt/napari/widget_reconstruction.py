@@ -50,6 +50,7 @@ from napari_fdt.napari.widget_common import (
     Feedback,
     acquisition_layer_choices,
     acquisition_of,
+    claim_dock_height,
     follow_layers,
     follow_ndisplay,
     put_layer,
@@ -57,6 +58,7 @@ from napari_fdt.napari.widget_common import (
     sections_panel,
     set_sources,
     sources_for,
+    tighten,
     track_thread,
 )
 from napari_fdt.napari.widget_curve import ErrorCurveWidget
@@ -181,7 +183,9 @@ class ReconstructionWidget(Container):
             ("Solver", solver, True), ("Self-calibration", calibration, False), ("Coherence", coherence, False),
             ("Run settings", run, True), ("Run details (losses, error curve)", self.details, True),
             ("Results", results, False)], height_px=420)
+        tighten(self, (4, 2, 4, 2))
         self.native.layout().insertWidget(1, self.sections, 1)
+        claim_dock_height(self.native)
         self.masks_button.changed.connect(self.preview_masks)
         self.command_button.changed.connect(self.copy_command)
         for name in _FIELDS:  # an error about a setting goes once the settings are edited
