@@ -329,3 +329,31 @@ def test_time_left_is_within_30_percent_after_the_first_tenth_of_a_run(tiny) -> 
             if t >= 0.1 * total and true_left > 0:
                 worst = max(worst, abs(est.seconds_left() - true_left) / true_left)
         assert worst < 0.3, (trial, worst)
+
+
+def test_time_left_on_the_recorded_stage_timings_of_the_cpu_suite() -> None:
+    """The stage times ``benchmarks/results/suite_cpu.json`` recorded on the sample (4x100, 2x100, 1x160 on CPU), as
+    snapshots every 10 iterations at each stage's own pace: the estimate is within 30 % after the first tenth."""
+    from napari_fdt.data.io import read_acquisition
+    from napari_fdt.napari.job import TimeLeft, stage_costs
+    from napari_fdt.recon.config import SolverConfig
+
+    recorded = json.loads((ROOT / "benchmarks" / "results" / "suite_cpu.json").read_text())["scenes"][0]["stages"]
+    stages = [{"factor": s["factor"], "iterations": s["iterations"]} for s in recorded]
+    config = SolverConfig.from_dict({**SolverConfig().to_dict(), "stages": stages})
+    acq = read_acquisition(ROOT / "sample_data" / "letters")
+    costs = stage_costs(acq.optics, acq.image_shape, config, acq.n_images, "cpu")
+    iterations = [s["iterations"] for s in recorded]
+    seq, t = [], 0.0
+    for stage, s in enumerate(recorded):
+        pace = s["seconds"] / s["iterations"]
+        for it in range(10, s["iterations"] + 1, 10):
+            seq.append((stage, it, t + it * pace))
+        t += s["seconds"]
+    est = TimeLeft(iterations, costs)
+    errors = []
+    for stage, it, now in seq:
+        est.add(stage, it, now)
+        if now >= 0.1 * t and t - now > 0:
+            errors.append(abs(est.seconds_left() - (t - now)) / (t - now))
+    assert errors and max(errors) < 0.3, max(errors)
