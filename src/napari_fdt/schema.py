@@ -122,9 +122,9 @@ def scalar_type(info: FieldInfo) -> tuple[type | None, bool]:
     annotation = info.annotation
     optional = False
     if typing.get_origin(annotation) in (Union, types.UnionType):
+        optional = type(None) in typing.get_args(annotation)
         args = [a for a in typing.get_args(annotation) if a is not type(None)
                 and not (typing.get_origin(a) is Literal and typing.get_args(a) == ("auto",))]
-        optional = len(args) < len(typing.get_args(annotation))
         if len(args) != 1:
             return None, optional
         annotation = args[0]

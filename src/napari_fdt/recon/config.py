@@ -19,7 +19,8 @@ from pydantic import Field, model_validator
 from napari_fdt.errors import FDTInputError
 from napari_fdt.schema import markdown_table, schema_dataclass, setting
 
-__all__ = ["StageConfig", "SolverConfig", "load_config", "COHERENCE_MODELS", "BACKWARD_MODES", "COARSE_MODELS", "resolve_coarse_model", "settings_markdown"]
+__all__ = ["StageConfig", "SolverConfig", "AutoWeight", "AUTO", "load_config", "COHERENCE_MODELS", "BACKWARD_MODES", "COARSE_MODELS",
+           "resolve_coarse_model", "settings_markdown"]
 
 CoherenceModel = Literal["none", "mask", "spectral", "mask+spectral"]
 #: Model of the coarse stages; "auto": the envelope model on a CPU (12× cheaper than multi-slice there),
@@ -31,6 +32,12 @@ Activation = Literal["paper", "signed"]
 #: What the held-out images' error does to a stage: "best" returns to the stage's iterate of lowest validation error,
 #: "stop" also ends the stage once it has risen for ``early_stopping_patience`` snapshots, "off" ignores it.
 EarlyStopping = Literal["best", "stop", "off"]
+#: A regularisation weight: a number ≥ 0, or ``"auto"``: chosen from the data by the validation error
+#: (:mod:`napari_fdt.recon.regularisation`, ``docs/solver.md``).
+AutoWeight = typing.Union[typing.Annotated[float, Field(ge=0, strict=True)], Literal["auto"]]
+
+#: The value of a setting chosen from the data.
+AUTO = "auto"
 
 COHERENCE_MODELS: tuple[str, ...] = typing.get_args(CoherenceModel)
 COARSE_MODELS: tuple[str, ...] = typing.get_args(CoarseModel)
@@ -81,8 +88,12 @@ class SolverConfig:
     l1_ramp_end: float = setting(1.0, ge=0, le=1, description="fraction of the run where α reaches `l1_l2_total`",
                                  fix="the L1 weight rises over this fraction of the run")
     ssim_weight: float = setting(0.0, ge=0, description="γ, weight of 1 − SSIM", fix="0 switches the term off")
-    tv_xy_weight: float = setting(0.0, ge=0, description="τ_xy, weight of the lateral total variation", fix="0 switches the term off")
-    tv_z_weight: float = setting(0.0, ge=0, description="τ_z, weight of the axial total variation", fix="0 switches the term off")
+    tv_xy_weight: AutoWeight = setting(
+        "auto", strict=False, description="τ_xy, weight of the lateral total variation; `\"auto\"`: chosen by the validation error "
+        "(docs/solver.md, needs a validation split; 0 without one)", fix='give a number >= 0 (0 switches the term off) or "auto"')
+    tv_z_weight: AutoWeight = setting(
+        "auto", strict=False, description="τ_z, weight of the axial total variation; `\"auto\"`: chosen with τ_xy (τ_z = τ_xy / 2)",
+        fix='give a number >= 0 (0 switches the term off) or "auto"')
     # self-calibration
     calibrate_sources: bool = setting(True, description="fit each source's lateral position")
     calibrate_gain: bool = setting(True, description="fit each image's gain")
@@ -114,10 +125,10 @@ class SolverConfig:
         "§6); multi-slice stages, plain autograd")
     # validation
     validation_fraction: float = setting(
-        0.0, ge=0.0, le=0.25, description="share of the images held out of training, spread over the field (at least 3, at most a quarter; "
+        0.1, ge=0.0, le=0.25, description="share of the images held out of training, spread over the field (at least 3, at most a quarter; "
         "0: none). Their error, predicted through the volume with closed-form gains, is the validation error of every snapshot and of "
-        "RI.json: how far to trust the volume without ground truth. Held-out images still fit their own position and gain, never the "
-        "volume. Off by default: holding out 10 % changed the relative Δn error by −8 % to +25 % over four scenes (docs/solver.md)",
+        "RI.json: how far to trust the volume without ground truth, and what `\"auto\"` weights and early stopping are chosen by. "
+        "Held-out images still fit their own position and gain, never the volume",
         fix="0.1 holds out 10 %; 0 turns validation off")
     early_stopping: EarlyStopping = setting(
         "best", strict=False, description="`\"best\"`: each stage ends on its iterate of lowest validation error (when the last is worse "

@@ -85,6 +85,8 @@ def build_report(
             "gains": rec.gains().tolist(),
         },
         "stages": [r.to_dict() for r in rec.stages],
+        "regularisation": {"tv_xy_weight": rec.loss_weights.tv_xy, "tv_z_weight": rec.loss_weights.tv_z,
+                           "chosen": None if rec.tv_choice is None else rec.tv_choice.to_dict()},
         "seconds_total": rec.elapsed_s,
         "history": rec.history,
         "final_losses": rec.final_losses,

@@ -20,7 +20,10 @@ gradients of the shared parameters are summed over ranks, and the result equals 
 
 from __future__ import annotations
 
+import copy
+import dataclasses
 import time
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable, Iterator, Sequence
@@ -30,7 +33,7 @@ import torch
 
 from napari_fdt.data.acquisition import Acquisition
 from napari_fdt.device import resolve_device
-from napari_fdt.errors import FDTInputError
+from napari_fdt.errors import FDTInputError, FDTWarning
 from napari_fdt.model.coherence import coherence_masks, emission_spectrum, spectral_images
 from napari_fdt.model.gain import least_squares_gain
 from napari_fdt.model.render import iter_batches
@@ -40,8 +43,9 @@ from napari_fdt.recon.checkpoint import checkpoint_path, checkpoint_state, read_
 from napari_fdt.recon.config import SolverConfig, resolve_coarse_model
 from napari_fdt.recon.losses import BatchShare, LossWeights, as_floats, total_loss
 from napari_fdt.recon.preflight import check_memory, warn_about_images, warn_about_sampling
+from napari_fdt.recon.regularisation import PROBE_SHARE, TV_PATH, TVChoice, candidate_weights, pick, selection_stages, tv_is_auto
 from napari_fdt.recon.stages import Stage, build_stage
-from napari_fdt.recon.validation import BestIterate, holdout_indices, relative_image_error
+from napari_fdt.recon.validation import BestIterate, holdout_indices, per_image_errors, relative_image_error
 from napari_fdt.recon.volume import RIVolume, upsample_to
 
 if TYPE_CHECKING:
@@ -213,6 +217,14 @@ class Reconstructor:
         else:
             self.wavelengths, self.weights = None, None
         self.loss_weights = LossWeights.from_config(cfg)
+        #: the TV weights chosen from the data ("auto"; :mod:`napari_fdt.recon.regularisation`), None until chosen
+        #: or when the weights are fixed numbers
+        self.tv_choice: TVChoice | None = None
+        if tv_is_auto(cfg) and not len(self.validation_indices):
+            warnings.warn("tv_xy_weight: \"auto\" chooses the TV weights by the validation error, and this run holds no "
+                          "images out (validation_fraction 0, or too few images): TV is off. Give validation_fraction > 0 "
+                          "or fixed weights", FDTWarning, stacklevel=2)
+            self.tv_choice = TVChoice(*candidate_weights(cfg, 0.0), stage=0, probe_iterations=0, reason="no validation split")
         check_memory(acquisition, cfg, src, self.device, len(self.wavelengths) if self.wavelengths else 1)
 
     # -- the algorithm --------------------------------------------------------------------------
@@ -241,6 +253,15 @@ class Reconstructor:
             record = self._record(stage)
             best = BestIterate(tolerance=cfg.early_stopping_tolerance)
             t0 = time.perf_counter()
+            if self.tv_choice is None and tv_is_auto(cfg) and si in selection_stages(cfg):
+                if not self._choose_tv(stage, mask, batch_size, data_range, global_it, should_stop):
+                    self.elapsed_s += time.perf_counter() - t0
+                    return
+                vol_opt = torch.optim.Adam([self.volume.x], lr=cfg.lr_ri, betas=(0.9, 0.99))
+            if len(self.validation_indices) and cfg.early_stopping != "off":
+                # The stage's starting volume is a candidate too: a stage that only makes the held-out images worse
+                # ends where it began (from stage 0 on: never a volume that explains them worse than no object).
+                self._track_validation(stage, mask, best, 0)
             terms: dict = {}
             train_error = None
             it = 0
@@ -270,6 +291,51 @@ class Reconstructor:
             if checkpoint_dir is not None and (self.group is None or self.group.is_writer):
                 self.save_checkpoint(checkpoint_path(checkpoint_dir, si))
             yield snap
+
+    # -- automatic regularisation ---------------------------------------------------------------
+    def _choose_tv(self, stage: Stage, mask: torch.Tensor | None, batch_size: int, data_range: float, global_it: int,
+                   should_stop: Callable[[], bool] | None) -> bool:
+        """Try every weight of the TV path from the stage's starting state and keep the one the held-out images
+        prefer (:mod:`napari_fdt.recon.regularisation`); the state is then back at the stage's start. False when
+        stopped (cancelled) meanwhile."""
+        cfg = self.config
+        t0 = time.perf_counter()
+        n_probe = max(1, int(round(PROBE_SHARE * stage.iterations)))
+        start = self._capture_branch()
+        trials = []
+        for tau in TV_PATH:
+            self._restore_branch(start)
+            xy, z = candidate_weights(cfg, tau)
+            self.loss_weights = dataclasses.replace(self.loss_weights, tv_xy=xy, tv_z=z)
+            vol_opt = torch.optim.Adam([self.volume.x], lr=cfg.lr_ri, betas=(0.9, 0.99))
+            for it in range(n_probe):
+                if self._stop_requested(should_stop):
+                    self._restore_branch(start)
+                    return False
+                self._step(stage, mask, vol_opt, batch_size, data_range, (global_it + it) / max(1, cfg.total_iterations))
+            err, each = self._validation(stage, mask, per_image=True)
+            trials.append({"tau": tau, "tv_xy_weight": xy, "tv_z_weight": z, "validation_error": err, "image_errors": each})
+        self._restore_branch(start)
+        win = pick(trials)
+        self.loss_weights = dataclasses.replace(self.loss_weights, tv_xy=win["tv_xy_weight"], tv_z=win["tv_z_weight"])
+        self.tv_choice = TVChoice(win["tv_xy_weight"], win["tv_z_weight"], stage=stage.index, probe_iterations=n_probe,
+                                  trials=trials, seconds=time.perf_counter() - t0)
+        return True
+
+    def _capture_branch(self) -> dict[str, Any]:
+        """A full copy of what training changes (volume, calibration and its optimiser, batch order), to start
+        several candidates from one state."""
+        return {"x": self.volume.x.detach().clone(), "calibration": self.calibration.copy_values(),
+                "cal_opt": copy.deepcopy(self.calibration.optimiser.state_dict()),
+                "batches": copy.deepcopy(self.batches.state_dict())}
+
+    def _restore_branch(self, state: dict[str, Any]) -> None:
+        """Return to a :meth:`_capture_branch` (copies again, so the state can be restored more than once)."""
+        with torch.no_grad():
+            self.volume.x = state["x"].clone().requires_grad_()
+        self.calibration.restore_values(state["calibration"])
+        self.calibration.optimiser.load_state_dict(copy.deepcopy(state["cal_opt"]))
+        self.batches.load_state_dict(copy.deepcopy(state["batches"]))
 
     # -- per-stage set-up -----------------------------------------------------------------------
     def _build_stage(self, stage_index: int) -> Stage:
@@ -395,6 +461,11 @@ class Reconstructor:
         reaches the volume) and their gains refitted in closed form; ``mask`` (N, h_f, w_f) as the loss's. Every
         rank computes the same number (no collective; in a distributed run after the rows are shared).
         """
+        out = self._validation(stage, mask)
+        return None if out is None else out[0]
+
+    def _validation(self, stage: Stage, mask: torch.Tensor | None, per_image: bool = False) -> tuple[float, list[float]] | None:
+        """(validation error, each held-out image's error (empty unless asked)); None without a split."""
         held = self.validation_indices
         if not len(held):
             return None
@@ -403,7 +474,9 @@ class Reconstructor:
             preds = [self._predict_normalised(stage, dn, torch.as_tensor(held[sl], device=self.device))
                      for sl in iter_batches(len(held), self.config.batch_size)]
         idx = torch.as_tensor(held, device=self.device)
-        return relative_image_error(torch.cat(preds), stage.images[idx], None if mask is None else mask[idx], fit_gain=True)
+        pred, measured, m = torch.cat(preds), stage.images[idx], None if mask is None else mask[idx]
+        each = per_image_errors(pred, measured, m, fit_gain=True) if per_image else []
+        return relative_image_error(pred, measured, m, fit_gain=True), each
 
     def _track_validation(self, stage: Stage, mask: torch.Tensor | None, best: BestIterate, it: int) -> float | None:
         """The validation error now, recorded in ``best`` (with a copy of the state when it is the lowest yet)."""
