@@ -26,7 +26,7 @@ from napari_fdt.physics.optics import Optics
 
 __all__ = [
     "UNITS",
-    "META_ACQUISITION", "META_PATH", "META_NEEDS_OPTICS", "META_ID", "META_KIND", "META_OWNER", "META_REPORT",
+    "META_ACQUISITION", "META_PATH", "META_NEEDS_OPTICS", "META_ID", "META_KIND", "META_OWNER", "META_REPORT", "META_FILE_OPTICS",
     "lateral_translate", "volume_scale", "volume_translate", "stack_scale", "stack_translate",
     "sources_to_points", "points_to_sources", "acquisition_layer", "stack_layer", "ri_layer", "sources_layer",
     "side_by_side", "new_id",
@@ -39,7 +39,8 @@ UNITS = ("µm", "µm", "µm")
 #: was read from; ``fdt_needs_optics``: a bare TIFF stack waiting for its optics; ``fdt_id``: a stable id of the
 #: acquisition layer; ``fdt_kind``: what the layer holds (``acquisition``, ``stack``, ``ri`` (a reconstruction),
 #: ``truth`` (a ground-truth RI), ``sources``, ``masks``, ``preview``, ``coverage``, ``comparison``); ``fdt_owner``: the ``fdt_id`` of the acquisition a derived layer
-#: belongs to; ``fdt_report``: the reconstruction report (content of ``RI.json``).
+#: belongs to; ``fdt_report``: the reconstruction report (content of ``RI.json``); ``fdt_file_optics``: the optics
+#: fields a microscope file states (``napari_fdt.data.microscope``: a dict holding only the fields found, µm).
 META_ACQUISITION = "fdt_acquisition"
 META_PATH = "fdt_path"
 META_NEEDS_OPTICS = "fdt_needs_optics"
@@ -47,6 +48,7 @@ META_ID = "fdt_id"
 META_KIND = "fdt_kind"
 META_OWNER = "fdt_owner"
 META_REPORT = "fdt_report"
+META_FILE_OPTICS = "fdt_file_optics"
 
 LayerDataTuple = tuple[Any, dict[str, Any], str]
 
@@ -120,10 +122,21 @@ def acquisition_layer(acq: Acquisition, path: str | None = None, name: str | Non
     return acq.images, kwargs, "image"
 
 
-def stack_layer(images: np.ndarray, path: str | None = None, name: str | None = None) -> LayerDataTuple:
-    """Image layer of a bare stack (N, H, W) without optics: flagged ``fdt_needs_optics`` (pixel scale 1 until set)."""
-    meta = {META_NEEDS_OPTICS: True, META_PATH: path, META_ID: new_id(), META_KIND: "stack"}
-    return images, dict(name=name or "stack", scale=(1.0, 1.0, 1.0), units=UNITS, metadata=meta, colormap="gray"), "image"
+def stack_layer(images: np.ndarray, path: str | None = None, name: str | None = None,
+                file_optics: dict[str, float] | None = None) -> LayerDataTuple:
+    """Image layer of a bare stack (N, H, W) without complete optics: flagged ``fdt_needs_optics``.
+
+    ``file_optics``: the optics fields the file states (``META_FILE_OPTICS``); with its ``pixel_size_um``
+    the layer gets its lateral scale and the image-centred placement, else pixel scale 1 until set.
+    """
+    meta: dict[str, Any] = {META_NEEDS_OPTICS: True, META_PATH: path, META_ID: new_id(), META_KIND: "stack"}
+    kwargs: dict[str, Any] = dict(name=name or "stack", scale=(1.0, 1.0, 1.0), units=UNITS, metadata=meta, colormap="gray")
+    if file_optics is not None:
+        meta[META_FILE_OPTICS] = dict(file_optics)
+        dx = file_optics.get("pixel_size_um")
+        if dx:
+            kwargs.update(scale=stack_scale(dx), translate=stack_translate(np.shape(images)[-2:], dx))
+    return images, kwargs, "image"
 
 
 def ri_layer(ri: np.ndarray, optics: Optics, name: str, owner: str | None = None,
