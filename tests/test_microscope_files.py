@@ -170,3 +170,15 @@ def test_manifest_names_what_the_reader_reads() -> None:
     [reader] = manifest["contributions"]["readers"]
     assert "*" not in reader["filename_patterns"] and reader["accepts_directories"] is True
     assert set(reader["filename_patterns"]) == {"*.tif", "*.tiff", "acquisition.json", "*.zarr"}
+
+
+def test_predicted_images_open_as_a_stack_not_as_an_ri_volume(tmp_path) -> None:
+    """``fdt forward --out`` writes images (axes TYX with the pixel size), which must not be taken for a volume."""
+    from napari_fdt.data.io import write_stack_tiff
+
+    data = _stack(np.float32)
+    write_stack_tiff(tmp_path / "pred.tif", data, 0.33)
+    head = probe_stack(tmp_path / "pred.tif")
+    assert head is not None and not head.is_ri_like and head.optics == pytest.approx({"pixel_size_um": 0.33})
+    [(back, kwargs, _)] = get_reader(str(tmp_path / "pred.tif"))(str(tmp_path / "pred.tif"))
+    assert np.array_equal(back, data) and kwargs["metadata"]["fdt_kind"] == "stack"

@@ -261,7 +261,7 @@ def _cmd_info(args: argparse.Namespace) -> int:
 def _cmd_forward(args: argparse.Namespace) -> int:
     import torch
 
-    from napari_fdt.data.io import read_acquisition, read_volume_tiff, write_volume_tiff
+    from napari_fdt.data.io import read_acquisition, read_volume_tiff, write_stack_tiff
     from napari_fdt.model.forward import MultiSliceModel
     from napari_fdt.model.gain import least_squares_gain
     from napari_fdt.model.render import render_images
@@ -301,7 +301,7 @@ def _cmd_forward(args: argparse.Namespace) -> int:
     print(f"relative residual after a per-image gain: {total:.4f} overall; per image median {np.median(rel):.4f}, "
           f"worst {rel.max():.4f} (image {int(rel.argmax())})")
     if args.out is not None:
-        write_volume_tiff(args.out, fit.astype(np.float32), (1.0, o.pixel_size_um, o.pixel_size_um), overwrite=args.overwrite)
+        write_stack_tiff(args.out, fit.astype(np.float32), o.pixel_size_um, overwrite=args.overwrite)
         print(f"wrote {args.out}")
     return 0
 

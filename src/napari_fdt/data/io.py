@@ -38,6 +38,7 @@ __all__ = [
     "write_acquisition",
     "write_json_atomic",
     "write_volume_tiff",
+    "write_stack_tiff",
     "read_volume_tiff",
     "report_path",
     "check_report_free",
@@ -467,6 +468,23 @@ def write_volume_tiff(
     }
     with _atomic_output(path, overwrite=overwrite, suffix=".ome.tif") as tmp:
         tifffile.imwrite(tmp, vol, ome=True, photometric="minisblack", metadata=metadata)
+    return Path(path)
+
+
+def write_stack_tiff(path: PathLike, images: np.ndarray, pixel_size_um: float, *, overwrite: bool = False) -> Path:
+    """Write an ``(N, H, W)`` image stack (e.g. predicted images) as a float32 OME-TIFF, atomically.
+
+    Axes ``TYX`` (the image index is no z axis: the file is not taken for an RI volume) with ``PhysicalSizeX/Y``
+    = ``pixel_size_um`` in µm, which :mod:`napari_fdt.data.microscope` reads back. Refuses an existing file
+    unless ``overwrite``.
+    """
+    stack = np.asarray(images, dtype=np.float32)
+    if stack.ndim != 3:
+        raise FDTInputError("images", f"must be a stack (N, H, W), got shape {stack.shape}", "give an (N, H, W) array")
+    dx = _voxel_size((1.0, pixel_size_um, pixel_size_um))[2]
+    metadata = {"axes": "TYX", "PhysicalSizeY": dx, "PhysicalSizeYUnit": "µm", "PhysicalSizeX": dx, "PhysicalSizeXUnit": "µm"}
+    with _atomic_output(path, overwrite=overwrite, suffix=".ome.tif") as tmp:
+        tifffile.imwrite(tmp, stack, ome=True, photometric="minisblack", metadata=metadata)
     return Path(path)
 
 
