@@ -169,7 +169,7 @@ def test_manifest_names_what_the_reader_reads() -> None:
     manifest = yaml.safe_load((Path(__file__).resolve().parents[1] / "src/napari_fdt/napari/napari.yaml").read_text(encoding="utf-8"))
     [reader] = manifest["contributions"]["readers"]
     assert "*" not in reader["filename_patterns"] and reader["accepts_directories"] is True
-    assert set(reader["filename_patterns"]) == {"*.tif", "*.tiff", "acquisition.json", "*.zarr"}
+    assert set(reader["filename_patterns"]) == {"*.tif", "*.tiff", "acquisition.json", "*.zarr", "*.nd2", "*.czi", "*.lif"}
 
 
 def test_predicted_images_open_as_a_stack_not_as_an_ri_volume(tmp_path) -> None:
@@ -182,3 +182,30 @@ def test_predicted_images_open_as_a_stack_not_as_an_ri_volume(tmp_path) -> None:
     assert head is not None and not head.is_ri_like and head.optics == pytest.approx({"pixel_size_um": 0.33})
     [(back, kwargs, _)] = get_reader(str(tmp_path / "pred.tif"))(str(tmp_path / "pred.tif"))
     assert np.array_equal(back, data) and kwargs["metadata"]["fdt_kind"] == "stack"
+
+
+def test_bioio_reads_the_same_stack_and_optics_as_tifffile(tmp_path) -> None:
+    """The bioio path (ND2, CZI, LIF in use) checked where both readers apply: OME-TIFF and ImageJ TIFF."""
+    pytest.importorskip("bioio")
+    pytest.importorskip("bioio_ome_tiff")
+    pytest.importorskip("bioio_tifffile")
+    from napari_fdt.data.microscope import read_with_bioio
+
+    data = _ome_file(tmp_path / "cells.ome.tif")
+    via_bioio, via_tifffile = read_with_bioio(tmp_path / "cells.ome.tif"), read_stack(tmp_path / "cells.ome.tif")
+    assert np.array_equal(via_bioio.images, data) and via_bioio.optics == pytest.approx(via_tifffile.optics)
+    assert via_bioio.optics["pixel_size_um"] == pytest.approx(0.325)  # the nm unit honoured (bioio's own sizes ignore it)
+    tifffile.imwrite(tmp_path / "ij.tif", data, imagej=True, resolution=(1 / 0.45, 1 / 0.45), metadata={"unit": "micron", "axes": "TYX"})
+    ij = read_with_bioio(tmp_path / "ij.tif")
+    assert np.array_equal(ij.images, data) and ij.optics == pytest.approx({"pixel_size_um": 0.45})
+
+
+def test_other_formats_are_declined_without_bioio_or_a_readable_file(tmp_path, monkeypatch) -> None:
+    import napari_fdt.data.microscope as microscope
+
+    (tmp_path / "scan.nd2").write_bytes(b"not an nd2 file")
+    assert get_reader(str(tmp_path / "scan.nd2")) is None  # unreadable (or bioio absent)
+    monkeypatch.setattr(microscope, "has_bioio", lambda: False)
+    assert get_reader(str(tmp_path / "scan.nd2")) is None
+    with pytest.raises(FDTInputError, match=r'^images: scan.nd2 needs bioio .*napari-fdt\[formats\]'):
+        read_stack(tmp_path / "scan.nd2")

@@ -23,6 +23,12 @@ stack is the focus step of a z-stack, not the RI grid, and is not used.
 
 :func:`probe_stack` decides from the header alone (no pixels read) whether a file is a stack this package
 reads; :func:`read_stack` and :func:`read_source_files` then read the pixels. No napari, no torch.
+
+Other microscope formats (Nikon ``.nd2``, Zeiss ``.czi``, Leica ``.lif``) are read through bioio and its reader
+plugins where the optional ``formats`` extra is installed (``pip install "napari-fdt[formats]"``): the pixels
+through ``BioImage``, the optics from the OME metadata bioio converts the file's own to (the same table,
+:func:`ome_optics`), else the pixel size from ``physical_pixel_sizes``. TIFFs stay with tifffile: bioio 3.6 reports
+an OME ``PhysicalSizeX="325" PhysicalSizeXUnit="nm"`` as 325 (µm), where tifffile's XML gives the unit.
 """
 
 from __future__ import annotations
@@ -41,11 +47,13 @@ from napari_fdt.data.acquisition import check_image_layout
 from napari_fdt.data.io import _OME_UNITS_UM, _check_fits_in_memory, _quiet_tifffile
 from napari_fdt.errors import FDTInputError
 
-__all__ = ["StackHeader", "FileStack", "TIFF_SUFFIXES", "probe_stack", "read_stack", "read_source_files",
+__all__ = ["StackHeader", "FileStack", "TIFF_SUFFIXES", "BIOIO_SUFFIXES", "has_bioio", "probe_stack", "read_stack", "read_source_files",
            "list_source_files", "natural_key"]
 
 #: File name endings read as TIFF.
 TIFF_SUFFIXES = (".tif", ".tiff")
+#: File name endings read through bioio (the ``formats`` extra), when it is installed.
+BIOIO_SUFFIXES = (".nd2", ".czi", ".lif")
 
 # ImageJ writes its unit as text: "micron", "um", "\u00B5m" (escaped), "nm", ...
 _IMAGEJ_UNITS_UM = {**_OME_UNITS_UM, "\\u00b5m": 1.0, "\\u00B5m": 1.0, "mum": 1.0}
@@ -227,10 +235,69 @@ def _header(tif: tifffile.TiffFile, path: str) -> StackHeader | None:
                        is_ri_like=ri_like)
 
 
+def has_bioio() -> bool:
+    """Whether bioio (the optional ``formats`` extra) is importable."""
+    try:
+        import bioio  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def _bioio_image(path: Path):
+    from bioio import BioImage
+
+    with _quiet_tifffile():
+        return BioImage(path)
+
+
+def _bioio_header(img: Any, path: str) -> StackHeader | None:
+    """The stack layout and optics of a ``BioImage`` (first scene), from its metadata; None if it is no stack."""
+    dims = img.dims
+    order = str(dims.order)
+    shape = tuple(int(getattr(dims, a)) for a in order)
+    if "S" in order and getattr(dims, "S") > 1:
+        return None
+    sizes = dict(zip(order, shape))
+    others = [a for a in order if a not in "YXS" and sizes[a] > 1]
+    if len(others) > 1:
+        return None
+    n = sizes[others[0]] if others else 1
+    stack_shape = (n, sizes["Y"], sizes["X"])
+    try:
+        check_image_layout(stack_shape, img.dtype)
+    except FDTInputError:
+        return None
+    optics: dict[str, float] = {}
+    try:
+        optics = ome_optics(img.ome_metadata.to_xml())
+    except Exception:  # a reader without an OME conversion
+        optics = {}
+    if "pixel_size_um" not in optics:
+        px = img.physical_pixel_sizes
+        dx = _positive(px.X, 1.0)
+        if dx is not None and (px.Y is None or abs(float(px.Y) - dx) <= 1e-6 * dx):
+            optics["pixel_size_um"] = dx
+    axes = (others[0] if others else "") + "YX"
+    return StackHeader(path=path, shape=stack_shape, dtype=np.dtype(img.dtype), optics=optics, kind="bioio", axes=axes)
+
+
+def _probe_bioio(p: Path) -> StackHeader | None:
+    if not has_bioio():
+        return None
+    try:
+        return _bioio_header(_bioio_image(p), str(p))
+    except Exception:  # no plugin for the file, or a file it cannot parse: not ours to read
+        return None
+
+
 def probe_stack(path: str | Path) -> StackHeader | None:
-    """The header of a TIFF this package reads as an image stack, or None (not a TIFF, unreadable, colour,
-    several channels and times, images under 8×8 px or an unsupported pixel type). Reads no pixels."""
+    """The header of a file this package reads as an image stack, or None (not a TIFF (or, with bioio, an
+    ND2/CZI/LIF file), unreadable, colour, several channels and times, images under 8×8 px or an unsupported
+    pixel type). Reads no pixels."""
     p = Path(path)
+    if p.suffix.lower() in BIOIO_SUFFIXES and p.is_file():
+        return _probe_bioio(p)
     if p.suffix.lower() not in TIFF_SUFFIXES or not p.is_file():
         return None
     try:
@@ -271,6 +338,8 @@ def read_stack(path: str | Path) -> FileStack:
     for the memory (checked from the header).
     """
     p = Path(path)
+    if p.suffix.lower() in BIOIO_SUFFIXES:
+        return read_with_bioio(p)
     head = probe_stack(p)
     if head is None:
         raise _refuse_why(p)
@@ -284,6 +353,35 @@ def read_stack(path: str | Path) -> FileStack:
     except Exception as exc:  # a truncated file fails only when the pixels are read
         raise FDTInputError("images", f"{p.name} is not a readable TIFF: {exc}", "re-export it") from exc
     return FileStack(images=images, optics=dict(head.optics), paths=[str(p)], kind=head.kind)
+
+
+def read_with_bioio(path: str | Path) -> FileStack:
+    """Read a microscope file through bioio (first scene) as an ``(N, H, W)`` stack with the optics it states.
+
+    Raises :class:`FDTInputError` (field ``images``) when bioio or a reader plugin for the file is missing, or the
+    file is no single-channel stack.
+    """
+    p = Path(path)
+    fix = 'install the readers: pip install "napari-fdt[formats]"'
+    if not has_bioio():
+        raise FDTInputError("images", f"{p.name} needs bioio to be read, which is not installed", fix)
+    try:
+        img = _bioio_image(p)
+    except Exception as exc:
+        raise FDTInputError("images", f"{p.name} cannot be read by bioio: {exc}", fix + ", or export the images as TIFF") from exc
+    head = _bioio_header(img, str(p))
+    if head is None:
+        raise FDTInputError("images", f"{p.name} has dimensions {img.dims}: not one grayscale image per source along one axis",
+                            "export one channel, one image per source (N, H, W)")
+    _check_fits_in_memory(p.name, head.shape, head.dtype)
+    order = str(img.dims.order)
+    keep = head.axes[0] if head.shape[0] > 1 and len(head.axes) == 3 else None
+    squeeze = {a: 0 for a in order if a not in "YX" and a != keep}
+    try:
+        images = np.asarray(img.get_image_data((keep or "") + "YX", **squeeze))
+    except Exception as exc:
+        raise FDTInputError("images", f"{p.name}: bioio failed to read the pixels: {exc}", "export the images as TIFF") from exc
+    return FileStack(images=images.reshape(head.shape), optics=dict(head.optics), paths=[str(p)], kind="bioio")
 
 
 def natural_key(name: str) -> list[Any]:
