@@ -78,6 +78,24 @@ def test_ome_zarr_volume_follows_ngff_and_reads_back_with_zarr(tmp_path) -> None
         write_volume_zarr(tmp_path / "RI.ome.zarr", ri, (2.0, 0.33, 0.25))
 
 
+def test_ome_zarr_volume_opens_with_ome_zarr_py(tmp_path) -> None:
+    """ome-zarr-py's reader (what napari-ome-zarr uses) finds the image, its axes and transformations, and the pixels."""
+    pytest.importorskip("ome_zarr")
+    from ome_zarr.io import parse_url
+    from ome_zarr.reader import Multiscales, Reader
+
+    from napari_fdt.data.ome_zarr import write_volume_zarr
+
+    ri = _ri((3, 10, 12))
+    write_volume_zarr(tmp_path / "RI.ome.zarr", ri, (2.0, 0.33, 0.25))
+    [node] = list(Reader(parse_url(str(tmp_path / "RI.ome.zarr")))())
+    assert any(isinstance(spec, Multiscales) for spec in node.specs)
+    assert [a["name"] for a in node.metadata["axes"]] == ["z", "y", "x"]
+    [[scale, translation]] = node.metadata["coordinateTransformations"]
+    assert scale["scale"] == [2.0, 0.33, 0.25] and np.allclose(translation["translation"], [1.0, -5 * 0.33, -6 * 0.25])
+    assert np.array_equal(np.asarray(node.data[0]), ri)
+
+
 def test_napari_writer_and_reader_round_trip_ome_zarr(tmp_path) -> None:
     pytest.importorskip("zarr")
     ri = _ri()
