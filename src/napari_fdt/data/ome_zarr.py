@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from napari_fdt.data.io import PathLike, _atomic_output, _finite_float32_volume, _voxel_size
+from napari_fdt.data.io import PathLike, _atomic_output, _finite_float32_volume, _voxel_size, report_path
 from napari_fdt.errors import FDTInputError
 
 __all__ = ["ZARR_SUFFIXES", "has_zarr", "is_ome_zarr", "write_volume_zarr", "read_volume_zarr", "ngff_multiscales"]
@@ -79,7 +79,7 @@ def write_volume_zarr(path: PathLike, volume: np.ndarray, voxel_size_um: tuple[f
     vol = _finite_float32_volume(volume, "volume")
     voxel = _voxel_size(voxel_size_um)
     target = Path(path)
-    attrs = {"multiscales": ngff_multiscales(vol.shape, voxel, name or target.name.split(".")[0]), "napari_fdt": dict(_MARK)}
+    attrs = {"multiscales": ngff_multiscales(vol.shape, voxel, name or report_path(target).stem), "napari_fdt": dict(_MARK)}
     chunks = (1, *vol.shape[1:])
     with _atomic_output(target, overwrite=overwrite, directory=True) as tmp:
         if int(zarr.__version__.split(".")[0]) >= 3:
