@@ -14,13 +14,14 @@ before replacing the volume itself, and the report is never written over the rep
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from napari_fdt.data.io import VOLUME_SUFFIXES, report_path  # re-exported: the writer puts the report where write_result does
-from napari_fdt.errors import FDTInputError
+from napari_fdt.errors import FDTInputError, FDTWarning
 from napari_fdt.napari.layers import META_KIND, META_REPORT
 
 __all__ = ["write_ri", "report_path", "RI_KINDS"]
@@ -49,7 +50,20 @@ def _check_ri_layer(volume: np.ndarray, meta: dict[str, Any]) -> dict | None:
 
 
 def write_ri(path: str, data: Any, meta: dict[str, Any]) -> list[str]:
-    """Write one RI layer (and its report); return the paths written. Raises :class:`FDTInputError` before writing."""
+    """Write one RI layer (and its report); return the paths written.
+
+    A refusal raises :class:`FDTInputError` before anything is written, and is also issued as an
+    :class:`FDTWarning`: napari swallows a writer's ``ValueError`` when it looks for a writer itself
+    (``layers.save(path, plugin=...)``) and reports only the warnings it recorded.
+    """
+    try:
+        return _write_ri(path, data, meta)
+    except FDTInputError as exc:
+        warnings.warn(f"napari-fdt writer: {exc}", FDTWarning, stacklevel=2)
+        raise
+
+
+def _write_ri(path: str, data: Any, meta: dict[str, Any]) -> list[str]:
     from napari_fdt.data.io import check_report_free, write_json_atomic
     from napari_fdt.data.volumes import write_volume
 
