@@ -153,8 +153,7 @@ def test_get_reader_declines_what_it_cannot_read_from_the_header(tmp_path) -> No
 
 
 def test_get_reader_reads_no_pixels(tmp_path, monkeypatch) -> None:
-    """The decision comes from the header: a file whose pixel data is cut off is still accepted by get_reader
-    (the reader then reports it), and no series is ever asked for its pixels."""
+    """The decision comes from the header: get_reader never asks a series for its pixels."""
     _ome_file(tmp_path / "cells.ome.tif")
     calls = []
     original = tifffile.TiffPageSeries.asarray
