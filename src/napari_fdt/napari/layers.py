@@ -42,7 +42,8 @@ UNITS = ("µm", "µm", "µm")
 #: was read from; ``fdt_needs_optics``: a bare TIFF stack waiting for its optics; ``fdt_id``: a stable id of the
 #: acquisition layer; ``fdt_kind``: what the layer holds (``acquisition``, ``stack``, ``ri`` (a reconstruction),
 #: ``truth`` (a ground-truth RI), ``sources``, ``masks``, ``preview``, ``coverage``, ``comparison``); ``fdt_owner``: the ``fdt_id`` of the acquisition a derived layer
-#: belongs to; ``fdt_report``: the reconstruction report (content of ``RI.json``).
+#: belongs to; ``fdt_report``: the reconstruction report (content of ``RI.json``); ``fdt_file_optics``: the optics
+#: fields a microscope file states (``napari_fdt.data.microscope``: a dict holding only the fields found, µm).
 META_ACQUISITION = "fdt_acquisition"
 META_PATH = "fdt_path"
 META_NEEDS_OPTICS = "fdt_needs_optics"
@@ -153,15 +154,23 @@ def acquisition_layer(acq: Acquisition, path: str | None = None, name: str | Non
     return stack_view(acq.images), kwargs, "image"
 
 
-def stack_layer(images: np.ndarray, path: str | None = None, name: str | None = None) -> LayerDataTuple:
-    """Image layer of a bare stack (N, H, W) without optics: flagged ``fdt_needs_optics``.
+def stack_layer(images: np.ndarray, path: str | None = None, name: str | None = None,
+                file_optics: dict[str, float] | None = None) -> LayerDataTuple:
+    """Image layer of a bare stack (N, H, W) without complete optics: flagged ``fdt_needs_optics``.
 
-    Its lateral axes are in pixels (scale 1, unit pixel) until the optics are applied, so the scale bar does
-    not claim micrometres it does not know.
+    ``file_optics``: the optics fields the file states (``META_FILE_OPTICS``); with its ``pixel_size_um`` the
+    layer gets its lateral scale (µm) and the image-centred placement. Without it the lateral axes are in pixels
+    (scale 1, unit pixel) until the optics are applied, so the scale bar does not claim micrometres it does not know.
     """
-    meta = {META_NEEDS_OPTICS: True, META_PATH: path, META_ID: new_id(), META_KIND: "stack"}
-    return stack_view(images), dict(name=name or "stack", scale=(1.0, 1.0, 1.0, 1.0), units=("pixel",) * 4,
-                                    axis_labels=STACK_AXIS_LABELS, metadata=meta, colormap="gray"), "image"
+    meta: dict[str, Any] = {META_NEEDS_OPTICS: True, META_PATH: path, META_ID: new_id(), META_KIND: "stack"}
+    kwargs: dict[str, Any] = dict(name=name or "stack", scale=(1.0, 1.0, 1.0, 1.0), units=("pixel",) * 4,
+                                  axis_labels=STACK_AXIS_LABELS, metadata=meta, colormap="gray")
+    if file_optics is not None:
+        meta[META_FILE_OPTICS] = dict(file_optics)
+        dx = file_optics.get("pixel_size_um")
+        if dx:
+            kwargs.update(scale=stack_scale(dx), translate=stack_translate(np.shape(images)[-2:], dx), units=STACK_UNITS)
+    return stack_view(images), kwargs, "image"
 
 
 def ri_layer(ri: np.ndarray, optics: Optics, name: str, owner: str | None = None,

@@ -17,7 +17,7 @@ from napari_fdt.recon.config import SolverConfig, StageConfig
 
 __all__ = [
     "format_stages", "parse_stages", "merge_config", "OPTICS_LABELS", "OPTICS_OPTIONAL", "format_entry", "missing_optics",
-    "optics_from_entries", "unique_path", "reconstruct_command",
+    "optics_from_entries", "unique_path",
 ]
 
 _STAGE = re.compile(r"^\s*(\d+)\s*[x×:*]\s*(\d+)\s*(?:@\s*(\d+)\s*)?$")
@@ -155,11 +155,3 @@ def unique_path(path: Path) -> Path:
         if not candidate.exists():
             return candidate
         n += 1
-
-
-def reconstruct_command(acquisition_dir: str | Path, config_path: str | Path, out: str | Path, device: str = "auto") -> str:
-    """The ``fdt reconstruct`` line that runs ``config_path``'s settings on ``acquisition_dir`` (shell-quoted)."""
-    import shlex
-
-    parts = ["fdt", "reconstruct", str(acquisition_dir), "--config", str(config_path), "--device", device, "--out", str(out)]
-    return " ".join(shlex.quote(p) for p in parts)

@@ -43,7 +43,7 @@ from napari_fdt.napari.layers import (
     volume_translate,
 )
 from napari_fdt.napari.schema_widgets import schema_widget
-from napari_fdt.napari.settings import format_stages, merge_config, reconstruct_command, unique_path
+from napari_fdt.napari.settings import format_stages, merge_config, unique_path
 from napari_fdt.napari.widget_common import (
     BackgroundTasks,
     CloseWatcher,
@@ -62,6 +62,7 @@ from napari_fdt.napari.widget_common import (
     track_thread,
 )
 from napari_fdt.napari.widget_curve import ErrorCurveWidget
+from napari_fdt.recon.command import format_command, reconstruct_command
 from napari_fdt.recon.config import SolverConfig, load_config
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -658,7 +659,7 @@ class ReconstructionWidget(Container):
             settings = unique_path(folder.with_name(f"{folder.name}_settings.json"))
             config.save(settings)
             out = unique_path(folder.with_name(f"{folder.name}_RI.ome.tif"))
-            command = reconstruct_command(folder, settings, out, self.device.value)
+            command = format_command(reconstruct_command(folder, out, settings, device=self.device.value))
             self.last_command = command
             try:
                 from qtpy.QtWidgets import QApplication

@@ -15,7 +15,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from napari_fdt.data.io import report_path, write_json_atomic, write_volume_tiff
+from napari_fdt.data.io import check_report_free, report_path, write_json_atomic
+from napari_fdt.data.volumes import write_volume
 from napari_fdt.model.render import iter_batches
 from napari_fdt.recon.metrics import image_metrics, ri_metrics
 from napari_fdt.recon.solver import Reconstructor
@@ -112,10 +113,11 @@ def build_report(
 
 
 def write_result(rec: Reconstructor, out: str | Path, report: dict[str, Any], *, overwrite: bool = False) -> tuple[Path, Path]:
-    """Write ``out`` (OME-TIFF, absolute RI, float32, ZYX) and ``out``'s ``.json`` report, each atomically."""
+    """Write ``out`` (OME-TIFF, or OME-Zarr for a ``.zarr`` name; absolute RI, float32, ZYX) and ``out``'s ``.json`` report, each atomically."""
     out = Path(out)
     o = rec.acquisition.optics
     json_path = report_path(out)
-    write_volume_tiff(out, rec.ri_full(), (o.slice_spacing_um, o.pixel_size_um, o.pixel_size_um), overwrite=overwrite)
+    check_report_free(out)  # RI.tif and RI.ome.tif share RI.json: never replace another volume's report
+    write_volume(out, rec.ri_full(), (o.slice_spacing_um, o.pixel_size_um, o.pixel_size_um), overwrite=overwrite)
     write_json_atomic(json_path, report, overwrite=overwrite)
     return out, json_path
