@@ -15,7 +15,7 @@ import tifffile
 
 from napari_fdt.data.microscope import natural_key, probe_stack, read_source_files, read_stack
 from napari_fdt.errors import FDTInputError
-from napari_fdt.napari.layers import META_FILE_OPTICS, META_NEEDS_OPTICS
+from napari_fdt.napari.layers import META_FILE_OPTICS, META_NEEDS_OPTICS, stack_images
 from napari_fdt.napari.reader import get_reader
 
 N, H, W = 5, 24, 32
@@ -93,15 +93,15 @@ def test_napari_reader_puts_the_file_optics_on_the_stack_layer(tmp_path) -> None
     _ome_file(tmp_path / "cells.ome.tif")
     reader = get_reader(str(tmp_path / "cells.ome.tif"))
     [(data, kwargs, kind)] = reader(str(tmp_path / "cells.ome.tif"))
-    assert kind == "image" and data.shape == (N, H, W)
+    assert kind == "image" and data.shape == (N, 1, H, W)  # the image index on its own axis (docs/napari.md)
     meta = kwargs["metadata"]
     assert meta[META_FILE_OPTICS] == pytest.approx({"pixel_size_um": 0.325, "wavelength_um": 0.605, "na": 1.1, "n_background": 1.333})
     assert meta[META_NEEDS_OPTICS] is True  # the volume's sampling is never in a microscope file
-    assert np.allclose(kwargs["scale"][1:], 0.325)
-    assert np.allclose(kwargs["translate"][1:], (-(H // 2) * 0.325, -(W // 2) * 0.325))  # image-centred origin
+    assert np.allclose(kwargs["scale"][2:], 0.325)
+    assert np.allclose(kwargs["translate"][2:], (-(H // 2) * 0.325, -(W // 2) * 0.325))  # image-centred origin
     tifffile.imwrite(tmp_path / "plain.tif", _stack(), photometric="minisblack")
     [(_, kwargs, _)] = get_reader(str(tmp_path / "plain.tif"))(str(tmp_path / "plain.tif"))
-    assert kwargs["metadata"][META_FILE_OPTICS] == {} and tuple(kwargs["scale"]) == (1.0, 1.0, 1.0)
+    assert kwargs["metadata"][META_FILE_OPTICS] == {} and tuple(kwargs["scale"]) == (1.0, 1.0, 1.0, 1.0)
 
 
 def test_per_source_files_in_natural_order(tmp_path) -> None:
@@ -117,10 +117,10 @@ def test_per_source_files_in_natural_order(tmp_path) -> None:
     assert sorted(["a10", "a2", "a1"], key=natural_key) == ["a1", "a2", "a10"]
     # the napari reader: the folder, and a list of files in the order given
     [(data, kwargs, _)] = get_reader(str(folder))(str(folder))
-    assert np.array_equal(data, stack.images) and np.allclose(kwargs["scale"][1:], 0.3)
+    assert np.array_equal(stack_images(data), stack.images) and np.allclose(kwargs["scale"][2:], 0.3)
     files = [str(folder / f"img_{i}.tif") for i in (3, 1, 2)]
     [(data, _, _)] = get_reader(files)(files)
-    assert list(data[:, 0, 0]) == [3, 1, 2]
+    assert list(stack_images(data)[:, 0, 0]) == [3, 1, 2]
 
 
 def test_per_source_files_that_disagree_are_refused_or_left_empty(tmp_path) -> None:
@@ -180,7 +180,7 @@ def test_predicted_images_open_as_a_stack_not_as_an_ri_volume(tmp_path) -> None:
     head = probe_stack(tmp_path / "pred.tif")
     assert head is not None and not head.is_ri_like and head.optics == pytest.approx({"pixel_size_um": 0.33})
     [(back, kwargs, _)] = get_reader(str(tmp_path / "pred.tif"))(str(tmp_path / "pred.tif"))
-    assert np.array_equal(back, data) and kwargs["metadata"]["fdt_kind"] == "stack"
+    assert np.array_equal(stack_images(back), data) and kwargs["metadata"]["fdt_kind"] == "stack"
 
 
 def test_bioio_reads_the_same_stack_and_optics_as_tifffile(tmp_path) -> None:

@@ -20,7 +20,7 @@ if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.env
     pytest.skip("napari needs a display: run the tests under xvfb-run (bash scripts/test.sh)", allow_module_level=True)
 
 from napari_fdt.errors import FDTWarning  # noqa: E402
-from napari_fdt.napari.layers import META_FILE_OPTICS, META_KIND, META_REPORT  # noqa: E402
+from napari_fdt.napari.layers import META_FILE_OPTICS, META_KIND, META_REPORT, stack_images  # noqa: E402
 
 PLUGIN = "napari-fdt"
 
@@ -30,9 +30,9 @@ def test_imagej_stack_opens_with_its_scale_and_file_optics(make_napari_viewer, t
     tifffile.imwrite(tmp_path / "ij.tif", data, imagej=True, resolution=(1 / 0.4, 1 / 0.4), metadata={"unit": "micron", "axes": "TYX"})
     viewer = make_napari_viewer()
     [layer] = viewer.open(str(tmp_path / "ij.tif"), plugin=PLUGIN)
-    assert np.array_equal(layer.data, data) and np.allclose(layer.scale[1:], 0.4)
+    assert np.array_equal(stack_images(layer.data), data) and np.allclose(layer.scale[2:], 0.4)  # (N, 1, H, W): image axis
     assert layer.metadata[META_FILE_OPTICS] == pytest.approx({"pixel_size_um": 0.4})
-    assert np.allclose(layer.translate[1:], (-8 * 0.4, -10 * 0.4))
+    assert np.allclose(layer.translate[2:], (-8 * 0.4, -10 * 0.4))
 
 
 def test_per_source_files_open_as_one_stack(make_napari_viewer, tmp_path) -> None:
@@ -42,7 +42,8 @@ def test_per_source_files_open_as_one_stack(make_napari_viewer, tmp_path) -> Non
         tifffile.imwrite(files[-1], np.full((16, 16), i + 1, np.float32))
     viewer = make_napari_viewer()
     [layer] = viewer.open(files, stack=True, plugin=PLUGIN)
-    assert layer.data.shape == (3, 16, 16) and list(layer.data[:, 0, 0]) == [1, 2, 3]
+    images = stack_images(layer.data)
+    assert images.shape == (3, 16, 16) and list(images[:, 0, 0]) == [1, 2, 3]
     assert layer.metadata[META_KIND] == "stack" and layer.metadata[META_FILE_OPTICS] == {}
 
 

@@ -805,7 +805,8 @@ def test_gui_save_acquisition_then_the_command_line_reproduces_the_run(make_napa
     _settings(w, "2x2, 1x2")
     w.seed.value = 7
     command = w.copy_command()
-    assert command is not None and command.startswith(f"fdt reconstruct {saved} --config ")
+    argv = shlex.split(command)
+    assert argv[:3] == ["fdt", "reconstruct", str(saved)] and "--config" in argv and "--out" in argv
     w.run_button.clicked.emit()
     _wait_done(qtbot, w)
     assert w.feedback.last_error is None, w.feedback.label.value
@@ -815,8 +816,7 @@ def test_gui_save_acquisition_then_the_command_line_reproduces_the_run(make_napa
     volume, _ = read_volume_tiff(out)
     assert np.allclose(volume, w._rec.ri_full(), atol=1e-5)
     report = json.loads(open(out.replace(".ome.tif", ".json")).read())
-    assert np.allclose(report["sources_um"]["initial"] if isinstance(report.get("sources_um"), dict) else w._rec.initial_sources_um,
-                       w._rec.initial_sources_um)
+    assert np.allclose(report["calibration"]["initial_sources_um"], w._rec.initial_sources_um)  # the edited start, through the files
     assert np.allclose(w._rec.initial_sources_um[3], (edited[3, 2], edited[3, 1], 14.5))
 
 
