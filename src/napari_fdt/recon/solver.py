@@ -375,15 +375,12 @@ class Reconstructor:
     def _capture_branch(self) -> dict[str, Any]:
         """A full copy of what training changes (volume, calibration and its optimiser, batch order), to start
         several candidates from one state."""
-        return {"x": self.volume.x.detach().clone(), "calibration": self.calibration.copy_values(),
-                "cal_opt": copy.deepcopy(self.calibration.optimiser.state_dict()),
+        return {**self._capture(), "cal_opt": copy.deepcopy(self.calibration.optimiser.state_dict()),
                 "batches": copy.deepcopy(self.batches.state_dict())}
 
     def _restore_branch(self, state: dict[str, Any]) -> None:
         """Return to a :meth:`_capture_branch` (copies again, so the state can be restored more than once)."""
-        with torch.no_grad():
-            self.volume.x = state["x"].clone().requires_grad_()
-        self.calibration.restore_values(state["calibration"])
+        self._restore(state, keep_bookkeeping=True)
         self.calibration.optimiser.load_state_dict(copy.deepcopy(state["cal_opt"]))
         self.batches.load_state_dict(copy.deepcopy(state["batches"]))
 
