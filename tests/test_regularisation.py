@@ -119,3 +119,11 @@ def test_a_resumed_run_keeps_the_choice(scene16, tmp_path) -> None:
     assert (again.loss_weights.tv_xy, again.loss_weights.tv_z) == (rec.tv_choice.tv_xy_weight, rec.tv_choice.tv_z_weight)
     list(again.run())
     assert np.array_equal(again.delta_n_full(), rec.delta_n_full())
+
+
+def test_cancelling_the_pilot_stops_before_the_first_stage(scene16) -> None:
+    """A cancel during the trials ends the run with nothing completed and no choice (the next run chooses again)."""
+    rec = Reconstructor(scene16.acquisition, _config(), device="cpu")
+    polls = iter(range(1000))
+    snaps = list(rec.run(should_stop=lambda: next(polls) >= 4))  # stage 0 has 6 iterations: stopped inside the trials
+    assert snaps == [] and rec.completed_stages == 0 and rec.tv_choice is None and rec.volume is None

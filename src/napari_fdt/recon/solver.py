@@ -249,19 +249,11 @@ class Reconstructor:
         weights at the selection stage (:meth:`_choose_tv`), then return to the initial state with the weights set, so
         that the run equals one given them as numbers from its first stage on. False when cancelled meanwhile."""
         t0 = time.perf_counter()
-        cancelled = False
-
-        def stop() -> bool:
-            nonlocal cancelled
-            cancelled = self.tv_choice is None and self._stop_requested(should_stop)
-            return cancelled or self.tv_choice is not None
-
-        for _ in self._run_stages(stop, None):
+        for _ in self._run_stages(should_stop, None):  # ends at the selection stage, once the weights are tried
             pass
         choice = self.tv_choice
         self._restart()
-        if choice is None or cancelled:
-            self.tv_choice = None
+        if choice is None:  # cancelled
             return False
         choice.seconds = time.perf_counter() - t0
         self.tv_choice = choice
@@ -304,10 +296,8 @@ class Reconstructor:
             best = BestIterate(tolerance=cfg.early_stopping_tolerance)
             t0 = time.perf_counter()
             if self.tv_choice is None and tv_is_auto(cfg) and si in selection_stages(cfg):
-                if not self._choose_tv(stage, mask, batch_size, data_range, global_it, should_stop):
-                    self.elapsed_s += time.perf_counter() - t0
-                    return
-                vol_opt = torch.optim.Adam([self.volume.x], lr=cfg.lr_ri, betas=(0.9, 0.99))
+                self._choose_tv(stage, mask, batch_size, data_range, global_it, should_stop)
+                return  # the pilot (run) ends here and starts the run again with the choice
             if len(self.validation_indices) and cfg.early_stopping != "off":
                 # The stage's starting volume is a candidate too: a stage that only makes the held-out images worse
                 # ends where it began (from stage 0 on: never a volume that explains them worse than no object).
@@ -344,10 +334,10 @@ class Reconstructor:
 
     # -- automatic regularisation ---------------------------------------------------------------
     def _choose_tv(self, stage: Stage, mask: torch.Tensor | None, batch_size: int, data_range: float, global_it: int,
-                   should_stop: Callable[[], bool] | None) -> bool:
-        """Try every weight of the TV path from the stage's starting state and keep the one the held-out images
-        prefer (:mod:`napari_fdt.recon.regularisation`); the state is then back at the stage's start. False when
-        stopped (cancelled) meanwhile."""
+                   should_stop: Callable[[], bool] | None) -> None:
+        """Try every weight of the TV path from the stage's starting state and set :attr:`tv_choice` to the one the
+        held-out images prefer (:mod:`napari_fdt.recon.regularisation`); left None when stopped (cancelled) meanwhile.
+        The state is then a trial's: the pilot (:meth:`_pilot`) starts the run again."""
         cfg = self.config
         t0 = time.perf_counter()
         n_probe = max(1, int(round(PROBE_SHARE * stage.iterations)))
@@ -360,17 +350,13 @@ class Reconstructor:
             vol_opt = torch.optim.Adam([self.volume.x], lr=cfg.lr_ri, betas=(0.9, 0.99))
             for it in range(n_probe):
                 if self._stop_requested(should_stop):
-                    self._restore_branch(start)
-                    return False
+                    return
                 self._step(stage, mask, vol_opt, batch_size, data_range, (global_it + it) / max(1, cfg.total_iterations))
             err, each = self._validation(stage, mask, per_image=True)
             trials.append({"tau": tau, "tv_xy_weight": xy, "tv_z_weight": z, "validation_error": err, "image_errors": each})
-        self._restore_branch(start)
         win = pick(trials)
-        self.loss_weights = dataclasses.replace(self.loss_weights, tv_xy=win["tv_xy_weight"], tv_z=win["tv_z_weight"])
         self.tv_choice = TVChoice(win["tv_xy_weight"], win["tv_z_weight"], stage=stage.index, probe_iterations=n_probe,
                                   trials=trials, seconds=time.perf_counter() - t0)
-        return True
 
     def _capture_branch(self) -> dict[str, Any]:
         """A full copy of what training changes (volume, calibration and its optimiser, batch order), to start
