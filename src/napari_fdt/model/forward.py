@@ -75,6 +75,11 @@ class Kernels:
     free_kernel: torch.Tensor | None = None
 
 
+def _value(x: Scalar) -> float:
+    """A number or a (possibly trained) scalar tensor as a float, outside autograd."""
+    return float(x.detach()) if isinstance(x, torch.Tensor) else float(x)
+
+
 def _has_nonradial(coeffs: torch.Tensor | None) -> bool:
     """Whether Zernike coefficients (of :data:`ZERNIKE_MODES`) include a non-rotationally-symmetric mode (or may: trained)."""
     if coeffs is None:
@@ -268,6 +273,15 @@ class MultiSliceModel:
 
     def _camera_spectra(self, delta_n: torch.Tensor, sources_um: torch.Tensor, k: Kernels) -> tuple[torch.Tensor, torch.Tensor | None]:
         """Spectra (B, Hp, Wp) of the camera field on the window and of its periodic homogeneous part (None if unused)."""
+        return self._pupil_spectra(*self.exit_spectra(delta_n, sources_um, k), k)
+
+    def exit_spectra(self, delta_n: torch.Tensor, sources_um: torch.Tensor, k: Kernels | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """(spectrum of the field after the last screen, spectrum of the sources at the first screen), each (B, Hp, Wp).
+
+        Everything of the image that does not depend on the pupil (its NA, edge and aberrations) or the camera: a
+        fit of those with the volume and sources held fixed computes these once and calls :meth:`intensity_from_exit`.
+        """
+        k = k or self._default
         dn = self.pad_volume(delta_n)
         spec0 = self.source_spectrum(sources_um, k)
         v0 = torch.fft.ifft2(spec0)
@@ -285,9 +299,12 @@ class MultiSliceModel:
                 u = slice_loop(v0, phi, k.slice_kernel, self.loop_mode(v0.shape[0]), check=False)
             else:  # inference: nothing to keep
                 u = loop_forward(v0, phi, k.slice_kernel)
-        spec = torch.fft.fft2(u) * k.exit_kernel
-        free = None if k.free_kernel is None else spec0 * k.free_kernel
-        return spec, free
+        return torch.fft.fft2(u), spec0
+
+    @staticmethod
+    def _pupil_spectra(exit_spec: torch.Tensor, spec0: torch.Tensor, k: Kernels) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """Camera-field spectrum (exit spectrum through the exit kernel) and its periodic homogeneous part (or None)."""
+        return exit_spec * k.exit_kernel, (None if k.free_kernel is None else spec0 * k.free_kernel)
 
     def _window_coordinates(self, start: int, stop: int, axis: int, step: float, dx: Scalar) -> torch.Tensor:
         """Lateral coordinates (µm) of window positions ``start·step … (stop−1)·step`` along rows (0) or columns (1)."""
@@ -315,7 +332,7 @@ class MultiSliceModel:
         step = DEFAULT_RHO_STEP_UM
         rho_max = float(rho.detach().max()) + 2 * step
         n_rho = int(math.ceil(rho_max / step)) + 2
-        f_max = float(edges[-1])
+        f_max = _value(edges[-1])
         s_max = min(0.999, f_max * float(lam) / o.n_background)
         tan_max = s_max / math.sqrt(1.0 - s_max * s_max)
         per_unit = 1.25 * (float(h.detach().max()) * tan_max + rho_max) + 4.0
@@ -327,13 +344,12 @@ class MultiSliceModel:
         if not _has_nonradial(k.zernike):
             key = None
             if not f.requires_grad:
-                key = (tuple(round(float(e), 12) for e in edges), per_unit, n_rho)
+                key = (tuple(round(_value(e), 12) for e in edges), per_unit, n_rho)
             bessel = self._bessel_cache.get(key) if key is not None else None
             if bessel is None:
                 bessel = bessel_j0(2.0 * math.pi * f[:, None] * radii[None, :])
                 if key is not None:
-                    self._bessel_cache.clear()
-                    self._bessel_cache[key] = bessel
+                    self._cache_bessel(key, bessel)
             if k.zernike is not None:
                 keep = [ZERNIKE_MODES.index(m) for m in RADIAL_MODES]
                 w_r = zernike_phase(torch.zeros_like(f), f, o.na, o.wavelength_um, torch.stack([k.zernike[i] for i in keep]), RADIAL_MODES)
@@ -350,11 +366,15 @@ class MultiSliceModel:
         unit = unit.expand(src.shape[0], -1, -1) if unit.shape[0] != src.shape[0] else unit
         # The J_m tables do not follow the nodes' motion with the NA and edge: those two gradients are approximate here
         # (4 % in d/dNA on a test case); the coefficients' gradients are exact.
-        z = 2.0 * math.pi * f.detach()[:, None] * radii[None, :]
+        key = ("harmonics", tuple(round(_value(e), 12) for e in edges), per_unit, n_rho, order)
+        tables = self._bessel_cache.get(key)
+        if tables is None:  # J_0 … J_M on (nodes × radii): the same while the pupil's edges stay (cached like J_0's)
+            z = 2.0 * math.pi * f.detach()[:, None] * radii[None, :]
+            tables = [(m, jm.to(self.dtype)) for m, jm in bessel_orders(z, order)]
+            self._cache_bessel(key, tables)
         out = None
         power = torch.ones_like(unit)
-        for m, jm in bessel_orders(z, order):
-            jm = jm.to(self.dtype)
+        for m, jm in tables:
             for sign in ((1,) if m == 0 else (1, -1)):
                 c_m = coeffs[order + sign * m]
                 bes = jm if (sign > 0 or m % 2 == 0) else -jm  # J_{-m} = (−1)^m·J_m
@@ -365,6 +385,13 @@ class MultiSliceModel:
                 out = term if out is None else out + term
             power = power * unit
         return out
+
+    def _cache_bessel(self, key: tuple, tables) -> None:
+        """Keep Bessel tables for ``key``, with at most one other entry (the J₀ table and the harmonics' tables of one
+        pupil both stay: training and validation may use either)."""
+        while len(self._bessel_cache) >= 2:
+            self._bessel_cache.pop(next(iter(self._bessel_cache)))
+        self._bessel_cache[key] = tables
 
     def camera_field(
         self,
@@ -379,6 +406,30 @@ class MultiSliceModel:
         """
         k = self.kernels(**optics_overrides)
         spec, free = self._camera_spectra(delta_n, sources_um, k)
+        return self._field_from_spectra(spec, free, sources_um, k)
+
+    def intensity(self, delta_n: torch.Tensor, sources_um: torch.Tensor, **optics_overrides: Scalar | None) -> torch.Tensor:
+        """``|E|²`` on the image, (B, H, W): at the pixel centres, or averaged over each pixel with ``pixel_integration``."""
+        if not self.pixel_integration:
+            field = self.camera_field(delta_n, sources_um, **optics_overrides)
+            return field.real.square() + field.imag.square()
+        k = self.kernels(**optics_overrides)
+        return self._integrated(*self._camera_spectra(delta_n, sources_um, k), sources_um, k)
+
+    def intensity_from_exit(self, exit_spec: torch.Tensor, spec0: torch.Tensor, sources_um: torch.Tensor,
+                            **optics_overrides: Scalar | None) -> torch.Tensor:
+        """:meth:`intensity` from :meth:`exit_spectra`, which must have been computed for the same sources and with the
+        same ``pixel_size_um``, ``slice_spacing_um`` and ``wavelength_um`` as given here; ``na``, ``pupil_edge`` and
+        ``zernike`` may differ (the pupil is applied here)."""
+        k = self.kernels(**optics_overrides)
+        spec, free = self._pupil_spectra(exit_spec, spec0, k)
+        if self.pixel_integration:
+            return self._integrated(spec, free, sources_um, k)
+        field = self._field_from_spectra(spec, free, sources_um, k)
+        return field.real.square() + field.imag.square()
+
+    def _field_from_spectra(self, spec: torch.Tensor, free: torch.Tensor | None, sources_um: torch.Tensor, k: Kernels) -> torch.Tensor:
+        """The camera field (B, H, W) at the pixel centres from :meth:`_pupil_spectra`."""
         field = self.crop(torch.fft.ifft2(spec))
         if free is not None:
             oy, ox = self.plan.offset
@@ -388,13 +439,8 @@ class MultiSliceModel:
             field = field - self.crop(torch.fft.ifft2(free)) + self.free_field_exact(sources_um, k, ys, xs)
         return field
 
-    def intensity(self, delta_n: torch.Tensor, sources_um: torch.Tensor, **optics_overrides: Scalar | None) -> torch.Tensor:
-        """``|E|²`` on the image, (B, H, W): at the pixel centres, or averaged over each pixel with ``pixel_integration``."""
-        if not self.pixel_integration:
-            field = self.camera_field(delta_n, sources_um, **optics_overrides)
-            return field.real.square() + field.imag.square()
-        k = self.kernels(**optics_overrides)
-        spec, free = self._camera_spectra(delta_n, sources_um, k)
+    def _integrated(self, spec: torch.Tensor, free: torch.Tensor | None, sources_um: torch.Tensor, k: Kernels) -> torch.Tensor:
+        """Pixel-averaged intensity (B, H, W) from :meth:`_pupil_spectra`."""
         fine = fine_field(spec)
         if free is not None:
             # exact homogeneous field on the image and a margin of FREE_FIELD_MARGIN fine pixels (the box filter's reach)
