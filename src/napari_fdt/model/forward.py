@@ -27,6 +27,7 @@ from napari_fdt.physics.aberrations import RADIAL_MODES, ZERNIKE_MODES, coeffici
 from napari_fdt.physics.camera import fine_field, pixel_average_from_fine
 from napari_fdt.physics.free_field import (
     DEFAULT_RHO_STEP_UM,
+    MAX_HARMONIC,
     angular_harmonics,
     bessel_j0,
     bessel_orders,
@@ -366,15 +367,17 @@ class MultiSliceModel:
         unit = unit.expand(src.shape[0], -1, -1) if unit.shape[0] != src.shape[0] else unit
         # The J_m tables do not follow the nodes' motion with the NA and edge: those two gradients are approximate here
         # (4 % in d/dNA on a test case); the coefficients' gradients are exact.
-        key = ("harmonics", tuple(round(_value(e), 12) for e in edges), per_unit, n_rho, order)
+        key = ("harmonics", tuple(round(_value(e), 12) for e in edges), per_unit, n_rho)
         tables = self._bessel_cache.get(key)
-        if tables is None:  # J_0 … J_M on (nodes × radii): the same while the pupil's edges stay (cached like J_0's)
+        if tables is None or len(tables) <= order:
+            # J_0 … J_M on (nodes × radii): the same while the pupil's edges stay (cached like J_0's); a few orders
+            # beyond the one needed, so that a trained phase whose order grows by one does not rebuild them
             z = 2.0 * math.pi * f.detach()[:, None] * radii[None, :]
-            tables = [(m, jm.to(self.dtype)) for m, jm in bessel_orders(z, order)]
+            tables = [(m, jm.to(self.dtype)) for m, jm in bessel_orders(z, min(order + 2, MAX_HARMONIC))]
             self._cache_bessel(key, tables)
         out = None
         power = torch.ones_like(unit)
-        for m, jm in tables:
+        for m, jm in tables[: order + 1]:
             for sign in ((1,) if m == 0 else (1, -1)):
                 c_m = coeffs[order + sign * m]
                 bes = jm if (sign > 0 or m % 2 == 0) else -jm  # J_{-m} = (−1)^m·J_m
