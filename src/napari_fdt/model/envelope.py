@@ -29,6 +29,7 @@ import math
 import torch
 import torch.nn.functional as F
 
+from napari_fdt.model.envelope_loop import envelope_loop
 from napari_fdt.physics.optics import Optics
 from napari_fdt.physics.propagation import axial_frequency_offset, pupil
 
@@ -122,9 +123,89 @@ class EnvelopeModel:
         offset, prop = axial_frequency_offset(f2, n_background, wavelength_um)
         return torch.polar(prop.to(f2.dtype), 2 * math.pi * dz_eff * offset)
 
+    def _heights(self, depth: torch.Tensor, dz, h_cam: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(B, n) heights of the screens above each source, and (B, n) the height each step ends at (next screen; camera)."""
+        n = self.optics.n_slices
+        k = torch.arange(n, device=self.device, dtype=self.dtype) + 0.5
+        heights = depth[:, None] + k[None, :] * dz
+        ends = torch.cat([heights[:, 1:], h_cam[:, None]], dim=1)
+        return heights, ends
+
+    def _screens(self, dn: torch.Tensor, src: torch.Tensor, px: torch.Tensor, py: torch.Tensor,
+                 heights: torch.Tensor, k0dz) -> torch.Tensor:
+        """Phase screens of every source and slice, (B, n, hp, wp) complex, in one bilinear sampling.
+
+        The p-grid of source b at height h sits at ``x = x_b + p·h``; each (source, slice) pair is one item of a
+        single ``grid_sample`` call over the volume repeated per source (a (B·n, 1, h, w) copy of the stage grid).
+        """
+        b, n = heights.shape
+        h, w = self.grid_shape
+        hp, wp = self.padded
+        xs = src[:, None, 0:1] + px[:, None, :] * heights[:, :, None]  # (B, n, wp)
+        ys = src[:, None, 1:2] + py[:, None, :] * heights[:, :, None]  # (B, n, hp)
+        u = (2 * ((xs - self.shift_um[0]) / self.pixel_um + w // 2) + 1) / w - 1
+        v = (2 * ((ys - self.shift_um[1]) / self.pixel_um + h // 2) + 1) / h - 1
+        grid = torch.stack(torch.broadcast_tensors(u[:, :, None, :], v[:, :, :, None]), dim=-1)  # (B, n, hp, wp, 2)
+        vol = dn[None].expand(b, -1, -1, -1).reshape(b * n, 1, h, w)
+        sample = F.grid_sample(vol, grid.reshape(b * n, hp, wp, 2), mode="bilinear", padding_mode="zeros",
+                               align_corners=False).reshape(b, n, hp, wp)
+        return torch.polar(torch.ones_like(sample), k0dz * sample)
+
     def __call__(self, delta_n: torch.Tensor, sources_um: torch.Tensor, gain: torch.Tensor | None = None,
                  *, slice_spacing_um=None, wavelength_um=None) -> torch.Tensor:
-        """Images (B, h, w) on the stage grid for Δn (n_slices, h, w) on the stage grid; sources (B, 3) µm."""
+        """Images (B, h, w) on the stage grid for Δn (n_slices, h, w) on the stage grid; sources (B, 3) µm.
+
+        Every source and slice is handled by the same few batched operations: one ``grid_sample`` for all screens,
+        one kernel computation for all steps, then :func:`~napari_fdt.model.envelope_loop.envelope_loop` (4 operations
+        per slice forward, 6 backward, with a hand-written adjoint) instead of ~30 per slice under plain autograd: on a
+        GPU the coarse stage is less bound by kernel launches (counts: ``benchmarks/coarse_stage_speed.py``).
+        """
+        o = self.optics
+        dz = o.slice_spacing_um if slice_spacing_um is None else slice_spacing_um
+        lam = o.wavelength_um if wavelength_um is None else wavelength_um
+        src = sources_um.to(self.device, self.dtype)
+        dn = delta_n.to(self.device, self.dtype)
+        hp, wp = self.padded
+        h_cam, dp, py, px = self._p_axes(src)
+        depth = src[:, 2]
+        heights, ends = self._heights(depth, dz, h_cam)
+        screens = self._screens(dn, src, px, py, heights, 2 * math.pi / lam * dz)
+        # frequencies conjugate to p, per source: (B, 1, hp, 1), (B, 1, 1, wp); kernels of all steps: (B, n, hp, wp)
+        fy = torch.fft.fftfreq(hp, device=self.device, dtype=self.dtype)[None, None, :, None] / dp[:, None, None, None]
+        fx = torch.fft.fftfreq(wp, device=self.device, dtype=self.dtype)[None, None, None, :] / dp[:, None, None, None]
+        kernels = self._kernels(fy * fy + fx * fx, heights, ends, o.n_background, lam) / (hp * wp)
+        a = envelope_loop(screens, kernels)
+        return self._camera(a, depth, h_cam, py, px, lam, gain)
+
+    @staticmethod
+    def _kernels(f2p: torch.Tensor, h0: torch.Tensor, h1: torch.Tensor, n_background: float,
+                 wavelength_um: float | torch.Tensor) -> torch.Tensor:
+        """:meth:`_kernel` for all steps at once: ``f2p`` (B, 1, hp, wp), ``h0``, ``h1`` (B, n) → (B, n, hp, wp)."""
+        f2 = f2p / (h0 * h0)[:, :, None, None]
+        dz_eff = ((h1 - h0) * h0 / h1)[:, :, None, None]
+        offset, prop = axial_frequency_offset(f2, n_background, wavelength_um)
+        return torch.polar(prop.to(f2.dtype), 2 * math.pi * dz_eff * offset)
+
+    def _camera(self, a: torch.Tensor, depth: torch.Tensor, h_cam: torch.Tensor, py: torch.Tensor, px: torch.Tensor,
+                lam, gain: torch.Tensor | None) -> torch.Tensor:
+        """Camera images (B, h, w) from the envelopes (B, hp, wp) at the focal plane."""
+        o = self.optics
+        p2 = py[:, :, None] ** 2 + px[:, None, :] ** 2
+        sin2 = p2 / (1 + p2)
+        aperture = pupil(sin2 * (o.n_background / lam) ** 2, o.na, lam, self.pupil_taper)
+        intensity = (depth**2 / h_cam**2)[:, None, None] / (1 + p2) * aperture**2 * (a.real.square() + a.imag.square())
+        out = self._crop(intensity)
+        if gain is not None:
+            out = out * gain.to(self.device, self.dtype).reshape(-1, 1, 1)
+        return out
+
+    def images_per_slice(self, delta_n: torch.Tensor, sources_um: torch.Tensor, gain: torch.Tensor | None = None,
+                         *, slice_spacing_um=None, wavelength_um=None) -> torch.Tensor:
+        """The same images as :meth:`__call__`, one slice at a time (the first implementation, ~30 operations per slice).
+
+        Kept as the reference the batched path is tested against (``tests/test_envelope.py``) and timed against
+        (``benchmarks/coarse_stage_speed.py``).
+        """
         o = self.optics
         dz = o.slice_spacing_um if slice_spacing_um is None else slice_spacing_um
         lam = o.wavelength_um if wavelength_um is None else wavelength_um
@@ -135,7 +216,6 @@ class EnvelopeModel:
         hp, wp = self.padded
         h_cam, dp, py, px = self._p_axes(src)
         depth = src[:, 2]
-        # frequencies conjugate to p, per source: (B, hp, 1), (B, 1, wp)
         fy = torch.fft.fftfreq(hp, device=self.device, dtype=self.dtype)[None, :, None] / dp[:, None, None]
         fx = torch.fft.fftfreq(wp, device=self.device, dtype=self.dtype)[None, None, :] / dp[:, None, None]
         f2 = fy * fy + fx * fx
@@ -144,7 +224,6 @@ class EnvelopeModel:
         heights = [depth + (k + 0.5) * dz for k in range(o.n_slices)]
         vol = dn[None].expand(b, -1, -1, -1)  # (B, n, h, w), no copy
         for k, hk in enumerate(heights):
-            # physical sample positions of the p-grid at this height, as grid_sample coordinates
             xs = src[:, 0:1] + px * hk[:, None]  # (B, wp)
             ys = src[:, 1:2] + py * hk[:, None]  # (B, hp)
             u = (2 * ((xs - self.shift_um[0]) / self.pixel_um + w // 2) + 1) / w - 1
@@ -157,11 +236,4 @@ class EnvelopeModel:
             else:
                 a = torch.fft.ifft2(torch.fft.fft2(a) * self._kernel(f2, heights[k - 1], hk, o.n_background, lam)) * screen
         a = torch.fft.ifft2(torch.fft.fft2(a) * self._kernel(f2, heights[-1], h_cam, o.n_background, lam))
-        p2 = py[:, :, None] ** 2 + px[:, None, :] ** 2
-        sin2 = p2 / (1 + p2)
-        aperture = pupil(sin2 * (o.n_background / lam) ** 2, o.na, lam, self.pupil_taper)
-        intensity = (depth**2 / h_cam**2)[:, None, None] / (1 + p2) * aperture**2 * (a.real.square() + a.imag.square())
-        out = self._crop(intensity)
-        if gain is not None:
-            out = out * gain.to(self.device, self.dtype).reshape(-1, 1, 1)
-        return out
+        return self._camera(a, depth, h_cam, py, px, lam, gain)
