@@ -7,8 +7,9 @@ For each geometry and stage factor (4, 2, 1) the stage is built as the solver bu
 (:func:`napari_fdt.recon.stages.build_stage`) and one iteration is timed: forward through the stage model, an L2
 loss against the stage's images, backward to Δn (stage grid), the source positions and the gains. Models:
 
-- ``envelope``: :class:`~napari_fdt.model.envelope.EnvelopeModel`, all sources and slices batched (the default path);
-- ``envelope_per_slice``: the same model one slice at a time (``EnvelopeModel.images_per_slice``, the first version);
+- ``envelope``: :class:`~napari_fdt.model.envelope.EnvelopeModel`, all sources and slices batched (``images_batched``,
+  its path on CUDA);
+- ``envelope_per_slice``: the same model one slice at a time (``images_per_slice``, its path on the CPU);
 - ``multislice``: :class:`~napari_fdt.model.forward.MultiSliceModel` on the field grid the pupil needs;
 - ``envelope_graph`` (``--cuda-graph``, CUDA only): the batched envelope captured in CUDA graphs
   (:mod:`napari_fdt.model.graphed`).
@@ -170,7 +171,7 @@ def main() -> None:
                         return graphed_model(stage.model, dn, s, g)
                 else:
                     def call_for(dn, s, g, stage=stage):
-                        return stage.model
+                        return stage.model.images_batched
                 sec, ops = time_stage(stage, call_for, batch, device, args.repeats)
                 row = {"geometry": geo, "factor": factor, "model": name, "field_grid": list(stage.image_shape),
                        "window": list(stage.window), "batch": batch, "n_slices": optics.n_slices,
