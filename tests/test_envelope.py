@@ -99,7 +99,7 @@ def _scene_for_loop(dtype):
 def test_batched_path_equals_the_per_slice_loop_with_its_gradients() -> None:
     """All sources and slices in one batch (hand-written adjoint) = the one-slice-at-a-time loop under plain autograd."""
     env, (dn, src, gain, dz) = _scene_for_loop(torch.float64)
-    a = env(dn, src, gain, slice_spacing_um=dz)
+    a = env.images_batched(dn, src, gain, slice_spacing_um=dz)
     b = env.images_per_slice(dn, src, gain, slice_spacing_um=dz)
     assert float((a - b).norm() / b.norm()) < 1e-12
     w = torch.rand_like(a)
@@ -125,6 +125,6 @@ def test_envelope_loop_adjoint_against_gradcheck() -> None:
 def test_batched_path_float32_against_float64_reference() -> None:
     env32, args32 = _scene_for_loop(torch.float32)
     env64, args64 = _scene_for_loop(torch.float64)
-    a = env32(args32[0], args32[1], args32[2], slice_spacing_um=args32[3])
+    a = env32.images_batched(args32[0], args32[1], args32[2], slice_spacing_um=args32[3])
     b = env64.images_per_slice(args64[0], args64[1], args64[2], slice_spacing_um=args64[3])
     assert float((a.double() - b).norm() / b.norm()) < 1e-5

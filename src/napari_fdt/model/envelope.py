@@ -48,10 +48,15 @@ class EnvelopeModel:
     shift_um: (x, y) position of the stage grid's block-centre origin relative to the convention
         (see :mod:`napari_fdt.recon.stages`).
     pupil_taper: soft edge of the angular aperture, as the pupil's.
+    batched: ``True``: all sources and slices in one batch (:meth:`images_batched`: few, large operations, for a GPU);
+        ``False``: one slice at a time (:meth:`images_per_slice`: many small operations on cache-sized arrays);
+        ``"auto"`` (default): batched on CUDA only. Same images and gradients (to rounding); on the CPU the
+        per-slice loop was measured faster (``docs/benchmarks.md``, "Coarse stages").
     """
 
     def __init__(self, optics: Optics, grid_shape: tuple[int, int], factor: int, shift_um: tuple[float, float],
-                 *, pupil_taper: float = 0.03, device: torch.device | str = "cpu", dtype: torch.dtype = torch.float32) -> None:
+                 *, pupil_taper: float = 0.03, device: torch.device | str = "cpu", dtype: torch.dtype = torch.float32,
+                 batched: bool | str = "auto") -> None:
         self.optics = optics
         self.grid_shape = tuple(int(s) for s in grid_shape)
         self.factor = int(factor)
@@ -60,6 +65,9 @@ class EnvelopeModel:
         self.pupil_taper = pupil_taper
         self.device = torch.device(device)
         self.dtype = dtype
+        if batched not in (True, False, "auto"):
+            raise ValueError(f"batched must be True, False or 'auto', got {batched!r}")
+        self.batched = self.device.type == "cuda" if batched == "auto" else bool(batched)
         h, w = self.grid_shape
         lam_medium = optics.wavelength_um / optics.n_background
         # Envelope diffraction spreads by at most λ'/(2·pixel) over the thickness plus the exit distance.
@@ -153,7 +161,13 @@ class EnvelopeModel:
 
     def __call__(self, delta_n: torch.Tensor, sources_um: torch.Tensor, gain: torch.Tensor | None = None,
                  *, slice_spacing_um=None, wavelength_um=None) -> torch.Tensor:
-        """Images (B, h, w) on the stage grid for Δn (n_slices, h, w) on the stage grid; sources (B, 3) µm.
+        """Images (B, h, w) on the stage grid for Δn (n_slices, h, w) on the stage grid; sources (B, 3) µm, gain (B,)."""
+        run = self.images_batched if self.batched else self.images_per_slice
+        return run(delta_n, sources_um, gain, slice_spacing_um=slice_spacing_um, wavelength_um=wavelength_um)
+
+    def images_batched(self, delta_n: torch.Tensor, sources_um: torch.Tensor, gain: torch.Tensor | None = None,
+                       *, slice_spacing_um=None, wavelength_um=None) -> torch.Tensor:
+        """The images of :meth:`__call__`, every source and slice in one batch.
 
         Every source and slice is handled by the same few batched operations: one ``grid_sample`` for all screens,
         one kernel computation for all steps, then :func:`~napari_fdt.model.envelope_loop.envelope_loop` (4 operations
@@ -201,10 +215,9 @@ class EnvelopeModel:
 
     def images_per_slice(self, delta_n: torch.Tensor, sources_um: torch.Tensor, gain: torch.Tensor | None = None,
                          *, slice_spacing_um=None, wavelength_um=None) -> torch.Tensor:
-        """The same images as :meth:`__call__`, one slice at a time (the first implementation, ~30 operations per slice).
+        """The images of :meth:`__call__`, one slice at a time (~30 operations per slice, on (B, h, w) arrays).
 
-        Kept as the reference the batched path is tested against (``tests/test_envelope.py``) and timed against
-        (``benchmarks/coarse_stage_speed.py``).
+        The first implementation, and the reference :meth:`images_batched` is tested against (``tests/test_envelope.py``).
         """
         o = self.optics
         dz = o.slice_spacing_um if slice_spacing_um is None else slice_spacing_um
