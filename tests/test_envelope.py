@@ -114,12 +114,13 @@ def test_envelope_loop_adjoint_against_gradcheck() -> None:
     from napari_fdt.model.envelope_loop import envelope_loop
 
     gen = torch.Generator().manual_seed(2)
-    phase = torch.rand(2, 3, 6, 5, generator=gen, dtype=torch.float64)
-    screens = torch.polar(torch.ones_like(phase), phase).requires_grad_()
-    kernels = (torch.randn(2, 3, 6, 5, generator=gen, dtype=torch.complex128) / 30).requires_grad_()
-    assert torch.autograd.gradcheck(lambda p, k: envelope_loop(p, k).abs().square().sum(), (screens, kernels), eps=1e-6, atol=1e-7)
+    phase = torch.rand(3, 2, 6, 5, generator=gen, dtype=torch.float64).requires_grad_()
+    kernels = (torch.randn(3, 2, 6, 5, generator=gen, dtype=torch.complex128) / 30).requires_grad_()
+    assert torch.autograd.gradcheck(lambda p, k: envelope_loop(p, k).abs().square().sum(), (phase, kernels), eps=1e-6, atol=1e-7)
     kfixed = kernels.detach()
-    assert torch.autograd.gradcheck(lambda p: envelope_loop(p, kfixed).real.sum(), (screens,), eps=1e-6, atol=1e-7)
+    assert torch.autograd.gradcheck(lambda p: envelope_loop(p, kfixed).real.sum(), (phase,), eps=1e-6, atol=1e-7)
+    pfixed = phase.detach()
+    assert torch.autograd.gradcheck(lambda k: envelope_loop(pfixed, k).imag.sum(), (kernels,), eps=1e-6, atol=1e-7)
 
 
 def test_batched_path_float32_against_float64_reference() -> None:
@@ -128,3 +129,22 @@ def test_batched_path_float32_against_float64_reference() -> None:
     a = env32.images_batched(args32[0], args32[1], args32[2], slice_spacing_um=args32[3])
     b = env64.images_per_slice(args64[0], args64[1], args64[2], slice_spacing_um=args64[3])
     assert float((a.double() - b).norm() / b.norm()) < 1e-5
+
+
+def test_step_kernels_match_the_autograd_kernels_with_gradients() -> None:
+    """The hand-written backward of all step kernels = autograd through EnvelopeModel._kernels (float64)."""
+    from napari_fdt.model.envelope_loop import step_kernels
+
+    gen = torch.Generator().manual_seed(3)
+    f2p = (3000.0 * torch.rand(1, 2, 6, 5, generator=gen, dtype=torch.float64)).requires_grad_()
+    h0 = (20.0 + torch.rand(3, 2, generator=gen, dtype=torch.float64)).requires_grad_()
+    h1 = (h0.detach() + 2.0).requires_grad_()
+    wr = torch.randn(3, 2, 6, 5, generator=gen, dtype=torch.complex128)
+    got = step_kernels(f2p, h0, h1, 1.33, 0.635, 0.5)
+    ref = EnvelopeModel._kernels(f2p, h0, h1, 1.33, 0.635) * 0.5
+    assert ((f2p / h0[:, :, None, None] ** 2) >= (1.33 / 0.635) ** 2).any()  # some evanescent entries are covered
+    assert torch.allclose(got, ref, atol=1e-13)
+    g_got = torch.autograd.grad((got * wr).real.sum(), (f2p, h0, h1))
+    g_ref = torch.autograd.grad((ref * wr).real.sum(), (f2p, h0, h1))
+    for a, b in zip(g_got, g_ref):
+        assert torch.allclose(a, b, rtol=1e-9, atol=1e-12)

@@ -29,7 +29,7 @@ import math
 import torch
 import torch.nn.functional as F
 
-from napari_fdt.model.envelope_loop import envelope_loop
+from napari_fdt.model.envelope_loop import envelope_loop, step_kernels
 from napari_fdt.physics.optics import Optics
 from napari_fdt.physics.propagation import axial_frequency_offset, pupil
 
@@ -132,32 +132,32 @@ class EnvelopeModel:
         return torch.polar(prop.to(f2.dtype), 2 * math.pi * dz_eff * offset)
 
     def _heights(self, depth: torch.Tensor, dz, h_cam: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """(B, n) heights of the screens above each source, and (B, n) the height each step ends at (next screen; camera)."""
+        """(n, B) heights of the screens above each source, and (n, B) the height each step ends at (next screen; camera)."""
         n = self.optics.n_slices
         k = torch.arange(n, device=self.device, dtype=self.dtype) + 0.5
-        heights = depth[:, None] + k[None, :] * dz
-        ends = torch.cat([heights[:, 1:], h_cam[:, None]], dim=1)
+        heights = depth[None, :] + k[:, None] * dz
+        ends = torch.cat([heights[1:], h_cam[None, :]], dim=0)
         return heights, ends
 
     def _screens(self, dn: torch.Tensor, src: torch.Tensor, px: torch.Tensor, py: torch.Tensor,
                  heights: torch.Tensor, k0dz) -> torch.Tensor:
-        """Phase screens of every source and slice, (B, n, hp, wp) complex, in one bilinear sampling.
+        """Phases (radians) of the screens of every slice and source, (n, B, hp, wp) real, in one bilinear sampling.
 
-        The p-grid of source b at height h sits at ``x = x_b + p·h``; each (source, slice) pair is one item of a
-        single ``grid_sample`` call over the volume repeated per source (a (B·n, 1, h, w) copy of the stage grid).
+        The p-grid of source b at height h sits at ``x = x_b + p·h``; each (slice, source) pair is one item of a
+        single ``grid_sample`` call over the volume repeated per source (an (n·B, 1, h, w) copy of the stage grid).
         """
-        b, n = heights.shape
+        n, b = heights.shape
         h, w = self.grid_shape
         hp, wp = self.padded
-        xs = src[:, None, 0:1] + px[:, None, :] * heights[:, :, None]  # (B, n, wp)
-        ys = src[:, None, 1:2] + py[:, None, :] * heights[:, :, None]  # (B, n, hp)
+        xs = src[None, :, 0:1] + px[None, :, :] * heights[:, :, None]  # (n, B, wp)
+        ys = src[None, :, 1:2] + py[None, :, :] * heights[:, :, None]  # (n, B, hp)
         u = (2 * ((xs - self.shift_um[0]) / self.pixel_um + w // 2) + 1) / w - 1
         v = (2 * ((ys - self.shift_um[1]) / self.pixel_um + h // 2) + 1) / h - 1
-        grid = torch.stack(torch.broadcast_tensors(u[:, :, None, :], v[:, :, :, None]), dim=-1)  # (B, n, hp, wp, 2)
-        vol = dn[None].expand(b, -1, -1, -1).reshape(b * n, 1, h, w)
-        sample = F.grid_sample(vol, grid.reshape(b * n, hp, wp, 2), mode="bilinear", padding_mode="zeros",
-                               align_corners=False).reshape(b, n, hp, wp)
-        return torch.polar(torch.ones_like(sample), k0dz * sample)
+        grid = torch.stack(torch.broadcast_tensors(u[:, :, None, :], v[:, :, :, None]), dim=-1)  # (n, B, hp, wp, 2)
+        vol = dn[:, None].expand(-1, b, -1, -1).reshape(n * b, 1, h, w)
+        sample = F.grid_sample(vol, grid.reshape(n * b, hp, wp, 2), mode="bilinear", padding_mode="zeros",
+                               align_corners=False).reshape(n, b, hp, wp)
+        return k0dz * sample
 
     def __call__(self, delta_n: torch.Tensor, sources_um: torch.Tensor, gain: torch.Tensor | None = None,
                  *, slice_spacing_um=None, wavelength_um=None) -> torch.Tensor:
@@ -183,18 +183,22 @@ class EnvelopeModel:
         h_cam, dp, py, px = self._p_axes(src)
         depth = src[:, 2]
         heights, ends = self._heights(depth, dz, h_cam)
-        screens = self._screens(dn, src, px, py, heights, 2 * math.pi / lam * dz)
-        # frequencies conjugate to p, per source: (B, 1, hp, 1), (B, 1, 1, wp); kernels of all steps: (B, n, hp, wp)
-        fy = torch.fft.fftfreq(hp, device=self.device, dtype=self.dtype)[None, None, :, None] / dp[:, None, None, None]
-        fx = torch.fft.fftfreq(wp, device=self.device, dtype=self.dtype)[None, None, None, :] / dp[:, None, None, None]
-        kernels = self._kernels(fy * fy + fx * fx, heights, ends, o.n_background, lam) / (hp * wp)
-        a = envelope_loop(screens, kernels)
+        phases = self._screens(dn, src, px, py, heights, 2 * math.pi / lam * dz)
+        # frequencies conjugate to p, per source: (1, B, hp, 1), (1, B, 1, wp); kernels of all steps: (n, B, hp, wp)
+        fy = torch.fft.fftfreq(hp, device=self.device, dtype=self.dtype)[None, None, :, None] / dp[None, :, None, None]
+        fx = torch.fft.fftfreq(wp, device=self.device, dtype=self.dtype)[None, None, None, :] / dp[None, :, None, None]
+        f2p = fy * fy + fx * fx
+        if isinstance(lam, torch.Tensor) and lam.requires_grad:  # differentiable wavelength: plain autograd
+            kernels = self._kernels(f2p, heights, ends, o.n_background, lam) / (hp * wp)
+        else:
+            kernels = step_kernels(f2p, heights, ends, o.n_background, float(lam), 1.0 / (hp * wp))
+        a = envelope_loop(phases, kernels)
         return self._camera(a, depth, h_cam, py, px, lam, gain)
 
     @staticmethod
     def _kernels(f2p: torch.Tensor, h0: torch.Tensor, h1: torch.Tensor, n_background: float,
                  wavelength_um: float | torch.Tensor) -> torch.Tensor:
-        """:meth:`_kernel` for all steps at once: ``f2p`` (B, 1, hp, wp), ``h0``, ``h1`` (B, n) → (B, n, hp, wp)."""
+        """:meth:`_kernel` for all steps at once (plain autograd): ``f2p`` (1, B, hp, wp), ``h0``, ``h1`` (n, B) → (n, B, hp, wp)."""
         f2 = f2p / (h0 * h0)[:, :, None, None]
         dz_eff = ((h1 - h0) * h0 / h1)[:, :, None, None]
         offset, prop = axial_frequency_offset(f2, n_background, wavelength_um)
