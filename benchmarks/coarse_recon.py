@@ -56,7 +56,8 @@ def run(scene: str, model: str, device: str) -> dict:
             "relative_delta_n_error": relative_delta_n_error(rec.delta_n_full(), truth - acq.optics.n_background),
             "validation_error": rec.stages[-1].validation_error if rec.stages else None,
             "seconds_per_iteration": {f"x{r.factor}": r.seconds_per_iteration for r in rec.stages},
-            "stage_models": [r.model for r in rec.stages], "wall_s": wall, "threads": torch.get_num_threads(),
+            "stage_models": [r.model for r in rec.stages], "wall_s": wall,
+            "tv": None if rec.tv_choice is None else rec.tv_choice.to_dict(), "threads": torch.get_num_threads(),
             "cpu": platform.processor() or platform.machine(), "torch": torch.__version__, "date": time.strftime("%Y-%m-%d %H:%M")}
 
 

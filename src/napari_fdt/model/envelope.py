@@ -50,8 +50,8 @@ class EnvelopeModel:
     pupil_taper: soft edge of the angular aperture, as the pupil's.
     batched: ``True``: all sources and slices in one batch (:meth:`images_batched`: few, large operations, for a GPU);
         ``False``: one slice at a time (:meth:`images_per_slice`: many small operations on cache-sized arrays);
-        ``"auto"`` (default): batched on CUDA only. Same images and gradients (to rounding); on the CPU the
-        per-slice loop was measured faster (``docs/benchmarks.md``, "Coarse stages").
+        ``"auto"`` (default): batched on CUDA only, where it launches ~3× fewer kernels. Same images and gradients
+        (to rounding); on the CPU the two were within the run-to-run spread of each other (``docs/benchmarks.md``).
     """
 
     def __init__(self, optics: Optics, grid_shape: tuple[int, int], factor: int, shift_um: tuple[float, float],
