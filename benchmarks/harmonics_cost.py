@@ -44,7 +44,7 @@ def main() -> None:
     key = next((k for k in m._bessel_cache if k and k[0] == "harmonics"), None)
     if key is not None:
         tables = m._bessel_cache[key]
-        print(f"harmonic order {key[-1]}, tables {tuple(tables[0][1].shape)}, window {plan.padded_shape}, {args.threads} thread(s)")
+        print(f"tables J_0 … J_{len(tables) - 1} of {tuple(tables[0][1].shape)}, window {plan.padded_shape}, {args.threads} thread(s)")
 
 
 if __name__ == "__main__":
