@@ -345,9 +345,11 @@ class MultiSliceModel:
         if not _has_nonradial(k.zernike):
             key = None
             if not f.requires_grad:
-                key = (tuple(round(_value(e), 12) for e in edges), per_unit, n_rho)
+                key = (tuple(round(_value(e), 12) for e in edges), per_unit)
             bessel = self._bessel_cache.get(key) if key is not None else None
-            if bessel is None:
+            if bessel is not None and bessel.shape[1] >= n_rho:  # radii are a prefix of the cached ones
+                bessel = bessel[:, :n_rho]
+            else:
                 bessel = bessel_j0(2.0 * math.pi * f[:, None] * radii[None, :])
                 if key is not None:
                     self._cache_bessel(key, bessel)
@@ -367,17 +369,21 @@ class MultiSliceModel:
         unit = unit.expand(src.shape[0], -1, -1) if unit.shape[0] != src.shape[0] else unit
         # The J_m tables do not follow the nodes' motion with the NA and edge: those two gradients are approximate here
         # (4 % in d/dNA on a test case); the coefficients' gradients are exact.
-        key = ("harmonics", tuple(round(_value(e), 12) for e in edges), per_unit, n_rho)
+        key = ("harmonics", tuple(round(_value(e), 12) for e in edges), per_unit)
         tables = self._bessel_cache.get(key)
-        if tables is None or len(tables) <= order:
+        if tables is None or len(tables) <= order or tables[0][1].shape[1] < n_rho:
             # J_0 … J_M on (nodes × radii): the same while the pupil's edges stay (cached like J_0's); a few orders
-            # beyond the one needed, so that a trained phase whose order grows by one does not rebuild them
-            z = 2.0 * math.pi * f.detach()[:, None] * radii[None, :]
+            # beyond the one needed and 25 % more radii, so that a trained phase whose order grows by one, or a batch
+            # of sources a little farther from the image, does not rebuild them (the radii are a prefix)
+            n_keep = int(1.25 * n_rho) + 1
+            wide = torch.arange(n_keep, device=self.device, dtype=self.dtype) * step
+            z = 2.0 * math.pi * f.detach()[:, None] * wide[None, :]
             tables = [(m, jm.to(self.dtype)) for m, jm in bessel_orders(z, min(order + 2, MAX_HARMONIC))]
             self._cache_bessel(key, tables)
         out = None
         power = torch.ones_like(unit)
-        for m, jm in tables[: order + 1]:
+        for m, jm_all in tables[: order + 1]:
+            jm = jm_all[:, :n_rho]
             for sign in ((1,) if m == 0 else (1, -1)):
                 c_m = coeffs[order + sign * m]
                 bes = jm if (sign > 0 or m % 2 == 0) else -jm  # J_{-m} = (−1)^m·J_m
