@@ -50,7 +50,7 @@ class Calibration:
         #: whether the gains hold their least-squares start (:meth:`set_gains`)
         self.gain_initialised = False
         #: one Adam for the whole run, built by the first :meth:`set_trainable`
-        self.optimiser: torch.optim.Adam | None = None
+        self.optimiser: CalibrationOptimiser | None = None
 
     # -- values --------------------------------------------------------------------------------
     def calibrated_sources(self, shared_frozen: bool = False) -> torch.Tensor:
@@ -115,15 +115,18 @@ class Calibration:
         self.spacing_scale.requires_grad_(on and cfg.calibrate_slice_spacing)
         self.log_gain.requires_grad_(cfg.calibrate_gain)
         if self.optimiser is None:
-            self.optimiser = torch.optim.Adam(
-                [
-                    {"params": [self.sources], "lr": cfg.lr_sources_um},
-                    {"params": [self.log_gain], "lr": cfg.lr_log_gain},
-                    {"params": [self.pixel_scale, self.spacing_scale], "lr": cfg.lr_global},
-                    {"params": [self.depth_offset_um], "lr": cfg.lr_sources_um},
-                ],
-                betas=(0.9, 0.99),
-            )
+            self.optimiser = CalibrationOptimiser(self.sources, [
+                {"params": [self.log_gain], "lr": cfg.lr_log_gain},
+                {"params": [self.pixel_scale, self.spacing_scale], "lr": cfg.lr_global},
+                {"params": [self.depth_offset_um], "lr": cfg.lr_depth_offset_um},
+            ], config=cfg)
+        self.optimiser.set_visit_interval(len(self.sources) / cfg.stage_batch(stage_index), self.max_visit_step_um())
+
+    def max_visit_step_um(self) -> float:
+        """Largest step of a source per visit, µm: ``λ / (4·NA)``, a quarter of the lateral resolution. A shift by
+        half the resolution turns a fringe of the source's image from bright to dark, so the loss of one image
+        is smooth in its position only over about this distance and a longer step overshoots."""
+        return self.optics.wavelength_um / (4.0 * self.optics.na)
 
     def shared_parameters(self) -> list[torch.Tensor]:
         """The parameters every image's gradient reaches (summed over ranks in a distributed run)."""
@@ -139,7 +142,7 @@ class Calibration:
         if optimiser_state and self.optimiser is not None:
             for p in self.per_source_parameters():
                 state = self.optimiser.state.get(p, {})
-                tensors += [state.get("exp_avg"), state.get("exp_avg_sq")]
+                tensors += [state.get(k) for k in ("exp_avg", "exp_avg_sq", "visits")]
         return tensors
 
     # -- state ---------------------------------------------------------------------------------
@@ -167,3 +170,99 @@ class Calibration:
         if state["cal_opt"] is not None:
             self.set_trainable(stage_index)
             self.optimiser.load_state_dict(state["cal_opt"])
+
+
+class RowAdam(torch.optim.Optimizer):
+    """Adam for per-image rows (first axis = image) that steps a row only when its image was in the batch.
+
+    A row is visited when its gradient row is non-zero; its moments and its step count advance only then
+    (lazy Adam), so one visit moves it by about ``lr`` (bias-corrected Adam), wherever the visits fall.
+    ``isotropic``: the second moment is the row's mean square over its columns, so the step follows the
+    gradient's direction in µm (a weakly constrained column, e.g. the depth, moves by its share of the
+    gradient instead of a full normalised step).
+    """
+
+    def __init__(self, params: list[torch.Tensor], lr: float, betas: tuple[float, float] = (0.9, 0.99), eps: float = 1e-8,
+                 isotropic: bool = True) -> None:
+        super().__init__(params, {"lr": lr, "betas": betas, "eps": eps, "isotropic": isotropic})
+
+    @torch.no_grad()
+    def step(self, closure=None):  # noqa: D102 (torch's signature)
+        for group in self.param_groups:
+            b1, b2 = group["betas"]
+            for p in group["params"]:
+                if p.grad is None:
+                    continue
+                g = p.grad.reshape(p.shape[0], -1)
+                rows = (g != 0).any(dim=1)
+                if not bool(rows.any()):
+                    continue
+                st = self.state[p]
+                if not st:
+                    st["exp_avg"] = torch.zeros_like(g)
+                    st["exp_avg_sq"] = torch.zeros((g.shape[0], 1 if group["isotropic"] else g.shape[1]), dtype=g.dtype, device=g.device)
+                    st["visits"] = torch.zeros(g.shape[0], dtype=g.dtype, device=g.device)
+                m, v, t = st["exp_avg"], st["exp_avg_sq"], st["visits"]
+                gr = g[rows]
+                sq = gr.square().mean(dim=1, keepdim=True) if group["isotropic"] else gr.square()
+                m[rows] = b1 * m[rows] + (1 - b1) * gr
+                v[rows] = b2 * v[rows] + (1 - b2) * sq
+                t[rows] += 1
+                tr = t[rows, None]
+                step = group["lr"] * (m[rows] / (1 - b1 ** tr)) / ((v[rows] / (1 - b2 ** tr)).sqrt() + group["eps"])
+                p.view(p.shape[0], -1)[rows] -= step
+        return None
+
+
+class CalibrationOptimiser:
+    """The calibration's optimiser: torch's Adam for the gains, global scales and depth offset, and for the
+    source positions either :class:`RowAdam` (``source_step`` ``"per_visit"``) or the same Adam (``"dense"``).
+
+    ``"per_visit"``: a row's step per visit is ``min(lr_sources_um × N / B, λ / (4·NA))`` (:meth:`set_visit_interval`):
+    a row is in one batch of every ``N / B``, so it moves on average ``lr_sources_um`` per iteration, as a dense
+    parameter would, whatever the number of images, up to the step that one image's loss still resolves
+    (:meth:`Calibration.max_visit_step_um`). Dense Adam on rows that see a gradient once per ``K`` iterations moves
+    them about ``lr·√K`` per visit, ``lr/√K`` per iteration: slower the more images there are.
+    """
+
+    def __init__(self, sources: torch.Tensor, groups: list[dict], config: SolverConfig) -> None:
+        self.config = config
+        if config.source_step == "dense":
+            groups = [{"params": [sources], "lr": config.lr_sources_um}, *groups]
+            self.rows: RowAdam | None = None
+        else:
+            self.rows = RowAdam([sources], lr=config.lr_sources_um, betas=(0.9, 0.99))
+        self.adam = torch.optim.Adam(groups, betas=(0.9, 0.99))
+
+    def set_visit_interval(self, interval: float, max_step_um: float) -> None:
+        """Set the rows' step per visit from the iterations between two visits (``N / B``, at least 1), at most ``max_step_um``."""
+        if self.rows is not None:
+            self.rows.param_groups[0]["lr"] = min(self.config.lr_sources_um * max(1.0, float(interval)), max_step_um)
+
+    @property
+    def state(self) -> dict:
+        """Per-parameter optimiser state (moments; ``visits`` for the rows), keyed by tensor."""
+        st = dict(self.adam.state)
+        if self.rows is not None:
+            st.update(self.rows.state)
+        return st
+
+    def zero_grad(self, set_to_none: bool = True) -> None:
+        self.adam.zero_grad(set_to_none=set_to_none)
+        if self.rows is not None:
+            self.rows.zero_grad(set_to_none=set_to_none)
+
+    def step(self) -> None:
+        self.adam.step()
+        if self.rows is not None:
+            self.rows.step()
+
+    def state_dict(self) -> dict:
+        """``{"adam": …, "rows": … or None}``."""
+        return {"adam": self.adam.state_dict(), "rows": None if self.rows is None else self.rows.state_dict()}
+
+    def load_state_dict(self, state: dict) -> None:
+        """Restore :meth:`state_dict` (a checkpoint of the same ``source_step``)."""
+        self.adam.load_state_dict(state["adam"])
+        if self.rows is not None and state.get("rows") is not None:
+            self.rows.load_state_dict(state["rows"])
