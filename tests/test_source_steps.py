@@ -48,7 +48,8 @@ def test_unvisited_rows_keep_their_value_and_moments() -> None:
 @pytest.mark.parametrize("n_sources, batch, lr", [(196, 16, 0.01), (64, 16, 0.01), (1521, 16, 0.01), (10, 32, 0.02)])
 def test_step_per_visit_is_lr_times_visit_interval_capped_at_a_quarter_resolution(n_sources, batch, lr) -> None:
     """``min(lr_sources_um · N/B, λ/(4·NA))``, with N/B at least 1; the stage's own batch size counts."""
-    cfg = SolverConfig(stages=[StageConfig(2, 1), StageConfig(1, 1, batch_size=batch)], batch_size=4, lr_sources_um=lr)
+    cfg = SolverConfig(stages=[StageConfig(2, 1), StageConfig(1, 1, batch_size=batch)], batch_size=4, lr_sources_um=lr,
+                       source_step="per_visit")
     cal = Calibration(np.zeros((n_sources, 3)), cfg, OPTICS, device=torch.device("cpu"), dtype=torch.float32)
     cal.set_trainable(1)
     step = cal.optimiser.rows.param_groups[0]["lr"]

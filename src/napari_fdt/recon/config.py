@@ -93,7 +93,8 @@ class SolverConfig:
     calibrate_slice_spacing: bool = setting(False, description="fit a global scale of the slice spacing")
     calibration_from_stage: int = setting(1, ge=0, description="first stage (0-based) with position/optics calibration (gains from the start)",
                                           fix="0 calibrates from the start")
-    lr_sources_um: float = setting(0.01, gt=0, description="mean step of the source positions per iteration, µm (see `source_step`)")
+    lr_sources_um: float = setting(0.02, gt=0, description="Adam step of the source positions, µm (per iteration; with `source_step` `\"per_visit\"` the mean "
+                                   "step per iteration, 0.01 there matching 0.02 dense on the sample)")
     lr_log_gain: float = setting(0.01, gt=0, description="Adam step of the log-gains")
     lr_global: float = setting(1e-3, gt=0, description="Adam step of the pixel-size and slice-spacing scales (relative)")
     source_depth_um: Optional[_POSITIVE_DEPTH] = setting(None, strict=False, description="depth guess when the acquisition has no `sources_um`, µm")
@@ -132,10 +133,11 @@ class SolverConfig:
         "optimisation, the later iterate is kept)")
     # source-position steps (issue 12, item 4; docs/solver.md "Source positions on many images")
     source_step: SourceStep = setting(
-        "per_visit", strict=False, description="`\"per_visit\"`: each source's position takes one Adam step of `lr_sources_um × N/B` "
-        "when its image is in the batch (N images, B per batch), with one step scale for its x, y and depth, so it moves "
-        "`lr_sources_um` per iteration on average whatever N; `\"dense\"`: the earlier plain Adam on all rows (a row then moves "
-        "about `lr_sources_um·√(N/B)` per visit, too little when N/B is large)", fix="choose per_visit or dense")
+        "dense", strict=False, description="`\"per_visit\"`: each source's position takes one Adam step of `lr_sources_um × N/B` "
+        "when its image is in the batch (N images, B per batch), with one step scale for its x, y and depth, at most λ/(4·NA) per visit, so it moves "
+        "`lr_sources_um` per iteration on average whatever N; `\"dense\"` (default until measured on every "
+        "scene, docs/solver.md): plain Adam on all rows (a row then moves about "
+        "`lr_sources_um·√(N/B)` per visit, too little when N/B is large)", fix="choose per_visit or dense")
     lr_depth_offset_um: float = setting(0.02, gt=0, description="Adam step of the common depth offset of the sources, µm per iteration")
 
     @model_validator(mode="after")
