@@ -94,11 +94,12 @@ def test_cancel_keeps_the_last_complete_stage(tiny) -> None:
     assert np.allclose(rec.sources_um(), stage1.sources_um)
 
 
-def test_resume_from_checkpoint_gives_the_same_result(tiny, tmp_path: Path) -> None:
-    full = Reconstructor(tiny.acquisition, _tiny_config(), device="cpu")
+@pytest.mark.parametrize("extra", [{}, {"source_step": "per_visit", "calibration_from_stage": 0}])  # per-visit rows' state too
+def test_resume_from_checkpoint_gives_the_same_result(tiny, tmp_path: Path, extra: dict) -> None:
+    full = Reconstructor(tiny.acquisition, _tiny_config(**extra), device="cpu")
     for _ in full.run():
         pass
-    first = Reconstructor(tiny.acquisition, _tiny_config(), device="cpu")
+    first = Reconstructor(tiny.acquisition, _tiny_config(**extra), device="cpu")
     for snap in first.run(checkpoint_dir=tmp_path):
         if snap.stage_complete:
             break  # stop after the first stage, as a killed run would
