@@ -445,7 +445,7 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
 
 
 def _run_and_write(args, config, acq, out: Path, json_out: Path, truth, truth_src, group) -> int:
-    from napari_fdt.recon.report import build_report, write_result
+    from napari_fdt.recon.report import build_report, describe_parts, write_result
     from napari_fdt.recon.solver import Reconstructor
 
     device = args.device if group is None else group.device
@@ -488,6 +488,8 @@ def _run_and_write(args, config, acq, out: Path, json_out: Path, truth, truth_sr
               f"(stage {chosen['stage'] + 1}, {chosen['probe_iterations']} iterations per candidate, {chosen['seconds']:.1f} s; τ_xy: error {tried})")
     elif chosen:
         print(f"TV weights: τ_xy {chosen['tv_xy_weight']:g}, τ_z {chosen['tv_z_weight']:g} ({chosen['reason']})")
+    if report.get("model_parts"):
+        print(describe_parts(report["model_parts"]))
     val = report.get("validation")
     if val:
         print(f"validation: relative error {val['error']:.4f} on {val['n_images']} held-out images (the image fit's counterpart "

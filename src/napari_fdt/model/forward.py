@@ -268,6 +268,15 @@ class MultiSliceModel:
 
     def _camera_spectra(self, delta_n: torch.Tensor, sources_um: torch.Tensor, k: Kernels) -> tuple[torch.Tensor, torch.Tensor | None]:
         """Spectra (B, Hp, Wp) of the camera field on the window and of its periodic homogeneous part (None if unused)."""
+        return self._pupil_spectra(*self.exit_spectra(delta_n, sources_um, k), k)
+
+    def exit_spectra(self, delta_n: torch.Tensor, sources_um: torch.Tensor, k: Kernels | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """(spectrum of the field after the last screen, spectrum of the sources at the first screen), each (B, Hp, Wp).
+
+        Everything of the image that does not depend on the pupil (its NA, edge and aberrations) or the camera: a
+        fit of those with the volume and sources held fixed computes these once and calls :meth:`intensity_from_exit`.
+        """
+        k = k or self._default
         dn = self.pad_volume(delta_n)
         spec0 = self.source_spectrum(sources_um, k)
         v0 = torch.fft.ifft2(spec0)
@@ -285,9 +294,12 @@ class MultiSliceModel:
                 u = slice_loop(v0, phi, k.slice_kernel, self.loop_mode(v0.shape[0]), check=False)
             else:  # inference: nothing to keep
                 u = loop_forward(v0, phi, k.slice_kernel)
-        spec = torch.fft.fft2(u) * k.exit_kernel
-        free = None if k.free_kernel is None else spec0 * k.free_kernel
-        return spec, free
+        return torch.fft.fft2(u), spec0
+
+    @staticmethod
+    def _pupil_spectra(exit_spec: torch.Tensor, spec0: torch.Tensor, k: Kernels) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """Camera-field spectrum (exit spectrum through the exit kernel) and its periodic homogeneous part (or None)."""
+        return exit_spec * k.exit_kernel, (None if k.free_kernel is None else spec0 * k.free_kernel)
 
     def _window_coordinates(self, start: int, stop: int, axis: int, step: float, dx: Scalar) -> torch.Tensor:
         """Lateral coordinates (µm) of window positions ``start·step … (stop−1)·step`` along rows (0) or columns (1)."""
@@ -379,6 +391,30 @@ class MultiSliceModel:
         """
         k = self.kernels(**optics_overrides)
         spec, free = self._camera_spectra(delta_n, sources_um, k)
+        return self._field_from_spectra(spec, free, sources_um, k)
+
+    def intensity(self, delta_n: torch.Tensor, sources_um: torch.Tensor, **optics_overrides: Scalar | None) -> torch.Tensor:
+        """``|E|²`` on the image, (B, H, W): at the pixel centres, or averaged over each pixel with ``pixel_integration``."""
+        if not self.pixel_integration:
+            field = self.camera_field(delta_n, sources_um, **optics_overrides)
+            return field.real.square() + field.imag.square()
+        k = self.kernels(**optics_overrides)
+        return self._integrated(*self._camera_spectra(delta_n, sources_um, k), sources_um, k)
+
+    def intensity_from_exit(self, exit_spec: torch.Tensor, spec0: torch.Tensor, sources_um: torch.Tensor,
+                            **optics_overrides: Scalar | None) -> torch.Tensor:
+        """:meth:`intensity` from :meth:`exit_spectra`, which must have been computed for the same sources and with the
+        same ``pixel_size_um``, ``slice_spacing_um`` and ``wavelength_um`` as given here; ``na``, ``pupil_edge`` and
+        ``zernike`` may differ (the pupil is applied here)."""
+        k = self.kernels(**optics_overrides)
+        spec, free = self._pupil_spectra(exit_spec, spec0, k)
+        if self.pixel_integration:
+            return self._integrated(spec, free, sources_um, k)
+        field = self._field_from_spectra(spec, free, sources_um, k)
+        return field.real.square() + field.imag.square()
+
+    def _field_from_spectra(self, spec: torch.Tensor, free: torch.Tensor | None, sources_um: torch.Tensor, k: Kernels) -> torch.Tensor:
+        """The camera field (B, H, W) at the pixel centres from :meth:`_pupil_spectra`."""
         field = self.crop(torch.fft.ifft2(spec))
         if free is not None:
             oy, ox = self.plan.offset
@@ -388,13 +424,8 @@ class MultiSliceModel:
             field = field - self.crop(torch.fft.ifft2(free)) + self.free_field_exact(sources_um, k, ys, xs)
         return field
 
-    def intensity(self, delta_n: torch.Tensor, sources_um: torch.Tensor, **optics_overrides: Scalar | None) -> torch.Tensor:
-        """``|E|²`` on the image, (B, H, W): at the pixel centres, or averaged over each pixel with ``pixel_integration``."""
-        if not self.pixel_integration:
-            field = self.camera_field(delta_n, sources_um, **optics_overrides)
-            return field.real.square() + field.imag.square()
-        k = self.kernels(**optics_overrides)
-        spec, free = self._camera_spectra(delta_n, sources_um, k)
+    def _integrated(self, spec: torch.Tensor, free: torch.Tensor | None, sources_um: torch.Tensor, k: Kernels) -> torch.Tensor:
+        """Pixel-averaged intensity (B, H, W) from :meth:`_pupil_spectra`."""
         fine = fine_field(spec)
         if free is not None:
             # exact homogeneous field on the image and a margin of FREE_FIELD_MARGIN fine pixels (the box filter's reach)

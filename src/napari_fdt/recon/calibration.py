@@ -56,6 +56,11 @@ class Calibration:
         self.na_scale = torch.ones((), device=device, dtype=dtype)
         self.pupil_edge = torch.tensor(max(float(pupil_edge), MIN_CALIBRATED_EDGE), device=device, dtype=dtype)
         self.zernike = torch.zeros(len(ZERNIKE_MODES), device=device, dtype=dtype)
+        #: whether the pupil's NA and edge, and the Zernike coefficients, are in the model (and trained from
+        #: ``calibration_from_stage``): ``calibrate_pupil`` / ``calibrate_aberrations`` when true, else off until the
+        #: solver's choice of model parts (:mod:`napari_fdt.recon.model_parts`) switches them on
+        self.fit_pupil = config.calibrate_pupil in (True, "true")
+        self.fit_aberrations = config.calibrate_aberrations in (True, "true")
         #: whether the gains hold their least-squares start (:meth:`set_gains`)
         self.gain_initialised = False
         #: one Adam for the whole run, built by the first :meth:`set_trainable`
@@ -87,9 +92,9 @@ class Calibration:
             "slice_spacing_um": optics.slice_spacing_um * float(self.spacing_scale.detach()),
             "source_depth_offset_um": float(self.depth_offset_um.detach()),
             **({"na": optics.na * float(self.na_scale.detach()), "pupil_edge": abs(float(self.pupil_edge.detach()))}
-               if self.config.calibrate_pupil else {}),
+               if self.fit_pupil else {}),
             **({f"aberration_{m}_rad": float(v) for m, v in zip(ZERNIKE_MODES, self.zernike.detach().cpu().tolist())}
-               if self.config.calibrate_aberrations else {}),
+               if self.fit_aberrations else {}),
         }
 
     def optics_overrides(self, stage_optics: Optics, envelope: bool, shared_frozen: bool = False) -> dict[str, torch.Tensor]:
@@ -106,11 +111,11 @@ class Calibration:
         if cfg.calibrate_slice_spacing:
             out["slice_spacing_um"] = stage_optics.slice_spacing_um * spacing
         if not envelope:  # the envelope model keeps the acquisition's pupil
-            if cfg.calibrate_pupil:
+            if self.fit_pupil:
                 na_scale, edge = (self.na_scale.detach(), self.pupil_edge.detach()) if shared_frozen else (self.na_scale, self.pupil_edge)
                 out["na"] = stage_optics.na * na_scale
                 out["pupil_edge"] = torch.abs(edge)
-            if cfg.calibrate_aberrations:
+            if self.fit_aberrations:
                 out["zernike"] = self.zernike.detach() if shared_frozen else self.zernike
         return out
 
@@ -133,9 +138,9 @@ class Calibration:
         self.depth_offset_um.requires_grad_(on and cfg.calibrate_source_depth)
         self.pixel_scale.requires_grad_(on and cfg.calibrate_pixel_size)
         self.spacing_scale.requires_grad_(on and cfg.calibrate_slice_spacing)
-        self.na_scale.requires_grad_(on and cfg.calibrate_pupil)
-        self.pupil_edge.requires_grad_(on and cfg.calibrate_pupil)
-        self.zernike.requires_grad_(on and cfg.calibrate_aberrations)
+        self.na_scale.requires_grad_(on and self.fit_pupil)
+        self.pupil_edge.requires_grad_(on and self.fit_pupil)
+        self.zernike.requires_grad_(on and self.fit_aberrations)
         self.log_gain.requires_grad_(cfg.calibrate_gain)
         if self.optimiser is None:
             self.optimiser = torch.optim.Adam(

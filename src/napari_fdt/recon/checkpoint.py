@@ -40,6 +40,7 @@ def checkpoint_state(rec: Reconstructor) -> dict[str, Any]:
         **rec.batches.state_dict(),
         "stages": [r.to_dict() for r in rec.stages], "history": rec.history, "elapsed_s": rec.elapsed_s,
         "tv_choice": None if rec.tv_choice is None else rec.tv_choice.to_dict(),
+        "parts_choice": None if rec.parts_choice is None else rec.parts_choice.to_dict(),
         "initial_sources_um": rec.initial_sources_um, "n_images": rec.acquisition.n_images,
         "image_shape": list(rec.full_shape),
     }
@@ -70,11 +71,15 @@ def read_checkpoint(path: str | Path, acquisition: Acquisition) -> dict[str, Any
 
 def restore_checkpoint(rec: Reconstructor, state: dict[str, Any]) -> None:
     """Put a checkpoint's state into ``rec`` (made with the checkpoint's configuration and initial sources)."""
+    from napari_fdt.recon.model_parts import PartsChoice
     from napari_fdt.recon.regularisation import TVChoice
     from napari_fdt.recon.solver import StageRecord
     from napari_fdt.recon.volume import RIVolume
 
     rec.completed_stages = state["completed_stages"]
+    parts = state.get("parts_choice")  # absent before the choice (and in checkpoints written before it existed)
+    if parts is not None:
+        rec.apply_parts_choice(PartsChoice.from_dict(parts))
     rec.calibration.load_state_dict(state, max(0, rec.completed_stages - 1))
     if state["volume"] is not None:
         rec.volume = RIVolume.from_state_dict(state["volume"], rec.device, rec.dtype)

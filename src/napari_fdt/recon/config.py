@@ -22,7 +22,8 @@ from napari_fdt.schema import markdown_table, schema_dataclass, setting
 __all__ = ["StageConfig", "SolverConfig", "AutoWeight", "AUTO", "load_config", "COHERENCE_MODELS", "BACKWARD_MODES", "COARSE_MODELS",
            "resolve_coarse_model", "settings_markdown"]
 
-CoherenceModel = Literal["none", "mask", "spectral", "mask+spectral"]
+#: "auto": the spectral model where the validation error shows it (:mod:`napari_fdt.recon.model_parts`), else none.
+CoherenceModel = Literal["auto", "none", "mask", "spectral", "mask+spectral"]
 #: Model of the coarse stages; "auto": the envelope model on a CPU (12× cheaper than multi-slice there),
 #: multi-slice on a GPU (where the envelope model's many small kernels made it slower; docs/benchmarks.md).
 CoarseModel = Literal["auto", "envelope", "multislice"]
@@ -39,6 +40,9 @@ def _bool_to_text(value: Any) -> Any:
 #: Pixel integration of the camera: "auto" (the acquisition's statement, else the physical rule), "true", "false"
 #: (JSON booleans are accepted and stored as these strings).
 PixelIntegration = typing.Annotated[Literal["auto", "true", "false"], BeforeValidator(_bool_to_text)]
+#: An optional part of the model: "auto" (chosen by the validation error, :mod:`napari_fdt.recon.model_parts`),
+#: "true", "false" (JSON booleans are accepted and stored as these strings).
+Switch = typing.Annotated[Literal["auto", "true", "false"], BeforeValidator(_bool_to_text)]
 #: What the held-out images' error does to a stage: "best" returns to the stage's iterate of lowest validation error,
 #: "stop" also ends the stage once it has risen for ``early_stopping_patience`` snapshots, "off" ignores it.
 EarlyStopping = Literal["best", "stop", "off"]
@@ -117,7 +121,10 @@ class SolverConfig:
     lr_global: float = setting(1e-3, gt=0, description="Adam step of the pixel-size and slice-spacing scales (relative)")
     source_depth_um: Optional[_POSITIVE_DEPTH] = setting(None, strict=False, description="depth guess when the acquisition has no `sources_um`, µm")
     # partial coherence
-    coherence: CoherenceModel = setting("none", strict=False, description="`\"none\"`, `\"mask\"`, `\"spectral\"`, `\"mask+spectral\"`")
+    coherence: CoherenceModel = setting(
+        "auto", strict=False, description="`\"none\"`, `\"mask\"`, `\"spectral\"` (an emission band of `bandwidth_um`), "
+        "`\"mask+spectral\"`; `\"auto\"`: spectral where it lowers the validation error by more than noise, else none "
+        "(docs/solver.md, \"Model parts\")")
     mask_threshold: float = setting(0.5, gt=0, lt=1, description="mask binarisation level, fraction of each image's maximum",
                                     fix="the paper binarises at about 0.5 of the maximum")
     bandwidth_um: float = setting(0.03, ge=0, description="emission FWHM for the spectral model, µm")
@@ -130,9 +137,10 @@ class SolverConfig:
         "image, fastest), `\"reversible\"` (re-propagates the field backwards: memory independent of the number of slices; grids without "
         "evanescent frequencies only), `\"checkpoint\"` (≈2√N fields), `\"autograd\"` (plain autograd, the reference); `\"auto\"`: stored "
         "when it fits in 80 % of the free memory, else the leanest valid mode", fix="auto picks the fastest that fits in memory")
-    obliquity_correction: bool = setting(
-        False, description="scale each source's phase screens by 1/cos θ of its ray (the thin screen's obliquity error, `docs/physics.md` "
-        "§6); multi-slice stages, plain autograd")
+    obliquity_correction: Switch = setting(
+        "auto", strict=False, description="scale each source's phase screens by 1/cos θ of its ray (the thin screen's obliquity error, "
+        "`docs/physics.md` §6; multi-slice stages, plain autograd): `true`, `false`, or `\"auto\"`: on where it lowers the validation "
+        "error by more than noise (docs/solver.md, \"Model parts\")", fix="use \"auto\", true or false")
     # validation
     validation_fraction: float = setting(
         0.1, ge=0.0, le=0.25, description="share of the images held out of training, spread over the field (at least 3, at most a quarter; "
@@ -152,16 +160,21 @@ class SolverConfig:
     # camera and objective (docs/physics.md §3; issue 13)
     pixel_integration: PixelIntegration = setting(
         "auto", strict=False, description="record each pixel's mean intensity over its area instead of the value at its centre: "
-        "`\"auto\"`: what `acquisition.json`'s `pixel_integration` says, else (real cameras) on when the intensity's band 2·NA/λ "
-        "exceeds the camera's Nyquist 1/(2·pixel_size_um); `true`, `false` (JSON booleans or strings). Multi-slice stages",
+        "`\"auto\"`: what `acquisition.json`'s `pixel_integration` says, else chosen by the validation error (docs/solver.md, "
+        "\"Model parts\"; without a validation split: on when the intensity's band 2·NA/λ exceeds the camera's Nyquist "
+        "1/(2·pixel_size_um)); `true`, `false` (JSON booleans or strings). Multi-slice stages",
         fix="use \"auto\", true or false")
     pupil_edge: Optional[typing.Annotated[float, Field(ge=0.0, lt=0.5)]] = setting(
         None, strict=False, description="half-width of the pupil's raised-cosine edge relative to NA/λ (0: a hard pupil, held "
         "exactly); null: `acquisition.json`'s `pupil_edge`, else 0.03", fix="0 for a hard pupil, 0.03 the default soft edge")
-    calibrate_pupil: bool = setting(False, description="fit the pupil's NA (a global scale) and edge width (multi-slice stages)")
-    calibrate_aberrations: bool = setting(
-        False, description="fit a pupil phase of Zernike modes: defocus, astigmatism, coma, primary spherical (radians, Noll; "
-        "multi-slice stages)")
+    calibrate_pupil: Switch = setting(
+        "auto", strict=False, description="fit the pupil's NA (a global scale) and edge width (multi-slice stages): `true`, `false`, or "
+        "`\"auto\"`: where the fit lowers the validation error by more than noise (docs/solver.md, \"Model parts\")",
+        fix="use \"auto\", true or false")
+    calibrate_aberrations: Switch = setting(
+        "auto", strict=False, description="fit a pupil phase of Zernike modes: defocus, astigmatism, coma, primary spherical (radians, Noll; "
+        "multi-slice stages): `true`, `false`, or `\"auto\"`: where the fit lowers the validation error by more than noise "
+        "(docs/solver.md, \"Model parts\")", fix="use \"auto\", true or false")
     lr_pupil: float = setting(1e-3, gt=0, description="Adam step of the NA scale (relative) and the pupil edge width")
     lr_aberrations: float = setting(0.02, gt=0, description="Adam step of the Zernike coefficients, radians")
 

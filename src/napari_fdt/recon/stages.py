@@ -31,7 +31,8 @@ from napari_fdt.physics.grid import DEFAULT_PUPIL_TAPER, GridPlan, plan_grid
 from napari_fdt.physics.optics import Optics
 from napari_fdt.recon.volume import upsample_to
 
-__all__ = ["Stage", "build_stage", "block_average", "stage_optics", "field_factor", "multislice_plan"]
+__all__ = ["Stage", "build_stage", "block_average", "stage_optics", "field_factor", "multislice_plan", "camera_model_options",
+           "stated_pixel_integration"]
 
 #: Fraction of the coarse grid's Nyquist frequency the stage pupil's outer edge may reach.
 NYQUIST_FILL = 0.95
@@ -193,7 +194,7 @@ def camera_model_options(config, acquisition) -> dict:
     :func:`napari_fdt.physics.camera.needs_pixel_integration`. Integration over the acquisition's pixels carries
     to coarse stages: the block average of pixel means is the mean over the larger pixel.
     """
-    from napari_fdt.physics.camera import needs_pixel_integration, resolve_pixel_integration
+    from napari_fdt.physics.camera import needs_pixel_integration
 
     extra = getattr(acquisition, "extra", None) or {}
     optics = acquisition.optics
@@ -204,13 +205,27 @@ def camera_model_options(config, acquisition) -> dict:
             raise FDTInputError("pupil_edge", f"acquisition.json's pupil_edge must be a number in [0, 0.5), got {edge!r}",
                                 "0 for a hard pupil, 0.03 the default soft edge, or remove the key")
         edge = float(edge)
+    stated = stated_pixel_integration(config, acquisition)
+    integrate = needs_pixel_integration(optics.na, optics.wavelength_um, optics.pixel_size_um) if stated is None else stated
+    return {"pupil_edge": edge, "pixel_integration": integrate}
+
+
+def stated_pixel_integration(config, acquisition) -> bool | None:
+    """Pixel integration as the setting or the acquisition states it; None when nothing does (``"auto"`` on a real
+    camera's data without the key): the solver then chooses by the data (:mod:`napari_fdt.recon.model_parts`).
+
+    ``true``/``false``: as set; ``"auto"``: ``acquisition.json``'s ``pixel_integration`` if present, False for a
+    simulated folder without it (written before the camera model existed, with point samples)."""
+    from napari_fdt.physics.camera import resolve_pixel_integration
+
+    extra = getattr(acquisition, "extra", None) or {}
+    optics = acquisition.optics
     setting_ = config.pixel_integration
     if setting_ == "auto":
         if "pixel_integration" in extra:
-            setting_ = resolve_pixel_integration(extra["pixel_integration"], optics.na, optics.wavelength_um, optics.pixel_size_um)
+            setting_ = extra["pixel_integration"]
         elif "simulated" in extra:
-            setting_ = False
+            return False
         else:
-            setting_ = needs_pixel_integration(optics.na, optics.wavelength_um, optics.pixel_size_um)
-    setting_ = resolve_pixel_integration(setting_, optics.na, optics.wavelength_um, optics.pixel_size_um)
-    return {"pupil_edge": edge, "pixel_integration": setting_}
+            return None
+    return resolve_pixel_integration(setting_, optics.na, optics.wavelength_um, optics.pixel_size_um)
