@@ -2,9 +2,10 @@
 
     xvfb-run -a -s "-screen 0 1600x1000x24" .venv/bin/python docs/make_screenshots.py
 
-Opens the bundled letters sample in napari, docks both widgets, shows the sources, masks and a forward
-preview, runs a short reconstruction (stages 4x60, 2x60, 1x60: about 25 s on 2 CPU cores), and saves
-PNGs under docs/images/: the two widgets, the viewer during the run, the RI volume in 3D, and the
+Opens the bundled letters sample in a 1600×1000 napari window, docks both widgets side by side (one above
+the other, as napari docks them), shows the sources, masks and a forward preview, runs a short
+reconstruction (stages 4x60, 2x60, 1x60: about 30 s on 2 CPU cores), and saves PNGs under docs/images/:
+the whole window with both widgets, each widget, the viewer during the run, the RI volume in 3D, and the
 predicted-versus-measured image. Needs napari with a Qt binding and an X display (Xvfb is fine).
 """
 
@@ -24,6 +25,7 @@ from napari_fdt.napari.widget_acquisition import AcquisitionWidget
 from napari_fdt.napari.widget_reconstruction import ReconstructionWidget
 
 OUT = Path(__file__).resolve().parent / "images"
+WINDOW: list = []  # napari's main window (a Qt widget), found through a docked widget
 STAGES = "4x60, 2x60, 1x60"
 
 
@@ -61,9 +63,19 @@ def grab(widget, name: str, width: int = 400) -> None:
     save_png(arr, name, width)
 
 
+def grab_floating(widget, dock, name: str, height: int = 980) -> None:
+    """Save a widget whole: its dock floated for a moment at ``height`` px (docked, its sections scroll)."""
+    dock.setFloating(True)
+    dock.resize(420, height)
+    pump(0.5)
+    grab(widget, name)
+    dock.setFloating(False)
+    pump(0.3)
+
+
 def shot(viewer, name: str, width: int, canvas_only: bool = True, crop: bool = False) -> None:
     """Save the canvas (or the whole window); cropped shots leave the scale bar out."""
-    for toast in viewer.window._qt_window.findChildren(QWidget):
+    for toast in WINDOW[0].findChildren(QWidget):
         if type(toast).__name__ == "NapariQtNotification":
             toast.close()  # third-party deprecation toasts (e.g. about Qt5) are not part of the tutorial
     pump(0.2)
@@ -90,31 +102,38 @@ def view_3d(viewer, angles, center, zoom) -> None:
 def main() -> int:
     OUT.mkdir(parents=True, exist_ok=True)
     viewer = napari.Viewer(title="napari-fdt")
-    viewer.window.resize(1500, 950)
     viewer.open_sample("napari-fdt", "letters")
     acq_layer = viewer.layers["letters"]
     viewer.scale_bar.visible = True
 
     acq_w = AcquisitionWidget(viewer)
-    viewer.window.add_dock_widget(acq_w, name="FDT acquisition", area="right")
+    acq_dock = viewer.window.add_dock_widget(acq_w, name="FDT acquisition", area="right")
     rec_w = ReconstructionWidget(viewer)
-    viewer.window.add_dock_widget(rec_w, name="FDT reconstruction", area="right", tabify=True)
+    rec_dock = viewer.window.add_dock_widget(rec_w, name="FDT reconstruction", area="right")
+    WINDOW.append(rec_w.native.window())
+    WINDOW[0].resize(1600, 1000)
     pump(0.5)
 
     # Acquisition: sources from the file, masks, a forward preview of image 27
     acq_w.sources_from_file()
-    acq_w.preview_masks()
+    rec_w.preview_masks()
     acq_w.image_index.value = 27
     acq_w.preview_image()
     wait_tasks(acq_w)
+    wait_tasks(rec_w)
     pump(0.5)
-    grab(acq_w, "acquisition_widget.png")
+    grab_floating(acq_w, acq_dock, "acquisition_widget.png")
     viewer.layers.selection = {acq_layer}
-    viewer.dims.set_point(0, 0.0)  # image 0: a corner source, its disc edge inside the image
+    viewer.dims.set_point(0, 0.0)  # image 0 (the image axis): a corner source, its disc edge inside the image
     for layer in viewer.layers:
         layer.visible = layer.name in ("letters", "letters masks")
+    viewer.reset_view()
     pump(0.3)
     shot(viewer, "masks.png", 320, crop=True)
+    for layer in viewer.layers:
+        layer.visible = layer.name in ("letters", "letters sources")
+    pump(0.3)
+    shot(viewer, "docked.png", 1000, canvas_only=False)
 
     # Reconstruction: stream the RI volume
     for layer in viewer.layers:
@@ -123,12 +142,13 @@ def main() -> int:
     rec_w.validation_fraction.value = 0.1  # shows the validation curve (orange) beside the training one
     rec_w.device.value = "cpu"
     rec_w.start()
-    ri = viewer.layers["letters RI"]
+    ri = rec_w._ri_layer
     ri.rendering = "mip"
     viewer.dims.ndisplay = 3
     viewer.layers["letters sources"].visible = True
     view_3d(viewer, (-25, 35, 130), (-14, 0, 0), 9)
-    deadline = time.perf_counter() + 600
+    calibrated = "letters sources calibrated #1"
+    deadline = time.perf_counter() + 1800  # a busy machine can be 10× slower than the 30 s quoted above
     while "stage 3/3" not in rec_w.status.value and time.perf_counter() < deadline:
         pump(0.1)
     pump(1.0)
@@ -139,17 +159,18 @@ def main() -> int:
     if rec_w.feedback.last_error:
         print("reconstruction failed:", rec_w.feedback.last_error, file=sys.stderr)
         return 1
-    grab(rec_w, "reconstruction_widget.png")
+    grab_floating(rec_w, rec_dock, "reconstruction_widget.png")
 
     # The RI volume in 3D: alone, then with the sources 40 µm below it
     ri.contrast_limits = (1.33, 1.38)
-    viewer.layers["letters sources"].visible = False
+    for name in ("letters sources", calibrated):
+        viewer.layers[name].visible = False
     view_3d(viewer, (-30, 45, 160), (8, 0, 0), 14)
     shot(viewer, "ri_3d.png", 480, crop=True)
-    viewer.layers["letters sources"].visible = True
+    viewer.layers[calibrated].visible = True
     view_3d(viewer, (-25, 35, 130), (-14, 0, 0), 9)
     shot(viewer, "geometry_3d.png", 360, crop=True)
-    viewer.layers["letters sources"].visible = False
+    viewer.layers[calibrated].visible = False
     viewer.dims.ndisplay = 2
     viewer.dims.set_point(0, 0.0)
     pump(0.3)

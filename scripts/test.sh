@@ -36,4 +36,8 @@ BIN="$(dirname "$PYTHON")"
 "$PYTHON" -m ruff check --quiet .
 "$BIN/lint-imports" --no-cache >/dev/null || { "$BIN/lint-imports" --no-cache; exit 1; }
 
+# Qt binding: napari's default, PyQt6 (the test extra installs it through napari[qt]); QT_API=pyqt5 runs the same
+# tests on PyQt5 where it is installed (pip install pyqt5).
+if [ -z "${QT_API:-}" ] && "$PYTHON" -c "import PyQt6.QtCore" >/dev/null 2>&1; then export QT_API=pyqt6; fi
+
 exec xvfb-run -a -s "-screen 0 1280x1024x24" "$PYTHON" -m pytest -q "$@"

@@ -14,6 +14,7 @@ import warnings
 from pathlib import Path
 
 import numpy as np
+import pytest
 import tifffile
 from hypothesis import HealthCheck, assume, event, given, settings
 from hypothesis import strategies as st
@@ -180,12 +181,19 @@ def corrupted_folders(draw):
 
 def _check_napari_readers(folder: Path, cli_refusal: str | None) -> None:
     """napari's reader on the folder, and on its images.tif opened as a bare stack: layers holding exactly the
-    file's pixels, or the core's FDTInputError, with the message ``fdt info`` printed."""
+    file's pixels, or the core's FDTInputError, with the message ``fdt info`` printed; a TIFF the header shows
+    is no stack is declined (None) rather than claimed."""
+    from napari_fdt.data.microscope import read_stack
     from napari_fdt.napari.reader import get_reader
 
     for path in (folder, folder / "images.tif"):
         reader = get_reader(str(path))
-        assert reader is not None
+        if reader is None:  # a TIFF declined from its header: exactly those the core cannot read as a stack
+            assert path.name == "images.tif"
+            with pytest.raises(FDTInputError) as refused:
+                read_stack(path)
+            assert refused.value.field == "images", str(refused.value)
+            continue
         try:
             layers = reader(str(path))
         except FDTInputError as exc:

@@ -26,7 +26,6 @@ from napari_fdt.napari.layers import (
     META_ACQUISITION,
     META_NEEDS_OPTICS,
     META_REPORT,
-    UNITS,
     points_to_sources,
     sources_to_points,
     volume_scale,
@@ -111,9 +110,12 @@ def test_reader_acquisition_folder(tiny, tiny_dir) -> None:
     assert reader is not None
     assert get_reader(str(tiny_dir / "acquisition.json")) is not None
     [(data, kwargs, kind)] = reader(str(tiny_dir))
-    assert kind == "image" and data.shape == (9, 32, 32)
-    assert kwargs["scale"] == (1.0, 0.33, 0.33) and kwargs["units"] == UNITS
-    assert kwargs["translate"] == (0.0, -16 * 0.33, -16 * 0.33)
+    # the image index on an axis of its own (unit pixel); one plane spanning the volume's z range (4 × 2 µm)
+    assert kind == "image" and data.shape == (9, 1, 32, 32)
+    assert np.shares_memory(data, kwargs["metadata"][META_ACQUISITION].images)  # a view, not a copy
+    assert kwargs["scale"] == (1.0, 8.0, 0.33, 0.33) and kwargs["units"] == ("pixel", "µm", "µm", "µm")
+    assert kwargs["axis_labels"] == ("image", "z", "y", "x")
+    assert kwargs["translate"] == (0.0, 4.0, -16 * 0.33, -16 * 0.33)
     acq = kwargs["metadata"][META_ACQUISITION]
     assert acq.optics == tiny.acquisition.optics and kwargs["metadata"]["fdt_path"] == str(tiny_dir)
 
@@ -134,11 +136,11 @@ def test_reader_not_ours_and_broken(tmp_path, tiny_dir) -> None:
 def test_reader_bare_stack_needs_optics(tmp_path) -> None:
     tifffile.imwrite(tmp_path / "stack.tif", np.ones((5, 16, 16), np.float32))
     [(data, kwargs, kind)] = get_reader(str(tmp_path / "stack.tif"))(str(tmp_path / "stack.tif"))
-    assert data.shape == (5, 16, 16) and kwargs["metadata"][META_NEEDS_OPTICS] is True
+    assert data.shape == (5, 1, 16, 16) and kwargs["metadata"][META_NEEDS_OPTICS] is True
+    assert kwargs["units"] == ("pixel",) * 4  # no optics: no µm claimed
     assert META_ACQUISITION not in kwargs["metadata"]
     tifffile.imwrite(tmp_path / "tiny.tif", np.ones((2, 4, 4), np.float32), photometric="minisblack")
-    with pytest.raises(FDTInputError, match="too small"):
-        get_reader(str(tmp_path / "tiny.tif"))(str(tmp_path / "tiny.tif"))
+    assert get_reader(str(tmp_path / "tiny.tif")) is None  # declined from the header: napari offers it to other readers
 
 
 def test_writer_and_reader_round_trip_an_ri_volume(tmp_path) -> None:
@@ -163,7 +165,7 @@ def test_sample_data_names_and_content() -> None:
     layers = letters_sample()
     data, kwargs, _ = layers[0]
     acq = kwargs["metadata"][META_ACQUISITION]
-    n, h, w = data.shape
+    n, _, h, w = data.shape
     assert f"{n} images, {h}×{w}, {acq.optics.n_slices} slices" in LETTERS_NAME
     assert layers[1][0].shape == (acq.optics.n_slices, h, w) and layers[1][1]["visible"] is False
 
@@ -262,3 +264,95 @@ def test_sample_ground_truth_is_not_the_reconstruction_layer() -> None:
 
     layers = simulated_beads()
     assert [kw["metadata"]["fdt_kind"] for _, kw, _ in layers] == ["acquisition", "truth"]
+
+
+# -- the widgets' Qt-free parts: optics typed as text, the time-left estimate ----------------------------------------
+
+
+def test_optics_entries_refuse_unit_mistakes_with_the_widget_labels() -> None:
+    from napari_fdt.napari.settings import missing_optics, optics_from_entries
+
+    good = dict(wavelength_um="0.635", n_background="1.33", na="0.8", pixel_size_um="0.33", n_slices="8",
+                slice_spacing_um="2")
+    assert optics_from_entries(good) == Optics(wavelength_um=0.635, n_background=1.33, na=0.8, pixel_size_um=0.33,
+                                               n_slices=8, slice_spacing_um=2.0)
+    assert missing_optics({}) == ["wavelength (µm)", "n background", "NA", "pixel size (µm)", "slices", "slice spacing (µm)"]
+    cases = {
+        ("wavelength_um", "635"): "wavelength (µm): 635 looks like nm, not µm (enter 0.635",
+        ("wavelength_um", "6.35e-7"): "wavelength (µm): 6.35e-07 looks like m, not µm (enter 0.635",
+        ("pixel_size_um", "330"): "pixel size (µm): 330 looks like nm, not µm (enter 0.33",
+        ("pixel_size_um", "0.00033"): "pixel size (µm): 0.00033 looks like mm, not µm (enter 0.33",
+        ("na", "1.4"): "NA: 1.4 is not below n background 1.33 (an NA of 1.4 needs an immersion index above it",
+        ("na", "80"): "NA: 80 is not below n background 1.33 (80 looks like an angle or a percentage",
+        ("n_slices", "2.5"): "slices: 2.5 is not a whole number",
+        ("slice_spacing_um", "x"): "slice spacing (µm): 'x' is not a number",
+        ("n_background", ""): "n background: is empty",
+    }
+    for (name, text), message in cases.items():
+        with pytest.raises(FDTInputError) as exc:
+            optics_from_entries({**good, name: text})
+        assert str(exc.value).startswith(message), str(exc.value)
+
+
+def _simulated_timings(iterations, costs, seconds_per_cost, setup_s, every, rng):
+    """Snapshots (stage, iteration, elapsed) of a run whose iterations cost ``seconds_per_cost·cost`` ±20 %,
+    each stage starting with ``setup_s`` of set-up (building its model), a snapshot every ``every`` iterations."""
+    t, out = 0.0, []
+    for s, (n, cost) in enumerate(zip(iterations, costs)):
+        t += setup_s
+        for i in range(1, n + 1):
+            t += seconds_per_cost * cost * rng.uniform(0.8, 1.2)
+            if i % every == 0 or i == n:
+                out.append((s, i, t))
+    return out, t
+
+
+def test_time_left_is_within_30_percent_after_the_first_tenth_of_a_run(tiny) -> None:
+    from napari_fdt.napari.job import TimeLeft, stage_costs
+    from napari_fdt.recon.config import SolverConfig
+
+    config = SolverConfig.from_dict({**SolverConfig().to_dict(), "coarse_model": "envelope",
+                                     "stages": [{"factor": 4, "iterations": 100}, {"factor": 2, "iterations": 100},
+                                                {"factor": 1, "iterations": 160}]})
+    costs = stage_costs(tiny.acquisition.optics, (96, 96), config, 64)
+    assert costs[1] / costs[0] == pytest.approx(4.0) and costs[2] / costs[1] == pytest.approx(4.0)  # grid area ratio
+    iterations = [100, 100, 160]
+    rng = np.random.default_rng(0)
+    for trial in range(5):
+        seq, total = _simulated_timings(iterations, costs, 1e-5, 0.5, 10, rng)
+        est = TimeLeft(iterations, costs)
+        worst = 0.0
+        for stage, it, t in seq:
+            est.add(stage, it, t)
+            true_left = total - t
+            if t >= 0.1 * total and true_left > 0:
+                worst = max(worst, abs(est.seconds_left() - true_left) / true_left)
+        assert worst < 0.3, (trial, worst)
+
+
+def test_time_left_on_the_recorded_stage_timings_of_the_cpu_suite() -> None:
+    """The stage times ``benchmarks/results/suite_cpu.json`` recorded on the sample (4x100, 2x100, 1x160 on CPU), as
+    snapshots every 10 iterations at each stage's own pace: the estimate is within 30 % after the first tenth."""
+    from napari_fdt.data.io import read_acquisition
+    from napari_fdt.napari.job import TimeLeft, stage_costs
+    from napari_fdt.recon.config import SolverConfig
+
+    recorded = json.loads((ROOT / "benchmarks" / "results" / "suite_cpu.json").read_text())["scenes"][0]["stages"]
+    stages = [{"factor": s["factor"], "iterations": s["iterations"]} for s in recorded]
+    config = SolverConfig.from_dict({**SolverConfig().to_dict(), "stages": stages})
+    acq = read_acquisition(ROOT / "sample_data" / "letters")
+    costs = stage_costs(acq.optics, acq.image_shape, config, acq.n_images, "cpu")
+    iterations = [s["iterations"] for s in recorded]
+    seq, t = [], 0.0
+    for stage, s in enumerate(recorded):
+        pace = s["seconds"] / s["iterations"]
+        for it in range(10, s["iterations"] + 1, 10):
+            seq.append((stage, it, t + it * pace))
+        t += s["seconds"]
+    est = TimeLeft(iterations, costs)
+    errors = []
+    for stage, it, now in seq:
+        est.add(stage, it, now)
+        if now >= 0.1 * t and t - now > 0:
+            errors.append(abs(est.seconds_left() - (t - now)) / (t - now))
+    assert errors and max(errors) < 0.3, max(errors)

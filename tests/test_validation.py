@@ -7,13 +7,21 @@ import pytest
 import torch
 
 from napari_fdt.errors import FDTWarning
-from napari_fdt.recon.validation import MIN_VALIDATION_IMAGES, BestIterate, holdout_indices, relative_image_error
+from napari_fdt.recon.validation import MIN_VALIDATION_IMAGES, BestIterate, holdout_indices, per_image_errors, relative_image_error
 
 
 def _grid(n: int, pitch_um: float = 5.0, depth_um: float = 20.0) -> np.ndarray:
     g = (np.arange(n) - (n - 1) / 2) * pitch_um
     yy, xx = np.meshgrid(g, g, indexing="ij")
     return np.c_[xx.ravel(), yy.ravel(), np.full(n * n, depth_um)]
+
+
+def test_per_image_errors_are_each_images_relative_error() -> None:
+    rng = np.random.default_rng(3)
+    measured = torch.from_numpy(rng.uniform(1.0, 2.0, (4, 8, 8)))
+    pred = measured * torch.tensor([1.0, 1.1, 0.8, 1.3], dtype=torch.float64)[:, None, None]
+    assert per_image_errors(pred, measured) == pytest.approx([0.0, 0.1, 0.2, 0.3], abs=1e-12)
+    assert per_image_errors(pred, measured, fit_gain=True) == pytest.approx([0.0] * 4, abs=1e-9)  # a gain per image fits each
 
 
 @pytest.mark.parametrize("side", [8, 14, 20])
@@ -101,7 +109,9 @@ def scene16():
 def _config(**kw):
     from napari_fdt.recon.config import SolverConfig, StageConfig
 
-    base = dict(stages=[StageConfig(2, 6), StageConfig(1, 8)], batch_size=4, snapshot_every=2, validation_fraction=0.2)
+    # Fixed TV weights: with "auto" the held-out images choose the weights (test_regularisation.py), which is their use
+    base = dict(stages=[StageConfig(2, 6), StageConfig(1, 8)], batch_size=4, snapshot_every=2, validation_fraction=0.2,
+                tv_xy_weight=0.0, tv_z_weight=0.0)
     base.update(kw)
     return SolverConfig(**base)
 
@@ -119,7 +129,7 @@ def test_held_out_images_never_reach_the_volume_and_their_error_is_reported(scen
     snaps = list(rec.run())
     altered_images = acq.images.copy()
     altered_images[held] = altered_images[held][:, ::-1, ::-1]
-    altered = Acquisition(altered_images, acq.optics, acq.sources_um)
+    altered = Acquisition(altered_images, acq.optics, acq.sources_um, extra=acq.extra)  # same camera model (pixel_integration auto)
     other = Reconstructor(altered, _config(early_stopping="off"), device="cpu")
     assert np.array_equal(other.validation_indices, held)
     list(other.run())
@@ -155,14 +165,14 @@ def test_no_split_leaves_the_run_as_before(scene16) -> None:
 
 
 def test_stop_ends_a_stage_on_a_rise_and_keeps_its_best_iterate(scene16, monkeypatch) -> None:
-    """A scripted validation signal: best at the 2nd snapshot, then rising; "stop" with patience 2 ends the stage
-    two snapshots later and returns to the state captured at the best one."""
+    """A scripted validation signal: the stage's start (iteration 0) worst, best at the 2nd snapshot, then rising;
+    "stop" with patience 2 ends the stage two snapshots later and returns to the state captured at the best one."""
     from napari_fdt.recon.config import StageConfig
     from napari_fdt.recon.solver import Reconstructor
 
     cfg = _config(stages=[StageConfig(1, 20)], early_stopping="stop", early_stopping_patience=2, snapshot_every=2)
     rec = Reconstructor(scene16.acquisition, cfg, device="cpu")
-    signal = iter([0.5, 0.3, 0.4, 0.45, 0.6, 0.7, 0.8, 0.9, 1.0, 1.1, 1.2])
+    signal = iter([0.95, 0.5, 0.3, 0.4, 0.45, 0.6, 0.7, 0.8, 0.9, 1.0, 1.1, 1.2])
     monkeypatch.setattr(rec, "validation_error", lambda stage, mask=None: next(signal))
     states = {}
     capture = rec._capture
@@ -171,10 +181,26 @@ def test_stop_ends_a_stage_on_a_rise_and_keeps_its_best_iterate(scene16, monkeyp
     record = rec.stages[-1]
     assert record.stopped_at == 8  # snapshots at 2, 4 (best), 6, 8: two above the best
     assert record.best_iteration == 4 and record.validation_error == 0.3
-    best_state = states[1]  # captured at iterations 2 and 4
+    best_state = states[2]  # captured at iterations 0, 2 and 4
     assert torch.equal(rec.volume.x.detach(), best_state["x"])
     assert snaps[-1].stage_complete and snaps[-1].validation_error == 0.3
     assert snaps[-1].global_iteration == 20  # progress counts the skipped iterations
+
+
+def test_a_stage_that_only_worsens_the_held_out_images_ends_where_it_began(scene16, monkeypatch) -> None:
+    """The stage's start is an iterate too: with the held-out error lowest at iteration 0, "best" returns to the
+    starting volume (for stage 0: the empty volume, never one that explains the held-out images worse)."""
+    from napari_fdt.recon.config import StageConfig
+    from napari_fdt.recon.solver import Reconstructor
+
+    rec = Reconstructor(scene16.acquisition, _config(stages=[StageConfig(1, 6)], snapshot_every=2), device="cpu")
+    signal = iter([0.1, 0.2, 0.3, 0.4])
+    monkeypatch.setattr(rec, "validation_error", lambda stage, mask=None: next(signal))
+    snaps = list(rec.run())
+    record = rec.stages[-1]
+    assert record.best_iteration == 0 and record.validation_error == 0.1 and snaps[-1].validation_error == 0.1
+    start = float(rec.volume.delta_n().max())
+    assert start == pytest.approx(1e-3 * rec.config.delta_n_max, rel=1e-3)  # the initial floor: nothing was kept
 
 
 # --------------------------------------------------------------------------------------------

@@ -31,11 +31,19 @@ def _schema_help(info, default) -> str:
     return text.replace("%", "%%")
 
 
+def _number_or_auto(kind: type):
+    """An argparse type for a number that may also be ``auto``."""
+    def parse(text: str):
+        return "auto" if text.strip().lower() == "auto" else kind(text)
+    parse.__name__ = f"{kind.__name__} or auto"
+    return parse
+
+
 def _add_schema_args(group, model, defaults: dict | None = None) -> None:
     """One flag per scalar field of a settings class (``--tv-xy-weight``; booleans as ``--x/--no-x``), typed,
     with the ``Literal`` choices and the description as help. With ``defaults`` None every flag defaults to
     None (unset: it overrides nothing); else the flag's default is ``defaults[name]``."""
-    from napari_fdt.schema import choices, scalar_type, schema_fields
+    from napari_fdt.schema import accepts_auto, choices, scalar_type, schema_fields
 
     for name, info in schema_fields(model).items():
         kind, _ = scalar_type(info)
@@ -47,7 +55,7 @@ def _add_schema_args(group, model, defaults: dict | None = None) -> None:
         if kind is bool:
             kwargs["action"] = argparse.BooleanOptionalAction
         else:
-            kwargs["type"] = kind
+            kwargs["type"] = _number_or_auto(kind) if accepts_auto(info) else kind
             if choices(info) is not None:
                 kwargs["choices"] = choices(info)
         group.add_argument("--" + name.replace("_", "-"), **kwargs)
@@ -89,6 +97,13 @@ def build_parser() -> argparse.ArgumentParser:
                         "fringes beyond the coherence length λ²/(n_b·FWHM) wash out")
     m.add_argument("--n-wavelengths", type=int, default=9,
                    help="wavelengths sampling the emission spectrum when --bandwidth-um > 0 (default 9; costs that many forward passes)")
+    m.add_argument("--pixel-integration", choices=("auto", "true", "false"), default="false",
+                   help="average the intensity over each camera pixel (auto: when 2·NA/λ > 1/(2·pixel); default false)")
+    m.add_argument("--pupil-edge", type=float, default=None,
+                   help="half-width of the pupil's soft edge relative to NA/λ (default 0.03; 0: a hard pupil)")
+    m.add_argument("--aberrations", default=None,
+                   help="pupil phase, Zernike modes in radians (Noll RMS), e.g. spherical=0.5,defocus=-0.2; modes: defocus, "
+                        "astigmatism_oblique, astigmatism_vertical, coma_vertical, coma_horizontal, spherical")
     sc = sim.add_argument_group("scene")
     sc.add_argument("--delta-n", type=float, default=None, help="index contrast of the objects (scene default)")
     sc.add_argument("--text", default="UCDAVIS", help="letters of the letters scene (A-Z, 0-9)")
@@ -101,9 +116,14 @@ def build_parser() -> argparse.ArgumentParser:
     info.add_argument("acquisition", type=Path)
 
     rec = sub.add_parser("reconstruct", help="reconstruct the RI volume of an acquisition")
-    rec.add_argument("acquisition", type=Path, help="acquisition folder")
-    rec.add_argument("--out", type=Path, required=True, help="RI volume to write (OME-TIFF); the report goes beside it as .json")
-    rec.add_argument("--config", type=Path, default=None, help="solver settings (JSON, see docs/solver.md)")
+    rec.add_argument("acquisition", type=Path, nargs="?", default=None,
+                     help="acquisition folder (may be left out with --config REPORT: the report's acquisition is used)")
+    rec.add_argument("--out", type=Path, required=True,
+                     help="RI volume to write: OME-TIFF (.tif, .ome.tif) or OME-Zarr (.ome.zarr); the report goes beside it, "
+                          "named from the full name (RI_lr0.05.tif → RI_lr0.05.json)")
+    rec.add_argument("--config", type=Path, default=None,
+                     help="solver settings: a settings file (JSON/TOML, docs/solver.md) or a report RI.json written by fdt or "
+                          "napari-fdt, whose settings (seed included) are rerun")
     rec.add_argument("--device", default="auto", help="auto, cpu or cuda (default auto)")
     rec.add_argument("--truth", type=Path, default=None,
                      help="ground-truth RI TIFF for metrics (ground_truth_sources_um.json beside it is used too)")
@@ -185,6 +205,7 @@ def _check_forward_memory(plan, n_slices: int, batch: int, n_images: int, device
 
 def _cmd_simulate(args: argparse.Namespace) -> int:
     from napari_fdt.data.io import write_acquisition, write_json_atomic, write_volume_tiff
+    from napari_fdt.physics.aberrations import parse_aberrations
     from napari_fdt.sim.simulate import make_scene, simulate, source_grid
 
     optics = _optics_from_args(args)
@@ -211,7 +232,9 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     sim = simulate(delta_n, optics, sources, photons=args.photons, read_noise=args.read_noise,
                    brightness_spread=args.brightness_spread, jitter_xy_um=args.jitter_um, jitter_depth_um=args.jitter_um,
                    noise=not args.no_noise, seed=args.seed, device=args.device, uint16=args.uint16,
-                   bandwidth_um=args.bandwidth_um, n_wavelengths=args.n_wavelengths, batch_size=batch)
+                   bandwidth_um=args.bandwidth_um, n_wavelengths=args.n_wavelengths, batch_size=batch,
+                   pixel_integration=args.pixel_integration, pupil_edge=args.pupil_edge,
+                   aberrations=parse_aberrations(args.aberrations))
     seconds = time.perf_counter() - t0
     sim.acquisition.extra["simulated"].update(scene=args.scene, text=args.text if args.scene == "letters" else None)
     write_acquisition(sim.acquisition, out, overwrite=args.overwrite)
@@ -256,7 +279,7 @@ def _cmd_info(args: argparse.Namespace) -> int:
 def _cmd_forward(args: argparse.Namespace) -> int:
     import torch
 
-    from napari_fdt.data.io import read_acquisition, read_volume_tiff, write_volume_tiff
+    from napari_fdt.data.io import read_acquisition, read_volume_tiff, write_stack_tiff
     from napari_fdt.model.forward import MultiSliceModel
     from napari_fdt.model.gain import least_squares_gain
     from napari_fdt.model.render import render_images
@@ -296,35 +319,81 @@ def _cmd_forward(args: argparse.Namespace) -> int:
     print(f"relative residual after a per-image gain: {total:.4f} overall; per image median {np.median(rel):.4f}, "
           f"worst {rel.max():.4f} (image {int(rel.argmax())})")
     if args.out is not None:
-        write_volume_tiff(args.out, fit.astype(np.float32), (1.0, o.pixel_size_um, o.pixel_size_um), overwrite=args.overwrite)
+        write_stack_tiff(args.out, fit.astype(np.float32), o.pixel_size_um, overwrite=args.overwrite)
         print(f"wrote {args.out}")
     return 0
 
 
-def _progress_line(snap) -> str:
-    width = 24
-    done = int(width * snap.progress)
+class _LineStream:
+    """A text stream for tqdm where stderr is not a terminal (SLURM logs, pipes): each refresh becomes one plain
+    line, without the carriage returns a terminal needs to redraw the bar in place."""
+
+    def __init__(self, stream) -> None:
+        self.stream = stream
+
+    def write(self, text: str) -> int:
+        line = text.replace("\r", "").strip()
+        if line:
+            self.stream.write(line + "\n")
+        return len(text)
+
+    def flush(self) -> None:
+        self.stream.flush()
+
+
+def _progress_bar(total: int, *, disable: bool, stream=None):
+    """A tqdm bar on stderr: redrawn in place on a terminal; elsewhere ASCII, one line every 30 s (``TQDM_MININTERVAL``
+    overrides) and at each stage's end, so a batch log stays readable."""
+    from tqdm import tqdm
+
+    stream = sys.stderr if stream is None else stream
+    tty = hasattr(stream, "isatty") and stream.isatty()
+    if tty:
+        return tqdm(total=total, unit="it", file=stream, dynamic_ncols=True, disable=disable, leave=True)
+    return tqdm(total=total, unit="it", file=_LineStream(stream), ascii=True, ncols=110, mininterval=30.0, disable=disable)
+
+
+def _show_progress(bar, snap) -> None:
+    """Advance the bar to a snapshot: stage, iteration, loss, validation error and the solver's time-left estimate."""
+    bar.set_description(f"stage {snap.stage + 1}/{snap.n_stages} (x{snap.factor})", refresh=False)
+    post = {}
     loss = snap.losses.get("total")
-    loss_txt = f" loss {loss:.4g}" if loss is not None else ""
+    if loss is not None:
+        post["loss"] = f"{loss:.4g}"
     if snap.validation_error is not None:
-        loss_txt += f" val {snap.validation_error:.4f}"
-    return (f"\rstage {snap.stage + 1}/{snap.n_stages} (x{snap.factor}) [{'#' * done}{'.' * (width - done)}] "
-            f"{100 * snap.progress:5.1f}% it {snap.global_iteration}/{snap.total_iterations}{loss_txt} "
-            f"elapsed {snap.elapsed_s:.0f}s left {snap.eta_s:.0f}s ")
+        post["val"] = f"{snap.validation_error:.4f}"
+    post["left"] = f"{snap.eta_s:.0f}s"
+    bar.set_postfix(post, refresh=False)
+    bar.total = snap.total_iterations
+    step = snap.global_iteration - bar.n
+    if step > 0:
+        bar.update(step)
+    if snap.stage_complete and not bar.disable:
+        bar.write(f"stage {snap.stage + 1}/{snap.n_stages} (x{snap.factor}) complete at iteration {snap.global_iteration}"
+                  + (f", loss {loss:.4g}" if loss is not None else ""), file=bar.fp)
+
+
+def _config_from_args(args: argparse.Namespace):
+    """The settings of ``fdt reconstruct``: the ``--config`` file (or report's config), then each flag given."""
+    from napari_fdt.recon.command import config_from_file
+    from napari_fdt.recon.config import SolverConfig
+    from napari_fdt.schema import schema_fields
+
+    config = config_from_file(args.config) if args.config is not None else SolverConfig()
+    overrides = {name: getattr(args, name) for name in schema_fields(SolverConfig) if getattr(args, name, None) is not None}
+    if overrides:
+        config = dataclasses.replace(config, **overrides)  # validated again
+    return config
 
 
 def _cmd_reconstruct(args: argparse.Namespace) -> int:
     import json
 
-    from napari_fdt.data.io import read_acquisition, read_volume_tiff, report_path
+    from napari_fdt.data.io import check_report_free, read_acquisition, read_volume_tiff, report_path
     from napari_fdt.recon import distributed
-    from napari_fdt.recon.config import SolverConfig, load_config
-    from napari_fdt.schema import schema_fields
+    from napari_fdt.recon.command import read_report
 
-    config = load_config(args.config) if args.config is not None else SolverConfig()
-    overrides = {name: getattr(args, name) for name in schema_fields(SolverConfig) if getattr(args, name, None) is not None}
-    if overrides:
-        config = dataclasses.replace(config, **overrides)  # validated again
+    config = _config_from_args(args)
     # Under torchrun every rank runs this; everything up to the process group is checked on all ranks alike,
     # and only rank 0 writes or prints progress.
     _, rank, _, _ = distributed.world_from_env()
@@ -335,17 +404,29 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
             config.save(args.save_config)
             print(f"wrote {args.save_config}")
         return 0
+    if args.acquisition is None:
+        report = read_report(args.config) if args.config is not None else None
+        if report is None or not isinstance(report.get("acquisition"), str):
+            raise FDTInputError("acquisition", "is missing", "give the acquisition folder (or --config a report that names it)")
+        args.acquisition = Path(report["acquisition"])
     acq = read_acquisition(args.acquisition)
     out = Path(args.out)
     json_out = report_path(out)
-    protected = {Path(args.acquisition).resolve() / "images.tif", Path(args.acquisition).resolve() / "acquisition.json"}
-    if args.truth is not None:
-        protected.add(Path(args.truth).resolve())
+    protected = {Path(args.acquisition).resolve() / "images.tif", Path(args.acquisition).resolve() / "acquisition.json",
+                 Path(args.acquisition).resolve()}
+    for given in (args.truth, args.config):
+        if given is not None:
+            protected.add(Path(given).resolve())
     if out.resolve() in protected or json_out.resolve() in protected:
-        raise FDTInputError("out", f"{out} would overwrite an input", "write the result somewhere else")
+        raise FDTInputError("out", f"{out} (or its report {json_out.name}) would overwrite an input", "write the result somewhere else")
     for p in (out, json_out):
         if p.exists() and not args.overwrite:
             raise FDTInputError("out", f"{p} exists", "choose another --out or pass --overwrite")
+    check_report_free(out)  # RI.tif and RI.ome.tif share RI.json: refuse before the run, not after it
+    if str(out).lower().endswith(".zarr"):
+        from napari_fdt.data.ome_zarr import _zarr
+
+        _zarr()  # refuse now, not after the run, when zarr is missing
     truth = truth_src = None
     if args.truth is not None:
         truth, _ = read_volume_tiff(args.truth)
@@ -364,7 +445,7 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
 
 
 def _run_and_write(args, config, acq, out: Path, json_out: Path, truth, truth_src, group) -> int:
-    from napari_fdt.recon.report import build_report, write_result
+    from napari_fdt.recon.report import build_report, describe_parts, write_result
     from napari_fdt.recon.solver import Reconstructor
 
     device = args.device if group is None else group.device
@@ -374,22 +455,21 @@ def _run_and_write(args, config, acq, out: Path, json_out: Path, truth, truth_sr
         rec = Reconstructor(acq, config, device=device, group=group)
     writer = group is None or group.is_writer
     cancelled = False
+    bar = _progress_bar(rec.config.total_iterations, disable=args.quiet or not writer)
     try:
         for snap in rec.run(checkpoint_dir=args.checkpoint_dir):
-            if not args.quiet and writer:
-                print(_progress_line(snap), end="", file=sys.stderr, flush=True)
-                if snap.stage_complete:
-                    print(file=sys.stderr)
+            _show_progress(bar, snap)
     except KeyboardInterrupt:
         cancelled = True
+        bar.close()
         if not writer:
             return 130
-        print(file=sys.stderr)
         if rec.completed_stages == 0:
             print("interrupted before the first stage completed: nothing written", file=sys.stderr)
             return 130
         print(f"interrupted: writing the last complete stage ({rec.completed_stages}/{len(rec.config.stages)})", file=sys.stderr)
         rec.restore_last_complete()
+    bar.close()
     if not writer:
         return 0
     report = build_report(rec, output=str(out), acquisition_path=str(args.acquisition), truth_ri=truth,
@@ -400,6 +480,16 @@ def _run_and_write(args, config, acq, out: Path, json_out: Path, truth, truth_sr
     fit = report.get("image_fit")
     if fit:
         print(f"image fit: relative error {fit['image_relative_error']:.4f}, PSNR {fit['image_psnr']:.1f} dB, SSIM {fit['image_ssim']:.3f}")
+    reg = report.get("regularisation", {})
+    chosen = reg.get("chosen")
+    if chosen and chosen.get("trials"):
+        tried = ", ".join(f"{t['tv_xy_weight']:g}: {t['validation_error']:.4f}" for t in chosen["trials"])
+        print(f"TV weights chosen by the validation error: τ_xy {chosen['tv_xy_weight']:g}, τ_z {chosen['tv_z_weight']:g} "
+              f"(stage {chosen['stage'] + 1}, {chosen['probe_iterations']} iterations per candidate, {chosen['seconds']:.1f} s; τ_xy: error {tried})")
+    elif chosen:
+        print(f"TV weights: τ_xy {chosen['tv_xy_weight']:g}, τ_z {chosen['tv_z_weight']:g} ({chosen['reason']})")
+    if report.get("model_parts"):
+        print(describe_parts(report["model_parts"]))
     val = report.get("validation")
     if val:
         print(f"validation: relative error {val['error']:.4f} on {val['n_images']} held-out images (the image fit's counterpart "

@@ -26,6 +26,7 @@ from napari_fdt.errors import FDTInputError
 
 __all__ = [
     "SCHEMA_CONFIG",
+    "accepts_auto",
     "bounds",
     "choices",
     "example",
@@ -106,14 +107,24 @@ def _inner_model(annotation: Any) -> type | None:
     return None
 
 
+def accepts_auto(info: FieldInfo) -> bool:
+    """Whether a numeric field also takes the string ``"auto"`` (a value chosen from the data)."""
+    annotation = info.annotation
+    if typing.get_origin(annotation) not in (Union, types.UnionType):
+        return False
+    return any(typing.get_origin(a) is Literal and typing.get_args(a) == ("auto",) for a in typing.get_args(annotation))
+
+
 def scalar_type(info: FieldInfo) -> tuple[type | None, bool]:
     """``(type, optional)`` of a scalar field: ``bool``, ``int``, ``float`` or ``str`` (a ``Literal``), and whether
-    None is allowed; ``(None, …)`` for other fields (lists, nested settings)."""
+    None is allowed; ``(None, …)`` for other fields (lists, nested settings). A number that also takes ``"auto"``
+    (:func:`accepts_auto`) is reported as its numeric type."""
     annotation = info.annotation
     optional = False
     if typing.get_origin(annotation) in (Union, types.UnionType):
-        args = [a for a in typing.get_args(annotation) if a is not type(None)]
-        optional = len(args) < len(typing.get_args(annotation))
+        optional = type(None) in typing.get_args(annotation)
+        args = [a for a in typing.get_args(annotation) if a is not type(None)
+                and not (typing.get_origin(a) is Literal and typing.get_args(a) == ("auto",))]
         if len(args) != 1:
             return None, optional
         annotation = args[0]
@@ -210,6 +221,8 @@ def input_error(exc: ValidationError, model: type, root: str = "config", prefix:
             name += "[]"
             continue
         fields = schema_fields(owner) if owner is not None else {}
+        if part not in fields and info is not None and owner is None:
+            continue  # the tag of a union's member ("constrained-float" of a number-or-"auto" field)
         info = fields.get(part)
         name = f"{name}.{part}" if name else str(part)
         owner = _inner_model(info.annotation) if info is not None else None
@@ -268,6 +281,7 @@ def _markdown_value(value: Any) -> str:
 def _markdown_type(info: FieldInfo) -> str:
     kind, optional = scalar_type(info)
     options = choices(info)
+    auto = ' or `"auto"`' if accepts_auto(info) else ""
     if options is not None:
         text = " \\| ".join(f'`"{c}"`' for c in options)
     elif kind is not None:
@@ -279,7 +293,7 @@ def _markdown_type(info: FieldInfo) -> str:
     else:
         inner = _inner_model(info.annotation)
         text = f"list of {inner.__name__}" if inner is not None else str(info.annotation)
-    return text + (" or null" if optional else "")
+    return text + auto + (" or null" if optional else "")
 
 
 def markdown_table(model: type) -> str:

@@ -38,8 +38,11 @@ __all__ = [
     "write_acquisition",
     "write_json_atomic",
     "write_volume_tiff",
+    "write_stack_tiff",
     "read_volume_tiff",
     "report_path",
+    "check_report_free",
+    "VOLUME_SUFFIXES",
     "read_image_stack",
 ]
 
@@ -160,10 +163,49 @@ def _atomic_output(
     _fsync(target.parent)
 
 
+#: Endings of volume files and folders that :func:`report_path` replaces by ``.json`` (longest first).
+VOLUME_SUFFIXES = (".ome.tiff", ".ome.tif", ".ome.zarr", ".tiff", ".tif", ".zarr")
+
+
 def report_path(volume_path: PathLike) -> Path:
-    """The report beside a volume file: ``RI.tif`` / ``RI.ome.tif`` → ``RI.json``."""
+    """The report beside a volume: the full name with its volume ending replaced by ``.json``.
+
+    ``RI.tif`` / ``RI.ome.tif`` / ``RI.ome.zarr`` → ``RI.json``; ``RI_lr0.05.tif`` → ``RI_lr0.05.json``
+    (every dot before the ending is kept, so distinct names get distinct reports); a name without a volume
+    ending gets ``.json`` appended. Two outputs that differ only in their ending (``RI.tif``, ``RI.ome.tif``)
+    share a name: :func:`check_report_free` refuses the second while the first exists.
+    """
     p = Path(volume_path)
-    return p.with_name(p.name.split(".")[0] + ".json")
+    name, low = p.name, p.name.lower()
+    for suffix in VOLUME_SUFFIXES:
+        if low.endswith(suffix) and len(name) > len(suffix):
+            return p.with_name(name[: -len(suffix)] + ".json")
+    return p.with_name(name + ".json")
+
+
+def check_report_free(volume_path: PathLike) -> None:
+    """Refuse a report target that holds the report of *another* volume that still exists.
+
+    ``RI.tif`` and ``RI.ome.tif`` share ``RI.json``: writing the second would silently replace the first's
+    report even with ``overwrite`` (which replaces this output, not another's). Reads only the JSON's
+    ``output``; a missing, unreadable or foreign file is not in the way of the usual overwrite rules.
+    """
+    volume = Path(volume_path)
+    side = report_path(volume)
+    if not side.is_file():
+        return
+    try:
+        data = json.loads(side.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return
+    if not isinstance(data, dict) or data.get("format") != "napari-fdt-report" or not isinstance(data.get("output"), str):
+        return
+    other = Path(data["output"])
+    if not other.is_absolute():
+        other = side.parent / other
+    if other.name != volume.name and other.parent.resolve() == volume.parent.resolve() and os.path.lexists(other):
+        raise FDTInputError("out", f"{side} is the report of {other.name}, which would lose it",
+                            f"choose another output name than {volume.name}, e.g. with _2 before its ending")
 
 
 def write_json_atomic(path: PathLike, obj: Any, *, overwrite: bool = False) -> Path:
@@ -426,6 +468,23 @@ def write_volume_tiff(
     }
     with _atomic_output(path, overwrite=overwrite, suffix=".ome.tif") as tmp:
         tifffile.imwrite(tmp, vol, ome=True, photometric="minisblack", metadata=metadata)
+    return Path(path)
+
+
+def write_stack_tiff(path: PathLike, images: np.ndarray, pixel_size_um: float, *, overwrite: bool = False) -> Path:
+    """Write an ``(N, H, W)`` image stack (e.g. predicted images) as a float32 OME-TIFF, atomically.
+
+    Axes ``TYX`` (the image index is no z axis: the file is not taken for an RI volume) with ``PhysicalSizeX/Y``
+    = ``pixel_size_um`` in µm, which :mod:`napari_fdt.data.microscope` reads back. Refuses an existing file
+    unless ``overwrite``.
+    """
+    stack = np.asarray(images, dtype=np.float32)
+    if stack.ndim != 3:
+        raise FDTInputError("images", f"must be a stack (N, H, W), got shape {stack.shape}", "give an (N, H, W) array")
+    dx = _voxel_size((1.0, pixel_size_um, pixel_size_um))[2]
+    metadata = {"axes": "TYX", "PhysicalSizeY": dx, "PhysicalSizeYUnit": "µm", "PhysicalSizeX": dx, "PhysicalSizeXUnit": "µm"}
+    with _atomic_output(path, overwrite=overwrite, suffix=".ome.tif") as tmp:
+        tifffile.imwrite(tmp, stack, ome=True, photometric="minisblack", metadata=metadata)
     return Path(path)
 
 

@@ -4,7 +4,11 @@ Geometry (``docs/physics.md``): light travels +z. Sources lie ``depth`` below th
 face (z = 0); slice k (k = 0 nearest the sources) fills ``[k·Δz, (k+1)·Δz]`` and acts as a thin phase
 screen at its middle (symmetric split step). The exit field at the top face z = T is
 back-propagated by ``image_plane_um`` to the camera's focal plane, filtered by the pupil and
-detected as ``gain · |E|²``.
+detected as ``gain · |E|²`` (optionally averaged over each camera pixel's area).
+
+Optional parts (``docs/physics.md`` §3): the pupil's edge width and NA (``pupil_edge``, ``na``; 0 is a hard
+edge), a Zernike pupil phase (``aberrations``), the exact non-periodic homogeneous field for pupils whose tails
+the window cannot hold (``exact_free_field``) and pixel integration (``pixel_integration``).
 """
 
 from __future__ import annotations
@@ -19,6 +23,17 @@ from napari_fdt.device import resolve_device
 from napari_fdt.errors import FDTInputError
 from napari_fdt.model.memory import grid_is_unitary
 from napari_fdt.model.slice_loop import MODES, choose_mode, loop_forward, slice_loop
+from napari_fdt.physics.aberrations import RADIAL_MODES, ZERNIKE_MODES, coefficients_vector, zernike_phase
+from napari_fdt.physics.camera import fine_field, pixel_average_from_fine
+from napari_fdt.physics.free_field import (
+    DEFAULT_RHO_STEP_UM,
+    angular_harmonics,
+    bessel_j0,
+    bessel_orders,
+    free_field_profile,
+    interpolate_profile,
+    radial_nodes,
+)
 from napari_fdt.physics.grid import GridPlan, frequency_grid
 from napari_fdt.physics.optics import Optics
 from napari_fdt.physics.propagation import phase_screen, propagation_kernel, pupil, screen_phase
@@ -29,6 +44,10 @@ __all__ = ["MultiSliceModel", "Kernels", "ray_secant"]
 
 Scalar = float | torch.Tensor
 
+#: Fine pixels around the image where the pixel-integrated intensity gets the exact homogeneous field (beyond, the
+#: periodic one): keeps the jump between the two away from the box filter's reach.
+FREE_FIELD_MARGIN = 16
+
 
 @dataclass
 class Kernels:
@@ -36,7 +55,10 @@ class Kernels:
 
     ``fy``, ``fx``: frequencies (cycles/µm), (Hp, 1) and (1, Wp); ``window``: source band limit (Hp, Wp);
     ``slice_kernel``: propagation over one slice; ``exit_kernel``: last screen → focal plane, times the
-    pupil; ``pixel_size_um``, ``slice_spacing_um``, ``wavelength_um``: the parameters they were built for.
+    pupil and its aberration phase; ``pixel_size_um``, ``slice_spacing_um``, ``wavelength_um``: the parameters they
+    were built for; ``na``, ``pupil_edge``, ``zernike`` (coefficients of :data:`ZERNIKE_MODES`, radians) those of the
+    pupil; ``free_kernel``: first screen → focal plane in the homogeneous medium, times the pupil and the radial
+    aberrations (the periodic homogeneous field that the exact one replaces; None when not used).
     """
 
     fy: torch.Tensor
@@ -47,6 +69,20 @@ class Kernels:
     pixel_size_um: Scalar
     slice_spacing_um: Scalar
     wavelength_um: Scalar
+    na: Scalar = 0.0
+    pupil_edge: Scalar = 0.0
+    zernike: torch.Tensor | None = None
+    free_kernel: torch.Tensor | None = None
+
+
+def _has_nonradial(coeffs: torch.Tensor | None) -> bool:
+    """Whether Zernike coefficients (of :data:`ZERNIKE_MODES`) include a non-rotationally-symmetric mode (or may: trained)."""
+    if coeffs is None:
+        return False
+    if coeffs.requires_grad:
+        return True
+    idx = [i for i, m in enumerate(ZERNIKE_MODES) if m not in RADIAL_MODES]
+    return bool((coeffs.detach()[idx] != 0).any())
 
 
 class MultiSliceModel:
@@ -69,6 +105,14 @@ class MultiSliceModel:
         (:func:`ray_secant`), the path oblique light really travels in a slab. Removes
         the thin screen's obliquity error for the direct wave (2.4 % → 0.1 % image error at NA 0.66 under a
         uniform slab; ``docs/physics.md`` §6) at the cost of a screen per image and plain autograd.
+    pupil_edge: half-width of the pupil's raised-cosine edge relative to NA/λ; 0: a hard pupil; None (default):
+        the plan's ``pupil_taper`` (0.03, the edge the window is sized for).
+    aberrations: ``{mode: radians}`` of :data:`napari_fdt.physics.aberrations.ZERNIKE_MODES` (None: none).
+    exact_free_field: replace the periodic homogeneous part of each camera field by the exact non-periodic one
+        (:mod:`napari_fdt.physics.free_field`), so that pupil tails beyond the window do not wrap; ``"auto"``
+        (default): on when ``pupil_edge`` is narrower than the plan's ``pupil_taper``.
+    pixel_integration: record the intensity averaged over each pixel's area instead of at its centre
+        (:mod:`napari_fdt.physics.camera`).
 
     Call it as ``model(delta_n, sources_um, gain)`` → images (B, H, W). The optical parameters
     ``pixel_size_um``, ``slice_spacing_um`` and ``wavelength_um`` may be overridden per call, with
@@ -86,6 +130,10 @@ class MultiSliceModel:
         backward_mode: str = "auto",
         memory_budget_bytes: int | None = None,
         obliquity: str = "none",
+        pupil_edge: float | None = None,
+        aberrations: dict[str, float] | None = None,
+        exact_free_field: bool | str = "auto",
+        pixel_integration: bool = False,
     ) -> None:
         if dtype not in (torch.float32, torch.float64):
             raise ValueError("dtype must be torch.float32 or torch.float64 (fp16 phases are too coarse)")
@@ -94,6 +142,15 @@ class MultiSliceModel:
         if obliquity not in ("none", "per_source"):
             raise FDTInputError("obliquity", f"unknown correction {obliquity!r}", "use 'none' or 'per_source'")
         self.obliquity = obliquity
+        self.pupil_edge = float(plan.pupil_taper if pupil_edge is None else pupil_edge)
+        if not (0.0 <= self.pupil_edge < 0.5):
+            raise FDTInputError("pupil_edge", f"must be in [0, 0.5), got {pupil_edge!r}", "0 is a hard pupil; 0.03 the default soft edge")
+        self.zernike = tuple(coefficients_vector(aberrations))
+        if exact_free_field == "auto":
+            exact_free_field = self.pupil_edge < plan.pupil_taper
+        self.exact_free_field = bool(exact_free_field)
+        self.pixel_integration = bool(pixel_integration)
+        self._bessel_cache: dict = {}
         self.backward_mode = backward_mode
         self.memory_budget_bytes = memory_budget_bytes
         self._auto_modes: dict[int, str] = {}
@@ -127,12 +184,17 @@ class MultiSliceModel:
         pixel_size_um: Scalar | None = None,
         slice_spacing_um: Scalar | None = None,
         wavelength_um: Scalar | None = None,
+        na: Scalar | None = None,
+        pupil_edge: Scalar | None = None,
+        zernike: torch.Tensor | None = None,
     ) -> Kernels:
-        """Kernels for the given parameters (None: the acquisition's value); cached when all are None.
+        """Kernels for the given parameters (None: the acquisition's or the model's value); cached when all are None.
 
-        A different wavelength scales the band limit and the pupil with it (they are angles).
+        A different wavelength scales the band limit and the pupil with it (they are angles); the Zernike
+        polynomials' unit radius stays the acquisition's NA/λ.
         """
-        if pixel_size_um is None and slice_spacing_um is None and wavelength_um is None and hasattr(self, "_default"):
+        overrides = (pixel_size_um, slice_spacing_um, wavelength_um, na, pupil_edge, zernike)
+        if all(v is None for v in overrides) and hasattr(self, "_default"):
             return self._default
         o = self.optics
         dx = o.pixel_size_um if pixel_size_um is None else pixel_size_um
@@ -145,10 +207,27 @@ class MultiSliceModel:
         window = band_limit(f2, self.plan.f_lo_per_um * ratio, self.plan.f_hi_per_um * ratio)
         slice_kernel = propagation_kernel(f2, dz, o.n_background, lam)
         exit_distance = 0.5 * dz - o.image_plane_um  # last screen → camera focal plane
-        exit_kernel = propagation_kernel(f2, exit_distance, o.n_background, lam) * pupil(
-            f2, o.na, lam, self.plan.pupil_taper
-        )
-        return Kernels(fy, fx, window, slice_kernel, exit_kernel, dx, dz, lam)
+        na_ = o.na if na is None else na
+        edge = self.pupil_edge if pupil_edge is None else pupil_edge
+        coeffs = zernike
+        if coeffs is None and any(self.zernike):
+            coeffs = torch.tensor(self.zernike, device=self.device, dtype=self.dtype)
+        aperture = pupil(f2, na_, lam, edge).to(torch.complex128 if self.dtype == torch.float64 else torch.complex64)
+        radial = aperture
+        if coeffs is not None:
+            phase_all = zernike_phase(fy, fx, o.na, o.wavelength_um, coeffs)
+            aperture = aperture * torch.polar(torch.ones_like(phase_all), phase_all)
+            keep = [ZERNIKE_MODES.index(m) for m in RADIAL_MODES]
+            radial_coeffs = torch.stack([coeffs[i] for i in keep])
+            phase_r = zernike_phase(fy, fx, o.na, o.wavelength_um, radial_coeffs, RADIAL_MODES)
+            radial = radial * torch.polar(torch.ones_like(phase_r), phase_r)
+        exit_kernel = propagation_kernel(f2, exit_distance, o.n_background, lam) * aperture
+        free_kernel = None
+        if self.exact_free_field:
+            free_distance = o.n_slices * dz - 0.5 * dz - o.image_plane_um  # first screen → focal plane
+            full = _has_nonradial(coeffs)  # the exact field then holds every mode (angular harmonics)
+            free_kernel = propagation_kernel(f2, free_distance, o.n_background, lam) * (aperture if full else radial)
+        return Kernels(fy, fx, window, slice_kernel, exit_kernel, dx, dz, lam, na_, edge, coeffs, free_kernel)
 
     # -- pieces -------------------------------------------------------------------------------
     def source_spectrum(self, sources_um: torch.Tensor, kernels: Kernels | None = None) -> torch.Tensor:
@@ -187,22 +266,20 @@ class MultiSliceModel:
         h, w = self.plan.image_shape
         return field[..., oy : oy + h, ox : ox + w]
 
-    def camera_field(
-        self,
-        delta_n: torch.Tensor,
-        sources_um: torch.Tensor,
-        *,
-        pixel_size_um: Scalar | None = None,
-        slice_spacing_um: Scalar | None = None,
-        wavelength_um: Scalar | None = None,
-    ) -> torch.Tensor:
-        """Complex field at the camera, (B, H, W), for contrast ``delta_n = n − n_b``.
+    def _camera_spectra(self, delta_n: torch.Tensor, sources_um: torch.Tensor, k: Kernels) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """Spectra (B, Hp, Wp) of the camera field on the window and of its periodic homogeneous part (None if unused)."""
+        return self._pupil_spectra(*self.exit_spectra(delta_n, sources_um, k), k)
 
-        ``delta_n`` is (n_slices, H, W) on the image grid (background outside) or (n_slices, Hp, Wp).
+    def exit_spectra(self, delta_n: torch.Tensor, sources_um: torch.Tensor, k: Kernels | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """(spectrum of the field after the last screen, spectrum of the sources at the first screen), each (B, Hp, Wp).
+
+        Everything of the image that does not depend on the pupil (its NA, edge and aberrations) or the camera: a
+        fit of those with the volume and sources held fixed computes these once and calls :meth:`intensity_from_exit`.
         """
-        k = self.kernels(pixel_size_um, slice_spacing_um, wavelength_um)
+        k = k or self._default
         dn = self.pad_volume(delta_n)
-        v0 = torch.fft.ifft2(self.source_spectrum(sources_um, k))
+        spec0 = self.source_spectrum(sources_um, k)
+        v0 = torch.fft.ifft2(spec0)
         if self.obliquity == "per_source" or self.backward_mode == "autograd":  # plain autograd
             src = sources_um.to(self.device, self.dtype)
             u = v0
@@ -217,8 +294,153 @@ class MultiSliceModel:
                 u = slice_loop(v0, phi, k.slice_kernel, self.loop_mode(v0.shape[0]), check=False)
             else:  # inference: nothing to keep
                 u = loop_forward(v0, phi, k.slice_kernel)
-        u = torch.fft.ifft2(torch.fft.fft2(u) * k.exit_kernel)
-        return self.crop(u)
+        return torch.fft.fft2(u), spec0
+
+    @staticmethod
+    def _pupil_spectra(exit_spec: torch.Tensor, spec0: torch.Tensor, k: Kernels) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """Camera-field spectrum (exit spectrum through the exit kernel) and its periodic homogeneous part (or None)."""
+        return exit_spec * k.exit_kernel, (None if k.free_kernel is None else spec0 * k.free_kernel)
+
+    def _window_coordinates(self, start: int, stop: int, axis: int, step: float, dx: Scalar) -> torch.Tensor:
+        """Lateral coordinates (µm) of window positions ``start·step … (stop−1)·step`` along rows (0) or columns (1)."""
+        n = self.plan.padded_shape[axis]
+        idx = torch.arange(start, stop, device=self.device, dtype=self.dtype) * step
+        return (idx - n // 2) * dx
+
+    def free_field_exact(self, sources_um: torch.Tensor, k: Kernels, ys: torch.Tensor, xs: torch.Tensor) -> torch.Tensor:
+        """Non-periodic homogeneous-medium camera field (B, ny, nx) at window coordinates ``ys`` (ny,), ``xs`` (nx,) µm.
+
+        Through the pupil of ``k`` and its rotationally symmetric aberrations (:mod:`napari_fdt.physics.free_field`).
+        """
+        o = self.optics
+        src = sources_um.to(self.device, self.dtype)
+        lam = k.wavelength_um
+        cutoff = k.na / lam
+        edge = k.pupil_edge
+        hard = not isinstance(edge, torch.Tensor) and edge <= 0
+        edges = [0.0, cutoff] if hard else [0.0, (1.0 - edge) * cutoff, (1.0 + edge) * cutoff]
+        thickness = o.n_slices * k.slice_spacing_um
+        h = src[:, 2] + thickness - o.image_plane_um  # source → focal plane
+        dy = ys.reshape(1, -1, 1) - src[:, 1].reshape(-1, 1, 1)
+        dxx = xs.reshape(1, 1, -1) - src[:, 0].reshape(-1, 1, 1)
+        rho = torch.sqrt(dy * dy + dxx * dxx + 1e-12)
+        step = DEFAULT_RHO_STEP_UM
+        rho_max = float(rho.detach().max()) + 2 * step
+        n_rho = int(math.ceil(rho_max / step)) + 2
+        f_max = float(edges[-1])
+        s_max = min(0.999, f_max * float(lam) / o.n_background)
+        tan_max = s_max / math.sqrt(1.0 - s_max * s_max)
+        per_unit = 1.25 * (float(h.detach().max()) * tan_max + rho_max) + 4.0
+        per_unit = 2.0 ** math.ceil(math.log2(per_unit))  # few distinct node sets: the Bessel table is reused
+        f, wts = radial_nodes(edges, per_unit, device=self.device, dtype=self.dtype)
+        radii = torch.arange(n_rho, device=self.device, dtype=self.dtype) * step
+        amp = pupil(f * f, k.na, lam, edge)
+        amp = torch.complex(amp, torch.zeros_like(amp))
+        if not _has_nonradial(k.zernike):
+            key = None
+            if not f.requires_grad:
+                key = (tuple(round(float(e), 12) for e in edges), per_unit, n_rho)
+            bessel = self._bessel_cache.get(key) if key is not None else None
+            if bessel is None:
+                bessel = bessel_j0(2.0 * math.pi * f[:, None] * radii[None, :])
+                if key is not None:
+                    self._bessel_cache.clear()
+                    self._bessel_cache[key] = bessel
+            if k.zernike is not None:
+                keep = [ZERNIKE_MODES.index(m) for m in RADIAL_MODES]
+                w_r = zernike_phase(torch.zeros_like(f), f, o.na, o.wavelength_um, torch.stack([k.zernike[i] for i in keep]), RADIAL_MODES)
+                amp = amp * torch.polar(torch.ones_like(w_r), w_r)
+            profile = free_field_profile(radii, src[:, 2], h, f, wts, amp, n_background=o.n_background, wavelength_um=lam, bessel=bessel)
+            return interpolate_profile(profile, step, rho)
+        # Angular harmonics: exp(i·W(f, φ)) = Σ_m c_m(f)·exp(i·m·φ) → E(ρ, θ) = Σ_m i^m·exp(i·m·θ)·2π∫A·c_m·J_m(2πfρ)·f df
+        n_phi = 64
+        ang = torch.arange(n_phi, device=self.device, dtype=self.dtype) * (2.0 * math.pi / n_phi)
+        w_full = zernike_phase(f[:, None] * torch.sin(ang)[None, :], f[:, None] * torch.cos(ang)[None, :], o.na, o.wavelength_um, k.zernike)
+        coeffs, order = angular_harmonics(torch.polar(torch.ones_like(w_full), w_full))  # (2M+1, F)
+        cplx = torch.complex128 if self.dtype == torch.float64 else torch.complex64
+        unit = torch.complex(dxx, dy) / rho  # exp(i·θ) of each pixel seen from its source
+        unit = unit.expand(src.shape[0], -1, -1) if unit.shape[0] != src.shape[0] else unit
+        # The J_m tables do not follow the nodes' motion with the NA and edge: those two gradients are approximate here
+        # (4 % in d/dNA on a test case); the coefficients' gradients are exact.
+        z = 2.0 * math.pi * f.detach()[:, None] * radii[None, :]
+        out = None
+        power = torch.ones_like(unit)
+        for m, jm in bessel_orders(z, order):
+            jm = jm.to(self.dtype)
+            for sign in ((1,) if m == 0 else (1, -1)):
+                c_m = coeffs[order + sign * m]
+                bes = jm if (sign > 0 or m % 2 == 0) else -jm  # J_{-m} = (−1)^m·J_m
+                prof = free_field_profile(radii, src[:, 2], h, f, wts, amp * c_m, n_background=o.n_background,
+                                          wavelength_um=lam, bessel=bes)
+                phase_m = (1j) ** (sign * m)
+                term = interpolate_profile(prof, step, rho) * (power if sign > 0 else power.conj()) * torch.tensor(phase_m, dtype=cplx)
+                out = term if out is None else out + term
+            power = power * unit
+        return out
+
+    def camera_field(
+        self,
+        delta_n: torch.Tensor,
+        sources_um: torch.Tensor,
+        **optics_overrides: Scalar | None,
+    ) -> torch.Tensor:
+        """Complex field at the camera, (B, H, W), for contrast ``delta_n = n − n_b`` (at the pixel centres).
+
+        ``delta_n`` is (n_slices, H, W) on the image grid (background outside) or (n_slices, Hp, Wp).
+        Keyword overrides: see :meth:`kernels`.
+        """
+        k = self.kernels(**optics_overrides)
+        spec, free = self._camera_spectra(delta_n, sources_um, k)
+        return self._field_from_spectra(spec, free, sources_um, k)
+
+    def intensity(self, delta_n: torch.Tensor, sources_um: torch.Tensor, **optics_overrides: Scalar | None) -> torch.Tensor:
+        """``|E|²`` on the image, (B, H, W): at the pixel centres, or averaged over each pixel with ``pixel_integration``."""
+        if not self.pixel_integration:
+            field = self.camera_field(delta_n, sources_um, **optics_overrides)
+            return field.real.square() + field.imag.square()
+        k = self.kernels(**optics_overrides)
+        return self._integrated(*self._camera_spectra(delta_n, sources_um, k), sources_um, k)
+
+    def intensity_from_exit(self, exit_spec: torch.Tensor, spec0: torch.Tensor, sources_um: torch.Tensor,
+                            **optics_overrides: Scalar | None) -> torch.Tensor:
+        """:meth:`intensity` from :meth:`exit_spectra`, which must have been computed for the same sources and with the
+        same ``pixel_size_um``, ``slice_spacing_um`` and ``wavelength_um`` as given here; ``na``, ``pupil_edge`` and
+        ``zernike`` may differ (the pupil is applied here)."""
+        k = self.kernels(**optics_overrides)
+        spec, free = self._pupil_spectra(exit_spec, spec0, k)
+        if self.pixel_integration:
+            return self._integrated(spec, free, sources_um, k)
+        field = self._field_from_spectra(spec, free, sources_um, k)
+        return field.real.square() + field.imag.square()
+
+    def _field_from_spectra(self, spec: torch.Tensor, free: torch.Tensor | None, sources_um: torch.Tensor, k: Kernels) -> torch.Tensor:
+        """The camera field (B, H, W) at the pixel centres from :meth:`_pupil_spectra`."""
+        field = self.crop(torch.fft.ifft2(spec))
+        if free is not None:
+            oy, ox = self.plan.offset
+            h, w = self.plan.image_shape
+            ys = self._window_coordinates(oy, oy + h, 0, 1.0, k.pixel_size_um)
+            xs = self._window_coordinates(ox, ox + w, 1, 1.0, k.pixel_size_um)
+            field = field - self.crop(torch.fft.ifft2(free)) + self.free_field_exact(sources_um, k, ys, xs)
+        return field
+
+    def _integrated(self, spec: torch.Tensor, free: torch.Tensor | None, sources_um: torch.Tensor, k: Kernels) -> torch.Tensor:
+        """Pixel-averaged intensity (B, H, W) from :meth:`_pupil_spectra`."""
+        fine = fine_field(spec)
+        if free is not None:
+            # exact homogeneous field on the image and a margin of FREE_FIELD_MARGIN fine pixels (the box filter's reach)
+            oy, ox = self.plan.offset
+            h, w = self.plan.image_shape
+            hp, wp = self.plan.padded_shape
+            m = FREE_FIELD_MARGIN
+            r0, r1 = max(0, 2 * oy - m), min(2 * hp, 2 * (oy + h) + m)
+            c0, c1 = max(0, 2 * ox - m), min(2 * wp, 2 * (ox + w) + m)
+            ys = self._window_coordinates(r0, r1, 0, 0.5, k.pixel_size_um)
+            xs = self._window_coordinates(c0, c1, 1, 0.5, k.pixel_size_um)
+            periodic = fine_field(free)[..., r0:r1, c0:c1]
+            corr = self.free_field_exact(sources_um, k, ys, xs) - periodic
+            fine = fine + F.pad(corr, (c0, 2 * wp - c1, r0, 2 * hp - r1))
+        return self.crop(pixel_average_from_fine(fine))
 
     def loop_mode(self, batch: int) -> str:
         """The backward mode used for a batch of ``batch`` images (see ``backward_mode``)."""
@@ -245,10 +467,10 @@ class MultiSliceModel:
     ) -> torch.Tensor:
         """Images ``gain · |E|²``, (B, H, W) real; ``gain`` is (B,) or None (1).
 
-        Keyword overrides: ``pixel_size_um``, ``slice_spacing_um``, ``wavelength_um`` (see :meth:`kernels`).
+        Keyword overrides: ``pixel_size_um``, ``slice_spacing_um``, ``wavelength_um``, ``na``, ``pupil_edge``,
+        ``zernike`` (see :meth:`kernels`).
         """
-        field = self.camera_field(delta_n, sources_um, **optics_overrides)
-        intensity = field.real.square() + field.imag.square()
+        intensity = self.intensity(delta_n, sources_um, **optics_overrides)
         if gain is not None:
             intensity = intensity * gain.to(self.device, self.dtype).reshape(-1, 1, 1)
         return intensity

@@ -9,11 +9,11 @@ from __future__ import annotations
 
 from typing import Any
 
-from magicgui.widgets import CheckBox, ComboBox, FloatSpinBox, SpinBox, Widget
+from magicgui.widgets import CheckBox, ComboBox, Container, FloatSpinBox, SpinBox, Widget
 
-from napari_fdt.schema import bounds, choices, example, scalar_type, schema_fields
+from napari_fdt.schema import accepts_auto, bounds, choices, example, scalar_type, schema_fields
 
-__all__ = ["schema_widget", "WIDE_LIMIT"]
+__all__ = ["schema_widget", "AutoNumber", "WIDE_LIMIT"]
 
 #: Range of a spin box whose field has no bound on that side (and of every spin box with ``clamp=False``).
 WIDE_LIMIT = 1e6
@@ -32,6 +32,32 @@ def _limits(info, kind: type, clamp: bool) -> tuple[float, float]:
         hi = b["le"] if "le" in b else (b["lt"] - 1 if "lt" in b else 2**31 - 1)
         return lo, hi
     return (-WIDE_LIMIT if lower is None else lower), (WIDE_LIMIT if upper is None else upper)
+
+
+class AutoNumber(Container):
+    """A number that may also be ``"auto"`` (chosen from the data): an *auto* check box beside a spin box, which is
+    disabled while *auto* is ticked. ``value`` is ``"auto"`` or the number; it accepts either."""
+
+    def __init__(self, spin: FloatSpinBox | SpinBox, *, name: str, label: str, value: Any, tooltip: str) -> None:
+        self.auto = CheckBox(text="auto", value=value == "auto", tooltip="chosen from the data by the validation error")
+        self.number = spin
+        super().__init__(widgets=[self.auto, self.number], layout="horizontal", labels=False, name=name, label=label,
+                         tooltip=tooltip)
+        self.margins = (0, 0, 0, 0)
+        self.number.enabled = not self.auto.value
+        self.auto.changed.connect(lambda checked: setattr(self.number, "enabled", not checked))
+
+    @property
+    def value(self) -> Any:
+        return "auto" if self.auto.value else self.number.value
+
+    @value.setter
+    def value(self, value: Any) -> None:
+        if value == "auto":
+            self.auto.value = True
+        else:
+            self.auto.value = False
+            self.number.value = value
 
 
 def schema_widget(model: type, name: str, *, label: str | None = None, value: Any = None, step: float | None = None,
@@ -58,5 +84,8 @@ def schema_widget(model: type, name: str, *, label: str | None = None, value: An
     if kind is float:
         lo, hi = _limits(info, float, clamp)
         extra = {} if step is None else {"step": step}
+        if accepts_auto(info):
+            spin = FloatSpinBox(name=name + "_number", value=0.0 if value == "auto" else value, min=lo, max=hi, tooltip=tooltip, **extra)
+            return AutoNumber(spin, name=name, label=label, value=value, tooltip=tooltip)
         return FloatSpinBox(name=name, label=label, value=value, min=lo, max=hi, tooltip=tooltip, **extra)
     raise TypeError(f"{model.__name__}.{name} is not a scalar setting; build its widget by hand")

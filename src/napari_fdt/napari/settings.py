@@ -8,12 +8,17 @@ format of ``fdt reconstruct --config``.
 from __future__ import annotations
 
 import re
+from pathlib import Path
 from typing import Any
 
 from napari_fdt.errors import FDTInputError
+from napari_fdt.physics.optics import Optics
 from napari_fdt.recon.config import SolverConfig, StageConfig
 
-__all__ = ["format_stages", "parse_stages", "merge_config"]
+__all__ = [
+    "format_stages", "parse_stages", "merge_config", "OPTICS_LABELS", "OPTICS_OPTIONAL", "format_entry", "missing_optics",
+    "optics_from_entries", "unique_path",
+]
 
 _STAGE = re.compile(r"^\s*(\d+)\s*[x×:*]\s*(\d+)\s*(?:@\s*(\d+)\s*)?$")
 _STAGES_FIX = ("write factor x iterations per stage, comma separated, e.g. 4x100, 2x100, 1x160 "
@@ -51,3 +56,102 @@ def merge_config(base: SolverConfig, values: dict[str, Any]) -> SolverConfig:
         values["stages"] = parse_stages(values["stages"])
     data.update(values)
     return SolverConfig.from_dict(data)
+
+
+# -- optics as the acquisition widget shows them: text fields, empty until the file or the user gives them --------
+
+#: The label of every optics field in the widget (errors name the field by its label).
+OPTICS_LABELS: dict[str, str] = {
+    "wavelength_um": "wavelength (µm)", "n_background": "n background", "na": "NA",
+    "pixel_size_um": "pixel size (µm)", "n_slices": "slices", "slice_spacing_um": "slice spacing (µm)",
+    "image_plane_um": "image plane (µm)",
+}
+#: Fields that may stay empty, with the value an empty field means (``Optics``' own default).
+OPTICS_OPTIONAL: dict[str, float] = {"image_plane_um": 0.0}
+
+#: Plausible ranges (µm) of light microscopy; a value outside is refused with the likely unit mistake.
+WAVELENGTH_RANGE_UM = (0.3, 2.0)
+PIXEL_SIZE_RANGE_UM = (0.02, 20.0)
+
+
+def format_entry(value: Any) -> str:
+    """A number as the widget's text field shows it (``0.635``, ``8``); ``""`` for None."""
+    if value is None:
+        return ""
+    if isinstance(value, (int,)) and not isinstance(value, bool):
+        return str(value)
+    return f"{float(value):.10g}"
+
+
+def missing_optics(entries: dict[str, str]) -> list[str]:
+    """Labels of the required optics fields that are empty in ``entries`` (field → text)."""
+    return [OPTICS_LABELS[name] for name in OPTICS_LABELS
+            if name not in OPTICS_OPTIONAL and not str(entries.get(name, "") or "").strip()]
+
+
+def _number(name: str, text: str) -> float:
+    label = OPTICS_LABELS[name]
+    try:
+        value = float(str(text).strip().replace(",", "."))
+    except ValueError:
+        raise FDTInputError(label, f"{str(text).strip()!r} is not a number", "type a number, e.g. 0.635") from None
+    return value
+
+
+def _unit_hint(label: str, value: float, lo: float, hi: float, what: str) -> FDTInputError:
+    """The error for a length outside [lo, hi] µm, naming the unit it was likely typed in."""
+    for unit, to_um in (("nm", 1e-3), ("mm", 1e3), ("m", 1e6)):
+        if lo <= value * to_um <= hi:
+            return FDTInputError(label, f"{value:g} looks like {unit}, not µm",
+                                 f"enter {value * to_um:g}: the field takes µm, and {what} lies between {lo:g} and {hi:g} µm")
+    return FDTInputError(label, f"{value:g} µm is outside {lo:g} to {hi:g} µm", f"enter the {what} in µm")
+
+
+def optics_from_entries(entries: dict[str, str]) -> Optics:
+    """The optics typed in the widget (field → text), checked; raises :class:`FDTInputError` naming the widget's label.
+
+    Empty required fields are refused by name; a wavelength outside 0.3–2 µm, a pixel size outside 0.02–20 µm or
+    an NA not below n background are refused with the likely mistake (e.g. ``635 looks like nm``); then
+    :class:`~napari_fdt.physics.optics.Optics` checks the rest (its message relabelled with the widget's words).
+    """
+    missing = missing_optics(entries)
+    if missing:
+        raise FDTInputError(missing[0], "is empty",
+                            f"enter {', '.join(missing)} (from the microscope's settings) and press Apply optics")
+    values: dict[str, Any] = {}
+    for name in OPTICS_LABELS:
+        text = str(entries.get(name, "") or "").strip()
+        values[name] = OPTICS_OPTIONAL[name] if not text else _number(name, text)
+    lam, dx = values["wavelength_um"], values["pixel_size_um"]
+    if lam > 0 and not WAVELENGTH_RANGE_UM[0] <= lam <= WAVELENGTH_RANGE_UM[1]:
+        raise _unit_hint(OPTICS_LABELS["wavelength_um"], lam, *WAVELENGTH_RANGE_UM, "the emission wavelength")
+    if dx > 0 and not PIXEL_SIZE_RANGE_UM[0] <= dx <= PIXEL_SIZE_RANGE_UM[1]:
+        raise _unit_hint(OPTICS_LABELS["pixel_size_um"], dx, *PIXEL_SIZE_RANGE_UM, "the pixel size in the sample")
+    na, n_b = values["na"], values["n_background"]
+    if na > 0 and n_b >= 1 and na >= n_b:
+        hint = (f"{na:g} looks like an angle or a percentage: NA = n·sin(θ) is below n background" if na > 2
+                else f"an NA of {na:g} needs an immersion index above it: check n background (oil 1.518, water 1.33)")
+        raise FDTInputError(OPTICS_LABELS["na"], f"{na:g} is not below n background {n_b:g}", hint)
+    if values["n_slices"] != int(values["n_slices"]):
+        raise FDTInputError(OPTICS_LABELS["n_slices"], f"{values['n_slices']:g} is not a whole number", "enter an integer ≥ 1")
+    values["n_slices"] = int(values["n_slices"])
+    try:
+        return Optics(**values)
+    except FDTInputError as exc:
+        label = OPTICS_LABELS.get(exc.field, exc.field)
+        raise FDTInputError(label, exc.problem.replace("n_background", "n background"), exc.fix) from None
+
+
+def unique_path(path: Path) -> Path:
+    """``path``, or ``stem_2.suffix``, ``stem_3.suffix``, … : the first that does not exist (nothing is overwritten)."""
+    path = Path(path)
+    if not path.exists():
+        return path
+    name = path.name
+    stem, dot, suffix = name.partition(".")
+    n = 2
+    while True:
+        candidate = path.with_name(f"{stem}_{n}{dot}{suffix}")
+        if not candidate.exists():
+            return candidate
+        n += 1

@@ -1,113 +1,137 @@
-"""The FDT acquisition widget: optics, source positions, coherence masks and a forward preview.
+"""The FDT acquisition widget: optics, source positions, a forward preview, and Save acquisition.
 
-* **Optics** are prefilled from the selected layer's acquisition (or left at defaults for a bare TIFF
-  stack) and checked by :class:`~napari_fdt.physics.optics.Optics`; its message appears in the widget and as a
-  napari notification, and the widget stays usable. *Apply optics* stores them on the layer (which then
-  gets its physical scale).
+* **Optics** are text fields, **empty until the file or the user gives them**: prefilled from the layer's
+  acquisition, else from the optics a reader found in the file (``metadata["fdt_file_optics"]``), else left
+  empty. What is typed is kept per layer (``metadata["fdt_optics_entries"]``). The values are checked as they are
+  typed (:func:`napari_fdt.napari.settings.optics_from_entries`: a missing field named, a unit mistake such as
+  ``635 looks like nm`` refused); Fit sources and the preview stay disabled until they are complete and valid.
+  *Apply optics* (and any action) stores them on the layer, which gets its physical scale and its image index on
+  an axis of its own (``docs/napari.md``); the view is reframed.
 * **Fit sources**: the paper's per-image 2-D Gaussian fit (:func:`napari_fdt.recon.source_fit.initial_sources`),
-  with an optional common depth. The result is an editable 3-D points layer at ``(z, y, x) =
-  (−depth, y, x)`` µm (``docs/napari.md``); the reconstruction starts from the points as edited.
-* **Preview masks**: the solver's coherence masks of every source, as an image stack layer.
+  at the depth typed in *source depth* (empty: estimated from the image widths, a lower bound). The result is an
+  editable 3-D points layer at ``(z, y, x) = (−depth, y, x)`` µm; the reconstruction starts from the points as edited.
 * **Forward preview**: one image as the forward model predicts it for the current optics, sources and
-  RI (this acquisition's RI layer if there is one, else the homogeneous medium), beside the measured one.
+  RI (this acquisition's latest RI layer if there is one, else the homogeneous medium), beside the measured one.
+* **Save acquisition…** writes a format-v1 folder (``acquisition.json`` + ``images.tif``) with the optics and the
+  sources as edited (:func:`napari_fdt.data.io.write_acquisition`), never over an existing path.
 
-The fit and the two previews compute in worker threads (:class:`~napari_fdt.napari.widget_common.BackgroundTasks`):
-the GUI thread only checks the inputs and, when the result comes back, adds the layer. Each action's button
-is disabled while it runs; each method returns the worker (None when the inputs were refused).
+The fit, the preview and the save run in worker threads (:class:`~napari_fdt.napari.widget_common.BackgroundTasks`).
 """
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
-from magicgui.widgets import ComboBox, Container, FloatSpinBox, Label, PushButton, SpinBox
+from magicgui.widgets import ComboBox, Container, Label, LineEdit, PushButton, SpinBox
 
 from napari_fdt.data.acquisition import Acquisition
-from napari_fdt.napari.compute import check_index, forward_preview, mask_stack
+from napari_fdt.errors import FDTInputError
+from napari_fdt.napari.compute import check_index, forward_preview
 from napari_fdt.napari.layers import (
     META_ACQUISITION,
+    META_FILE_OPTICS,
     META_ID,
     META_KIND,
-    META_NEEDS_OPTICS,
+    META_OPTICS_ENTRIES,
     META_OWNER,
+    META_PATH,
     UNITS,
     lateral_translate,
     side_by_side,
-    stack_scale,
-    stack_translate,
+    stack_images,
 )
-from napari_fdt.napari.schema_widgets import schema_widget
+from napari_fdt.napari.settings import OPTICS_LABELS, format_entry, missing_optics, optics_from_entries
 from napari_fdt.napari.widget_common import (
     BackgroundTasks,
     Feedback,
     acquisition_layer_choices,
+    adopt_layer,
     find_layer,
     follow_layers,
+    follow_ndisplay,
     no_layer,
     put_layer,
     refresh_layer_choice,
+    sections_panel,
     set_sources,
     sources_for,
+    tighten,
+    watch_wrong_reader,
 )
 from napari_fdt.physics.optics import OPTICS_FIELDS, Optics
-from napari_fdt.recon.config import SolverConfig
 
 if TYPE_CHECKING:  # pragma: no cover
     import napari
 
-__all__ = ["AcquisitionWidget"]
+__all__ = ["AcquisitionWidget", "OPTICS_TIPS"]
 
-#: Defaults shown for a stack without optics: the schema's example values (those of ``fdt simulate``).
-DEFAULT_OPTICS = Optics.examples()
+#: Tooltips of the optics fields (where to find the value).
+OPTICS_TIPS = {
+    "wavelength_um": "vacuum emission wavelength of the fluorophore, µm (e.g. 0.635 for 635 nm)",
+    "n_background": "refractive index of the medium around the sample (water 1.33, oil 1.518)",
+    "na": "numerical aperture of the detection objective (below n background)",
+    "pixel_size_um": "camera pixel size divided by the magnification, µm in the sample",
+    "n_slices": "number of slices of the RI volume to reconstruct",
+    "slice_spacing_um": "thickness of one slice of the RI volume, µm",
+    "image_plane_um": "camera focal plane below the volume's top face, µm (empty: 0, the top face)",
+}
 
 
 class AcquisitionWidget(Container):
-    """Dock widget: optics, sources, masks and forward preview of one acquisition layer."""
+    """Dock widget: optics, sources and forward preview of one image stack, and Save acquisition."""
 
     def __init__(self, napari_viewer: "napari.viewer.Viewer") -> None:
-        super().__init__(labels=True)
+        super().__init__(labels=False)
         self._viewer = napari_viewer
-        self.layer = ComboBox(label="images", choices=self._choices)
-        # Optics fields from the schema of Optics, with wide ranges on purpose (clamp=False): the core checks the
-        # values and explains what is wrong.
-        def optic(name: str, label: str, step: float | None = None):
-            return schema_widget(Optics, name, label=label, step=step, clamp=False)
-
-        self.wavelength_um = optic("wavelength_um", "wavelength (µm)", 0.001)
-        self.n_background = optic("n_background", "n background", 0.001)
-        self.na = optic("na", "NA", 0.01)
-        self.pixel_size_um = optic("pixel_size_um", "pixel size (µm)", 0.001)
-        self.n_slices = optic("n_slices", "slices")
-        self.slice_spacing_um = optic("slice_spacing_um", "slice spacing (µm)", 0.01)
-        self.image_plane_um = optic("image_plane_um", "image plane (µm)", 0.01)
+        self.layer = ComboBox(label="images", choices=self._choices,
+                              tooltip="the image stack (N, H, W), opened by any reader")
+        for name in OPTICS_FIELDS:
+            setattr(self, name, LineEdit(name=name, label=OPTICS_LABELS[name], value="", tooltip=OPTICS_TIPS[name]))
+        self.optics_state = Label(value="")
+        self.optics_state.native.setWordWrap(True)
         self.apply_button = PushButton(text="Apply optics")
-        self.depth_um = FloatSpinBox(label="source depth (µm)", min=0.0, max=1e5, step=0.1,
-                                     tooltip="common depth of the sources below the volume; 0: estimate it from the image widths")
+        self.save_acquisition_button = PushButton(text="Save acquisition…")
+        self.depth_um = LineEdit(label="source depth (µm)", value="",
+                                 tooltip="common depth of the sources below the volume, µm; empty: estimated from the "
+                                         "image widths (a lower bound when the light discs fill the images)")
         self.fit_button = PushButton(text="Fit sources")
         self.file_sources_button = PushButton(text="Sources from file")
-        self.mask_threshold = schema_widget(SolverConfig, "mask_threshold", label="mask threshold", step=0.05)
-        self.masks_button = PushButton(text="Preview masks")
         self.image_index = SpinBox(label="image", min=0, max=0)
         self.preview_button = PushButton(text="Forward preview")
         self.feedback = Feedback()
-        self.extend([
-            self.layer, Label(value="<b>Optics</b>"), self.wavelength_um, self.n_background, self.na,
-            self.pixel_size_um, self.n_slices, self.slice_spacing_um, self.image_plane_um, self.apply_button,
-            Label(value="<b>Sources</b>"), self.depth_um, self.fit_button, self.file_sources_button,
-            Label(value="<b>Previews</b>"), self.mask_threshold, self.masks_button, self.image_index,
-            self.preview_button, self.feedback.label,
-        ])
-        self._set_optics_fields(DEFAULT_OPTICS)
-        self.tasks = BackgroundTasks(napari_viewer, self.feedback, self.native)
+        optics_box = Container(widgets=[*(getattr(self, n) for n in OPTICS_FIELDS), self.optics_state,
+                                        Container(widgets=[self.apply_button, self.save_acquisition_button],
+                                                  layout="horizontal", labels=False)])
+        sources_box = Container(widgets=[self.depth_um, Container(widgets=[self.fit_button, self.file_sources_button],
+                                                                  layout="horizontal", labels=False)])
+        preview_box = Container(widgets=[self.image_index, self.preview_button])
+        self.extend([Container(widgets=[self.layer]), self.feedback.label])
+        self.sections = sections_panel([("Optics", optics_box, True), ("Sources", sources_box, True),
+                                        ("Forward preview", preview_box, False)], height_px=600)
+        tighten(self, (4, 2, 4, 2))
+        from qtpy.QtWidgets import QSizePolicy
+
+        # no taller than its content: the height left in the dock area goes to the reconstruction widget
+        self.native.setSizePolicy(QSizePolicy.Policy.Preferred, QSizePolicy.Policy.Maximum)
+        layout = self.native.layout()
+        layout.insertWidget(1, self.sections, 1)
+        self.tasks = BackgroundTasks(napari_viewer, self.feedback, self.native, refresh=self._update_buttons)
         self._shown = None
+        self._filling = False
         self.layer.changed.connect(self._on_layer_changed)
+        for name in OPTICS_FIELDS:
+            getattr(self, name).changed.connect(self._on_optics_edited)
         self.apply_button.changed.connect(self.apply_optics)
+        self.save_acquisition_button.changed.connect(self._save_acquisition_dialog)
         self.fit_button.changed.connect(self.fit_sources)
         self.file_sources_button.changed.connect(self.sources_from_file)
-        self.masks_button.changed.connect(self.preview_masks)
         self.preview_button.changed.connect(self.preview_image)
+        watch_wrong_reader(self.feedback)
+        follow_ndisplay(napari_viewer)
         follow_layers(napari_viewer, self.layer, self._refresh)
+        self._update_buttons()
 
     # -- layer selection ----------------------------------------------------------------------
     def _choices(self, _widget=None) -> list[tuple[str, object]]:
@@ -118,46 +142,103 @@ class AcquisitionWidget(Container):
         if self.layer.value is not self._shown:
             self._on_layer_changed(self.layer.value)
 
-    def _set_optics_fields(self, values: dict) -> None:
-        for name in OPTICS_FIELDS:
-            getattr(self, name).value = values[name]
+    def entries(self) -> dict[str, str]:
+        """The optics fields' text, field → text."""
+        return {name: str(getattr(self, name).value or "").strip() for name in OPTICS_FIELDS}
+
+    def _set_entries(self, values: dict[str, str]) -> None:
+        self._filling = True
+        try:
+            for name in OPTICS_FIELDS:
+                getattr(self, name).value = values.get(name, "")
+        finally:
+            self._filling = False
+        self._update_buttons()
+
+    def _layer_entries(self, layer) -> dict[str, str]:
+        """What the fields show for ``layer``: typed for it, else its acquisition's optics, else the file's, else empty."""
+        typed = layer.metadata.get(META_OPTICS_ENTRIES)
+        if typed is not None:
+            return dict(typed)
+        acq = layer.metadata.get(META_ACQUISITION)
+        if acq is not None:
+            return {k: format_entry(v) for k, v in acq.optics.to_dict().items()}
+        found = layer.metadata.get(META_FILE_OPTICS) or {}
+        return {k: format_entry(found.get(k)) for k in OPTICS_FIELDS}
 
     def _on_layer_changed(self, layer=None) -> None:
         self._shown = layer
+        self.feedback.info("")
         if layer is None:
+            self._set_entries({})
             return
+        self._set_entries(self._layer_entries(layer))
         acq = layer.metadata.get(META_ACQUISITION)
+        self.depth_um.value = ("" if acq is None or acq.sources_um is None
+                               else format_entry(round(float(np.median(acq.sources_um[:, 2])), 3)))
+        n = int(np.shape(layer.data)[0])
+        self.image_index.max = max(0, n - 1)
+        h, w = np.shape(layer.data)[-2:]
         if acq is not None:
-            self._set_optics_fields(acq.optics.to_dict())
-            if acq.sources_um is not None:
-                self.depth_um.value = float(np.median(acq.sources_um[:, 2]))
-            self.feedback.info(f"{layer.name}: {acq.n_images} images of {acq.image_shape[0]}×{acq.image_shape[1]} px")
-        elif layer.metadata.get(META_NEEDS_OPTICS):
-            self.feedback.info(f"{layer.name} has no optics: enter them and press Apply optics")
-        self.image_index.max = max(0, int(np.shape(layer.data)[0]) - 1)
+            self.feedback.info(f"{layer.name}: {n} images of {h}×{w} px")
+        else:
+            missing = missing_optics(self.entries())
+            self.feedback.info(f"{layer.name}: {n} images of {h}×{w} px without optics"
+                               + (f": enter {', '.join(missing)} and press Apply optics" if missing else ""))
+
+    def _on_optics_edited(self, _value=None) -> None:
+        if self._filling:
+            return
+        layer = self.layer.value
+        if layer is not None:
+            layer.metadata[META_OPTICS_ENTRIES] = self.entries()
+        if self.feedback.last_error is not None:  # a stale error about the optics goes once they are edited
+            self.feedback.info("")
+        self._update_buttons()
+
+    def optics_problem(self) -> str | None:
+        """Why the fields do not give optics yet (missing or refused), or None when they do."""
+        try:
+            optics_from_entries(self.entries())
+        except FDTInputError as exc:
+            return str(exc)
+        return None
+
+    def _update_buttons(self) -> None:
+        problem = None if self.layer.value is None else self.optics_problem()
+        self.optics_state.value = "" if problem is None else problem
+        self.optics_state.native.setStyleSheet("color: #ffb040;" if problem else "")
+        ready = self.layer.value is not None and problem is None
+        self.fit_button.enabled = ready and not self.tasks.is_running("fit sources")
+        self.preview_button.enabled = ready and not self.tasks.is_running("forward preview")
+        self.file_sources_button.enabled = ready
+        self.save_acquisition_button.enabled = ready and not self.tasks.is_running("save acquisition")
 
     # -- actions ------------------------------------------------------------------------------
     def optics(self) -> Optics:
-        """The optics in the fields, checked by the core (raises :class:`FDTInputError`)."""
-        return Optics(**{name: getattr(self, name).value for name in OPTICS_FIELDS})
+        """The optics in the fields, checked (raises :class:`FDTInputError` naming the field's label)."""
+        return optics_from_entries(self.entries())
 
     def current_acquisition(self) -> tuple[object, Acquisition]:
-        """(layer, acquisition) with the optics of the fields applied to the layer (metadata, scale)."""
+        """(layer, acquisition) with the optics of the fields applied to the layer (metadata, scale, own image axis)."""
         layer = self.layer.value
         if layer is None:
             raise no_layer()
         optics = self.optics()
         acq = layer.metadata.get(META_ACQUISITION)
-        if acq is None or acq.optics != optics:
+        if acq is None or acq.optics != optics or np.ndim(layer.data) != 4:
             if acq is None:
-                acq = Acquisition(images=np.asarray(layer.data), optics=optics)
-            else:
+                acq = Acquisition(images=np.ascontiguousarray(stack_images(layer.data)), optics=optics)
+            elif acq.optics != optics:
                 acq = Acquisition(images=acq.images, optics=optics, sources_um=acq.sources_um, extra=acq.extra)
-            layer.metadata[META_ACQUISITION] = acq
-            layer.metadata.pop(META_NEEDS_OPTICS, None)
-            layer.metadata[META_KIND] = "acquisition"
-            layer.scale = stack_scale(optics.pixel_size_um)
-            layer.translate = stack_translate(acq.image_shape, optics.pixel_size_um)
+            entries = self.entries()
+            new = adopt_layer(self._viewer, layer, acq)
+            new.metadata[META_OPTICS_ENTRIES] = entries
+            if new is not layer:
+                self._shown = new
+                self.layer.value = new
+            layer = new
+            self._viewer.reset_view()
         return layer, acq
 
     def apply_optics(self) -> None:
@@ -167,6 +248,21 @@ class AcquisitionWidget(Container):
             o = acq.optics
             self.feedback.info(f"optics applied to {layer.name}: volume {o.n_slices} × {o.slice_spacing_um:g} µm, "
                                f"pixel {o.pixel_size_um:g} µm")
+        self._update_buttons()
+
+    def _depth(self) -> float | None:
+        text = str(self.depth_um.value or "").strip()
+        if not text:
+            return None
+        try:
+            depth = float(text.replace(",", "."))
+        except ValueError:
+            raise FDTInputError("source depth (µm)", f"{text!r} is not a number",
+                                "type the depth in µm, or leave it empty to estimate it") from None
+        if not depth > 0:
+            raise FDTInputError("source depth (µm)", f"{depth:g} is not above 0",
+                                "the sources lie below the volume: give a positive depth, or leave it empty")
+        return depth
 
     def fit_sources(self):
         """2-D Gaussian fit of every image (in a worker thread) → the sources points layer."""
@@ -174,8 +270,8 @@ class AcquisitionWidget(Container):
 
         job = None
         with self.feedback.guard():
+            depth = self._depth()
             layer, acq = self.current_acquisition()
-            depth = self.depth_um.value or None
             job = lambda: initial_sources(acq, depth_um=depth, device="cpu")  # noqa: E731
 
         def show(result) -> None:
@@ -183,8 +279,13 @@ class AcquisitionWidget(Container):
             self._check_still_open(layer)
             set_sources(self._viewer, layer, sources)
             reliable = int(np.sum(report["lateral_reliable"]))
-            self.feedback.info(f"fitted {len(sources)} sources ({reliable} reliable), depth "
-                               f"{np.median(sources[:, 2]):.1f} µm ({report['depth_source']}); edit the points to correct them")
+            d = float(np.median(sources[:, 2]))
+            if depth is None:
+                how = (f"depth {d:.1f} µm estimated from the image widths (a lower bound when the discs fill the "
+                       f"images: if you know the depth, type it in source depth (µm) and fit again)")
+            else:
+                how = f"depth {d:.1f} µm as typed"
+            self.feedback.info(f"fitted {len(sources)} sources ({reliable} reliable), {how}; edit the points to correct them")
 
         if job is None:
             return None
@@ -193,44 +294,16 @@ class AcquisitionWidget(Container):
 
     def _check_still_open(self, layer) -> None:
         if layer not in self._viewer.layers:
-            from napari_fdt.errors import FDTInputError
-
-            raise FDTInputError("layer", f"{layer.name} was closed while the result was computed", "open it again")
+            raise FDTInputError("images", f"{layer.name} was closed while the result was computed", "open it again")
 
     def sources_from_file(self) -> None:
         """The acquisition's own ``sources_um`` → the sources points layer."""
         with self.feedback.guard():
             layer, acq = self.current_acquisition()
             if acq.sources_um is None:
-                from napari_fdt.errors import FDTInputError
-
-                raise FDTInputError("sources_um", f"{layer.name} has none", "press Fit sources")
+                raise FDTInputError("sources", f"{layer.name} has none in its file", "press Fit sources")
             set_sources(self._viewer, layer, acq.sources_um)
             self.feedback.info(f"{len(acq.sources_um)} sources from the file")
-
-    def preview_masks(self):
-        """The coherence masks of all sources (in a worker thread) → an image stack layer."""
-        job = None
-        with self.feedback.guard():
-            layer, acq = self.current_acquisition()
-            sources = sources_for(self._viewer, layer, acq)
-            threshold = float(self.mask_threshold.value)
-            job = lambda: mask_stack(acq, sources, threshold=threshold)  # noqa: E731
-
-        def show(masks: np.ndarray) -> None:
-            self._check_still_open(layer)
-            o = acq.optics
-            put_layer(self._viewer, (masks, dict(
-                name=f"{layer.name} masks", scale=stack_scale(o.pixel_size_um),
-                translate=stack_translate(acq.image_shape, o.pixel_size_um), units=UNITS, colormap="green",
-                blending="additive", opacity=0.5, contrast_limits=(0, 1),
-                metadata={META_KIND: "masks", META_OWNER: layer.metadata[META_ID]}), "image"))
-            self.feedback.info(f"masks of {len(masks)} sources: {100 * masks.mean():.0f} % of the pixels on average")
-
-        if job is None:
-            return None
-        return self.tasks.start("preview masks", job, show, buttons=(self.masks_button,),
-                                message=f"computing the masks of {layer.name}…")
 
     def preview_image(self):
         """Predicted and measured image ``image`` side by side (computed in a worker thread; a 2-D layer)."""
@@ -249,10 +322,13 @@ class AcquisitionWidget(Container):
             pred, meas, _ = result
             self._check_still_open(layer)
             dx = acq.optics.pixel_size_um
+            first = find_layer(self._viewer, layer.metadata[META_ID], "preview") is None
             put_layer(self._viewer, (side_by_side(pred, meas), dict(
                 name=f"{layer.name} preview: model | measured", scale=(dx, dx),
                 translate=lateral_translate(acq.image_shape, dx), units=UNITS[:2], colormap="gray",
                 metadata={META_KIND: "preview", META_OWNER: layer.metadata[META_ID], "fdt_image": index}), "image"))
+            if first:
+                self._viewer.reset_view()
             rel = float(np.linalg.norm(pred - meas) / max(float(np.linalg.norm(meas)), 1e-30))
             self.feedback.info(f"image {index} ({medium}): relative difference {rel:.3f} after a least-squares gain")
 
@@ -260,3 +336,44 @@ class AcquisitionWidget(Container):
             return None
         return self.tasks.start("forward preview", job, show, buttons=(self.preview_button,),
                                 message=f"predicting image {index} of {layer.name}…")
+
+    # -- save acquisition -----------------------------------------------------------------------
+    def acquisition_to_save(self) -> Acquisition:
+        """The acquisition as shown: the layer's images, the optics in the fields, the sources as edited (if any)."""
+        layer, acq = self.current_acquisition()
+        sources = sources_for(self._viewer, layer, acq, required=False)
+        return Acquisition(images=acq.images, optics=acq.optics, sources_um=sources, extra=acq.extra)
+
+    def save_acquisition(self, path: str | Path):
+        """Write the acquisition as a format-v1 folder at ``path`` (in a worker thread; an existing path is refused)."""
+        from napari_fdt.data.io import write_acquisition
+
+        job = None
+        with self.feedback.guard():
+            path = Path(path)
+            if path.exists():
+                raise FDTInputError("Save acquisition", f"{path} exists", "choose a new folder name: nothing is overwritten")
+            acq = self.acquisition_to_save()
+            job = lambda: write_acquisition(acq, path, overwrite=False)  # noqa: E731
+
+        layer = self.layer.value
+
+        def show(written) -> None:
+            if layer in self._viewer.layers:  # the layer now is what the folder holds (Copy command runs on it)
+                layer.metadata[META_PATH] = str(written)
+            note = "" if acq.sources_um is not None else " (no sources yet: fit them before reconstructing from it)"
+            self.feedback.info(f"wrote the acquisition folder {written}{note}")
+
+        if job is None:
+            return None
+        return self.tasks.start("save acquisition", job, show, buttons=(self.save_acquisition_button,),
+                                message=f"writing {path}…")
+
+    def _save_acquisition_dialog(self) -> None:
+        from qtpy.QtWidgets import QFileDialog
+
+        layer = self.layer.value
+        suggestion = f"{layer.name}_acquisition" if layer is not None else "acquisition"
+        path, _ = QFileDialog.getSaveFileName(self.native, "Save acquisition folder", suggestion, "Acquisition folder (*)")
+        if path:
+            self.save_acquisition(path)

@@ -27,14 +27,19 @@ from napari_fdt.napari.layers import (
     META_KIND,
     META_NEEDS_OPTICS,
     META_OWNER,
+    META_PATH,
     LayerDataTuple,
+    acquisition_layer,
+    new_id,
     points_to_sources,
+    source_point_size_um,
     sources_layer,
 )
 
 __all__ = [
     "acquisition_layer_choices", "find_layer", "put_layer", "sources_for", "set_sources", "Feedback",
-    "acquisition_of", "no_layer", "BackgroundTasks", "CloseWatcher", "track_thread",
+    "acquisition_of", "no_layer", "BackgroundTasks", "CloseWatcher", "track_thread", "adopt_layer", "sections_panel",
+    "follow_ndisplay", "watch_wrong_reader", "DERIVED_KINDS", "tighten", "claim_dock_height",
 ]
 
 # Python's warning state (filters, ``showwarning``) is global to the process, and a worker thread from
@@ -49,7 +54,8 @@ _THREADS: dict[int, Callable[[], bool]] = {}
 def track_thread(worker, done: threading.Event) -> None:
     """Count ``worker`` as running until ``done`` is set and its ``run()`` has left its warning capture."""
     key = id(worker)
-    _THREADS[key] = lambda: not done.is_set() or bool(getattr(worker, "_running", False))
+    _THREADS[key] = lambda: not done.is_set() or bool(worker.is_running)
+    worker.finished.connect(lambda: _THREADS.pop(key, None))  # emitted after run() left its warning capture
 
 
 def _threads_running() -> bool:
@@ -62,15 +68,54 @@ def _threads_running() -> bool:
 def no_layer() -> FDTInputError:
     """The error for actions that need an acquisition layer when none is open."""
     return FDTInputError(
-        "layer", "no acquisition or image stack is open",
-        "open an acquisition folder or a TIFF stack (File > Open), or a sample (File > Open Sample > napari-fdt)",
+        "images", "no image stack is open",
+        "open an acquisition folder (File > Open Folder…, reader napari-fdt) or a TIFF stack (File > Open File(s)…), "
+        "or a sample (File > Open Sample > napari-fdt)",
     )
 
 
+#: Layer kinds the plugin derives from an acquisition: never offered as the images of a reconstruction.
+DERIVED_KINDS = frozenset({"ri", "truth", "masks", "preview", "coverage", "comparison"})
+
+
+def is_image_stack(layer) -> bool:
+    """An image layer that can hold a stack of camera images (N, H, W) or (N, 1, H, W), whichever reader opened it."""
+    if not isinstance(layer, Image) or getattr(layer, "rgb", False) or layer.metadata.get(META_KIND) in DERIVED_KINDS:
+        return False
+    shape = tuple(np.shape(layer.data))
+    return len(shape) == 3 or (len(shape) == 4 and shape[1] == 1)
+
+
 def acquisition_layer_choices(viewer) -> list[tuple[str, Image]]:
-    """(name, layer) of every image layer that is an acquisition or a bare stack waiting for optics."""
-    return [(layer.name, layer) for layer in viewer.layers
-            if isinstance(layer, Image) and (META_ACQUISITION in layer.metadata or layer.metadata.get(META_NEEDS_OPTICS))]
+    """(name, layer) of every image layer that may be a stack: the plugin's own, and those of any other reader."""
+    return [(layer.name, layer) for layer in viewer.layers if is_image_stack(layer)]
+
+
+def adopt_layer(viewer, layer: Image, acq: Acquisition) -> Image:
+    """Make ``layer`` the acquisition ``acq`` (metadata, physical scale, the image index on its own axis).
+
+    A stack from another reader is (N, H, W): it is replaced, at the same place in the layer list and with the
+    same name, by the plugin's (N, 1, H, W) layer (the data are shared, not copied). Returns the layer now shown.
+    """
+    data, kwargs, _ = acquisition_layer(acq, path=layer.metadata.get(META_PATH), name=layer.name)
+    meta = dict(layer.metadata)
+    meta.update(kwargs.pop("metadata"))
+    meta[META_ID] = layer.metadata.get(META_ID) or new_id()
+    meta.pop(META_NEEDS_OPTICS, None)
+    if np.ndim(layer.data) == 4:
+        layer.metadata.update(meta)
+        layer.metadata.pop(META_NEEDS_OPTICS, None)
+        layer.units = kwargs["units"]
+        layer.scale = kwargs["scale"]
+        layer.translate = kwargs["translate"]
+        return layer
+    index = list(viewer.layers).index(layer)
+    kwargs.update(metadata=meta, contrast_limits=layer.contrast_limits, visible=layer.visible)
+    new = viewer.add_image(data, **kwargs)
+    viewer.layers.remove(layer)
+    viewer.layers.move(list(viewer.layers).index(new), index)
+    new.name = layer.name
+    return new
 
 
 def follow_layers(viewer, combo, refresh) -> None:
@@ -94,7 +139,13 @@ def acquisition_of(layer: Image | None) -> Acquisition:
         raise no_layer()
     acq = layer.metadata.get(META_ACQUISITION)
     if acq is None:
-        raise FDTInputError("optics", f"{layer.name} has no optics yet",
+        from napari_fdt.napari.layers import META_FILE_OPTICS, META_OPTICS_ENTRIES
+        from napari_fdt.napari.settings import format_entry, missing_optics
+
+        entries = {k: format_entry(v) for k, v in (layer.metadata.get(META_FILE_OPTICS) or {}).items()}
+        entries.update({k: v for k, v in (layer.metadata.get(META_OPTICS_ENTRIES) or {}).items() if v})
+        missing = missing_optics(entries)
+        raise FDTInputError("optics", f"{layer.name} has no optics yet" + (f" (missing {', '.join(missing)})" if missing else ""),
                             "enter them in the FDT acquisition widget and press Apply optics")
     return acq
 
@@ -139,9 +190,24 @@ def sources_for(viewer, layer: Image, acq: Acquisition, required: bool = True) -
     return None
 
 
-def set_sources(viewer, layer: Image, sources_um: np.ndarray) -> Points:
-    """Show ``sources_um`` (N, 3) in the acquisition's points layer (updated in place, or added)."""
-    return put_layer(viewer, sources_layer(sources_um, f"{layer.name} sources", layer.metadata.get(META_ID)))
+def set_sources(viewer, layer: Image, sources_um: np.ndarray, *, kind: str = "sources", name: str | None = None) -> Points:
+    """Show ``sources_um`` (N, 3) in the acquisition's points layer of ``kind`` (updated in place, or added).
+
+    ``kind`` ``sources``: the editable start of a run (Fit sources, Sources from file); ``calibrated``: a run's
+    calibrated positions, in a layer of their own (``name``), so a calibration never overwrites the edited points.
+    """
+    acq = layer.metadata.get(META_ACQUISITION)
+    size = source_point_size_um(acq.image_shape, acq.optics.pixel_size_um) if acq is not None else 1.0
+    colour = "cyan" if kind == "sources" else "orange"
+    data = sources_layer(sources_um, name or f"{layer.name} sources", layer.metadata.get(META_ID), size_um=size,
+                         kind=kind, colour=colour)
+    if kind != "sources" and name is not None:  # one layer per run, found by name
+        for old in viewer.layers:
+            if isinstance(old, Points) and old.name == name and old.metadata.get(META_KIND) == kind:
+                old.data = data[0]
+                return old
+        return viewer.add_points(data[0], **data[1])
+    return put_layer(viewer, data)
 
 
 class Feedback:
@@ -170,6 +236,14 @@ class Feedback:
         self.label.value = f"warning: {message}"
         self.label.native.setStyleSheet("color: #ffb040;")
         show_warning(message)
+
+    def on_notification(self, event) -> None:
+        """A napari notification: napari's error for a folder of ours opened by another reader gets the hint."""
+        message = str(getattr(event, "message", event))
+        hint = wrong_reader_hint(message)
+        if hint is not None and not message.startswith("this looks like"):
+            self.label.value = f"hint: {hint}"
+            self.label.native.setStyleSheet("color: #ffb040;")
 
     def show_warning(self, args: tuple) -> None:
         """A warning relayed by a worker thread (``warnings.showwarning`` arguments): the core's are shown."""
@@ -213,15 +287,33 @@ class Feedback:
 
 
 class CloseWatcher:
-    """Calls ``callback`` when a Qt window closes (used where napari's task-status hook is missing)."""
+    """Calls ``callback`` when a Qt window (napari's main window) closes, through public Qt API only.
 
-    def __init__(self, window, callback) -> None:
+    ``confirm()`` (optional) runs first when the user closes the window (a spontaneous close): False keeps the
+    window open and the work running.
+    """
+
+    def __init__(self, window, callback, confirm: Callable[[], bool] | None = None) -> None:
+        import weakref
+
         from qtpy.QtCore import QEvent, QObject
+
+        # weak references: the main window must not keep a closed viewer's widgets alive
+        def ref(fn):
+            return None if fn is None else (weakref.WeakMethod(fn) if hasattr(fn, "__self__") else (lambda: fn))
+
+        callback_ref, confirm_ref, window_ref = ref(callback), ref(confirm), weakref.ref(window)
 
         class _Filter(QObject):
             def eventFilter(self, obj, event):  # noqa: N802 (Qt name)
-                if event.type() == QEvent.Type.Close:
-                    callback()
+                if obj is window_ref() and event.type() == QEvent.Type.Close:
+                    ask = confirm_ref() if confirm_ref is not None else None
+                    if ask is not None and event.spontaneous() and not ask():
+                        event.ignore()
+                        return True
+                    stop = callback_ref()
+                    if stop is not None:
+                        stop()
                 return False
 
         self.filter = _Filter(window)
@@ -233,7 +325,6 @@ class _Task:
 
     def __init__(self, name: str, worker, buttons: tuple, done: threading.Event) -> None:
         self.name, self.worker, self.buttons, self.done = name, worker, buttons, done
-        self.status_id = None
 
 
 class BackgroundTasks:
@@ -278,8 +369,7 @@ class BackgroundTasks:
 
         Returns None (and does nothing) while a task of the same name runs.
         """
-        from napari.qt.threading import create_worker
-        from superqt.utils import FunctionWorker  # without napari's relay: errors and warnings are shown here
+        from superqt.utils import FunctionWorker  # public superqt API: errors and warnings are shown here
 
         if self.is_running(name) or self._closing.is_set():
             return None
@@ -291,7 +381,7 @@ class BackgroundTasks:
             finally:
                 done.set()
 
-        worker = create_worker(job, _start_thread=False, _ignore_errors=True, _worker_class=FunctionWorker)
+        worker = FunctionWorker(job)
         task = _Task(name, worker, tuple(buttons), done)
         worker.returned.connect(lambda result: self._on_returned(task, on_result, result))
         worker.errored.connect(lambda exc: self._on_error(task, exc))
@@ -315,7 +405,6 @@ class BackgroundTasks:
             on_result(result)
 
     def _on_error(self, task: _Task, exc: Exception) -> None:
-        self._status(task, "FAILED", str(exc))
         if not self._closing.is_set():
             self._feedback.exception(exc)
 
@@ -324,7 +413,6 @@ class BackgroundTasks:
             self._feedback.show_warning(args)
 
     def _on_finished(self, task: _Task) -> None:
-        self._status(task, "COMPLETED")
         if self._tasks.get(task.name) is task:
             del self._tasks[task.name]
         if self._closing.is_set():
@@ -337,21 +425,8 @@ class BackgroundTasks:
 
     # -- closing the viewer -----------------------------------------------------------------------
     def _watch_close(self, task: _Task) -> None:
-        window = getattr(self._viewer, "window", None)
-        register = getattr(window, "_register_task_status", None)
-        if register is not None:
-            from napari.utils.task_status import Status
-
-            task.status_id = register("napari-fdt", Status.BUSY, task.name, cancel_callback=self.close)
-        elif self._close_watcher is None:
+        if self._close_watcher is None:
             self._close_watcher = CloseWatcher(self._native.window(), self.close)
-
-    def _status(self, task: _Task, status: str, text: str = "") -> None:
-        update = getattr(getattr(self._viewer, "window", None), "_update_task_status", None)
-        if update is not None and task.status_id is not None:
-            from napari.utils.task_status import Status
-
-            update(task.status_id, getattr(Status, status), text or task.name)
 
     def close(self) -> bool:
         """Stop every task (its result is dropped) and wait until their threads have ended."""
@@ -365,3 +440,119 @@ class BackgroundTasks:
         for t in tasks:
             t.done.wait(timeout=max(0.0, deadline - time.monotonic()))
         return True
+
+
+def claim_dock_height(native, share: float = 0.55) -> None:
+    """When ``native`` is first shown in a dock of a main window, ask for ``share`` of the window's height
+    (public Qt: ``QMainWindow.resizeDocks``); the dock above keeps the rest. Its settings then need less scrolling."""
+    from qtpy.QtCore import QEvent, QObject, Qt, QTimer
+    from qtpy.QtWidgets import QDockWidget, QMainWindow
+
+    def resize() -> None:
+        dock, parent = None, native.parentWidget()
+        while parent is not None and dock is None:
+            dock = parent if isinstance(parent, QDockWidget) else None
+            parent = parent.parentWidget()
+        window = native.window()
+        if dock is not None and isinstance(window, QMainWindow) and not dock.isFloating():
+            window.resizeDocks([dock], [int(share * window.height())], Qt.Orientation.Vertical)
+
+    class _OnFirstShow(QObject):
+        def eventFilter(self, obj, event):  # noqa: N802 (Qt name)
+            if event.type() == QEvent.Type.Show:
+                native.removeEventFilter(self)
+                QTimer.singleShot(0, resize)
+            return False
+
+    native._fdt_first_show = _OnFirstShow(native)  # kept alive with the widget
+    native.installEventFilter(native._fdt_first_show)
+
+
+def tighten(container, margins: tuple[int, int, int, int] = (2, 0, 2, 0)) -> None:
+    """Small margins for a magicgui container and the containers inside it (a dock's height is precious)."""
+    from magicgui.widgets import Container
+
+    container.margins = margins
+    for child in container:
+        if isinstance(child, Container):
+            tighten(child, (0, 0, 0, 0))
+
+
+def sections_panel(sections: list[tuple[str, Any, bool]], height_px: int = 260):
+    """A scroll area of collapsible sections ``(title, magicgui container, expanded)``: the widget fits any screen height.
+
+    ``height_px``: the most height it asks for (napari shares the dock's height by what its widgets ask)."""
+    from qtpy.QtCore import QSize, Qt
+    from qtpy.QtWidgets import QFrame, QScrollArea, QVBoxLayout, QWidget
+    from superqt import QCollapsible
+
+    class _Scroll(QScrollArea):
+        def sizeHint(self) -> QSize:  # noqa: N802 (Qt name): the content's height up to height_px, scroll for the rest
+            content = self.widget().sizeHint().height() + 2 if self.widget() is not None else height_px
+            return QSize(super().sizeHint().width(), min(height_px, content))
+
+    inner = QWidget()
+    layout = QVBoxLayout(inner)
+    layout.setContentsMargins(0, 0, 0, 0)
+    layout.setSpacing(2)
+    boxes: list = []
+    for title, container, expanded in sections:
+        tighten(container)
+        box = QCollapsible(title)
+        box.addWidget(container.native)
+        if expanded:
+            box.expand(animate=False)
+        else:
+            box.collapse(animate=False)
+        layout.addWidget(box)
+        boxes.append(box)
+    layout.addStretch(1)
+    scroll = _Scroll()
+    scroll.setWidgetResizable(True)
+    scroll.setHorizontalScrollBarPolicy(Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
+    scroll.setFrameShape(QFrame.NoFrame)
+    scroll.setWidget(inner)
+    scroll.setMinimumHeight(60)
+    for box in boxes:  # a section opened or closed: the panel asks for its new height
+        box.toggled.connect(lambda _open: scroll.updateGeometry())
+    return scroll
+
+
+#: Kinds hidden in 3D: image stacks and their masks are images, not volumes (3D shows the RI volume and the sources).
+_HIDDEN_IN_3D = frozenset({"acquisition", "stack", "masks"})
+
+
+def follow_ndisplay(viewer) -> None:
+    """In 3D hide the image stacks (and masks) the plugin knows; back in 2D show again those it hid.
+
+    Each widget connects its own follower; they agree (a layer already hidden is left to the one that hid it)."""
+    hidden: list = []
+
+    def on_ndisplay(event=None) -> None:
+        if viewer.dims.ndisplay == 3:
+            for layer in viewer.layers:
+                if layer.visible and (layer.metadata.get(META_KIND) in _HIDDEN_IN_3D or layer.metadata.get(META_NEEDS_OPTICS)):
+                    layer.visible = False
+                    hidden.append(layer)
+        else:
+            for layer in hidden:
+                if layer in viewer.layers:
+                    layer.visible = True
+            hidden.clear()
+
+    viewer.dims.events.ndisplay.connect(on_ndisplay)
+
+
+def wrong_reader_hint(message: str) -> str | None:
+    """The hint for napari's error when a folder of ours was opened with another reader, else None."""
+    if "acquisition.json" in message or "images.tif" in message:
+        return ("this looks like an FDT acquisition folder opened with another reader: open it with File > Open Folder… "
+                "and choose napari-fdt in the Choose reader dialog (or File > Open File(s)… on its acquisition.json)")
+    return None
+
+
+def watch_wrong_reader(feedback: Feedback) -> None:
+    """Show :func:`wrong_reader_hint` in the widget when napari reports such an error (a weak connection)."""
+    from napari.utils.notifications import notification_manager
+
+    notification_manager.notification_ready.connect(feedback.on_notification)

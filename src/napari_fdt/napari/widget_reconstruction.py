@@ -22,43 +22,69 @@ import numpy as np
 from magicgui.widgets import ComboBox, Container, Label, LineEdit, ProgressBar, PushButton, SpinBox
 
 from napari_fdt.errors import FDTInputError
-from napari_fdt.napari.compute import check_index, illumination_coverage, predicted_vs_measured
-from napari_fdt.napari.job import JobResult, Update, reconstruction_job
+from napari_fdt.napari.compute import check_index, illumination_coverage, mask_stack, predicted_vs_measured
+from napari_fdt.napari.job import JobResult, TimeLeft, Update, reconstruction_job, stage_costs
 from napari_fdt.napari.layers import (
+    META_ACQUISITION,
     META_ID,
     META_KIND,
     META_OWNER,
     META_PATH,
     META_REPORT,
+    STACK_AXIS_LABELS,
+    STACK_UNITS,
     UNITS,
     lateral_translate,
     ri_layer,
     side_by_side,
+    stack_scale,
+    stack_translate,
     volume_scale,
     volume_translate,
 )
 from napari_fdt.napari.schema_widgets import schema_widget
-from napari_fdt.napari.settings import format_stages, merge_config
+from napari_fdt.napari.settings import format_stages, merge_config, unique_path
 from napari_fdt.napari.widget_common import (
     BackgroundTasks,
     CloseWatcher,
     Feedback,
     acquisition_layer_choices,
     acquisition_of,
+    claim_dock_height,
     follow_layers,
+    follow_ndisplay,
     put_layer,
     refresh_layer_choice,
+    sections_panel,
     set_sources,
     sources_for,
+    tighten,
     track_thread,
 )
 from napari_fdt.napari.widget_curve import ErrorCurveWidget
+from napari_fdt.recon.command import format_command, reconstruct_command
 from napari_fdt.recon.config import SolverConfig, load_config
 
 if TYPE_CHECKING:  # pragma: no cover
     import napari
 
-__all__ = ["ReconstructionWidget", "UPDATE_INTERVAL_S", "device_choices"]
+__all__ = ["ReconstructionWidget", "UPDATE_INTERVAL_S", "device_choices", "with_tiff_suffix"]
+
+
+def with_tiff_suffix(path: str | Path) -> Path:
+    """``path`` with ``.ome.tif`` added when it has no ``.tif``/``.tiff`` suffix (``my_cells_RI`` → ``my_cells_RI.ome.tif``)."""
+    path = Path(path)
+    return path if path.suffix.lower() in (".tif", ".tiff") else path.with_name(path.name + ".ome.tif")
+
+
+def _duration(seconds: float) -> str:
+    """``42 s``, ``3 min 05 s``, ``1 h 02 min``."""
+    s = int(round(max(0.0, seconds)))
+    if s < 60:
+        return f"{s} s"
+    if s < 3600:
+        return f"{s // 60} min {s % 60:02d} s"
+    return f"{s // 3600} h {(s % 3600) // 60:02d} min"
 
 #: Least time between two updates of the RI layer within a stage, s (stage ends always update).
 UPDATE_INTERVAL_S = 0.5
@@ -68,6 +94,8 @@ _FIELDS = ("stages", "coarse_model", "batch_size", "l1_l2_total", "ssim_weight",
            "calibrate_sources", "calibrate_gain", "calibrate_source_depth", "calibrate_pixel_size",
            "calibrate_slice_spacing", "calibration_from_stage", "coherence", "mask_threshold", "seed", "snapshot_every",
            "validation_fraction", "early_stopping")
+#: Settings the widget numbers from 1 (as the status line does) while the configuration counts from 0.
+_ONE_BASED = ("calibration_from_stage",)
 
 
 def device_choices() -> list[str]:
@@ -94,16 +122,20 @@ class ReconstructionWidget(Container):
         self.batch_size = f("batch_size", "batch size")
         self.l1_l2_total = f("l1_l2_total", "L1 + L2 weight", step=0.01)
         self.ssim_weight = f("ssim_weight", "SSIM weight", step=0.01)
-        self.tv_xy_weight = f("tv_xy_weight", "TV xy weight", step=1e-5)
-        self.tv_z_weight = f("tv_z_weight", "TV z weight", step=1e-5)
+        self.tv_xy_weight = f("tv_xy_weight", "TV xy weight", step=1e-3)
+        self.tv_z_weight = f("tv_z_weight", "TV z weight", step=1e-3)
         self.calibrate_sources = f("calibrate_sources", "calibrate source positions")
         self.calibrate_gain = f("calibrate_gain", "calibrate gains")
         self.calibrate_source_depth = f("calibrate_source_depth", "calibrate source depth")
         self.calibrate_pixel_size = f("calibrate_pixel_size", "calibrate pixel size")
         self.calibrate_slice_spacing = f("calibrate_slice_spacing", "calibrate slice spacing")
-        self.calibration_from_stage = f("calibration_from_stage", "calibrate from stage")
+        self.calibration_from_stage = SpinBox(
+            name="calibration_from_stage", label="calibrate from stage", value=d.calibration_from_stage + 1, min=1,
+            max=99, tooltip="first stage (1 = the first, as the status line counts) with position/optics calibration; "
+                            "gains are calibrated from the start")
         self.coherence = f("coherence", "coherence")
         self.mask_threshold = f("mask_threshold", "mask threshold", step=0.05)
+        self.masks_button = PushButton(text="Preview masks")
         self.device = ComboBox(label="device", choices=device_choices(), value="auto")
         self.seed = f("seed", "seed")
         self.snapshot_every = f("snapshot_every", "progress every (it)")
@@ -119,31 +151,47 @@ class ReconstructionWidget(Container):
         self.curve = ErrorCurveWidget()
         self.curve_caption = Label(value="")
         self.save_button = PushButton(text="Save RI…", enabled=False)
+        self.command_button = PushButton(text="Copy command", enabled=False,
+                                         tooltip="the fdt reconstruct line that repeats this run (settings written beside "
+                                                 "the acquisition folder), copied to the clipboard")
         self.compare_index = SpinBox(label="image", min=0, max=0)
         self.compare_button = PushButton(text="Predicted vs measured", enabled=False)
         self.coverage_button = PushButton(text="Illumination coverage")
         self.feedback = Feedback()
         self.tasks = BackgroundTasks(napari_viewer, self.feedback, self.native, refresh=lambda: self._set_running(self.running))
+        solver = Container(widgets=[self.stages, self.coarse_model, self.batch_size, self.l1_l2_total, self.ssim_weight,
+                                    self.tv_xy_weight, self.tv_z_weight])
+        calibration = Container(widgets=[self.calibrate_sources, self.calibrate_gain, self.calibrate_source_depth,
+                                         self.calibrate_pixel_size, self.calibrate_slice_spacing, self.calibration_from_stage])
+        coherence = Container(widgets=[self.coherence, self.mask_threshold, self.masks_button])
+        run = Container(widgets=[
+            self.device, self.seed, self.snapshot_every, self.validation_fraction, self.early_stopping,
+            Container(widgets=[self.save_settings_button, self.load_settings_button], layout="horizontal", labels=False)])
+        self.details = Container(widgets=[self.losses, self.curve_caption])
+        results = Container(widgets=[self.compare_index, self.compare_button, self.coverage_button])
         self.extend([
-            self.layer, Label(value="<b>Solver</b>"), self.stages, self.coarse_model, self.batch_size,
-            self.l1_l2_total, self.ssim_weight, self.tv_xy_weight, self.tv_z_weight,
-            Label(value="<b>Self-calibration</b>"), self.calibrate_sources, self.calibrate_gain,
-            self.calibrate_source_depth, self.calibrate_pixel_size, self.calibrate_slice_spacing,
-            self.calibration_from_stage, Label(value="<b>Coherence and run</b>"), self.coherence, self.mask_threshold,
-            self.device, self.seed, self.snapshot_every, Label(value="<b>Validation</b>"), self.validation_fraction,
-            self.early_stopping,
-            Container(widgets=[self.save_settings_button, self.load_settings_button], layout="horizontal", labels=False),
+            Container(widgets=[self.layer]),
             Container(widgets=[self.run_button, self.cancel_button], layout="horizontal", labels=False),
-            self.progress, self.status, self.losses, self.curve_caption,
-            Label(value="<b>Results</b>"), self.save_button, self.compare_index, self.compare_button,
-            self.coverage_button, self.feedback.label,
+            self.progress, self.status,
+            Container(widgets=[self.save_button, self.command_button], layout="horizontal", labels=False),
+            self.feedback.label,
         ])
         for w in (self.status, self.losses, self.curve_caption):
             w.native.setWordWrap(True)
-        # the error curve sits under its caption (a plain Qt widget in the magicgui container's layout, after the
-        # caption's labelled row)
-        layout = self.native.layout()
-        layout.insertWidget(layout.indexOf(self.curve_caption.native.parentWidget()) + 1, self.curve)
+        # the error curve sits under its caption (a plain Qt widget in the container's layout)
+        self.details.native.layout().addWidget(self.curve)
+        self.sections = sections_panel([
+            ("Solver", solver, True), ("Self-calibration", calibration, False), ("Coherence", coherence, False),
+            ("Run settings", run, True), ("Run details (losses, error curve)", self.details, True),
+            ("Results", results, False)], height_px=420)
+        tighten(self, (4, 2, 4, 2))
+        self.native.layout().insertWidget(1, self.sections, 1)
+        claim_dock_height(self.native)
+        self.masks_button.changed.connect(self.preview_masks)
+        self.command_button.changed.connect(self.copy_command)
+        for name in _FIELDS:  # an error about a setting goes once the settings are edited
+            getattr(self, name).changed.connect(self._clear_stale_error)
+        self.device.changed.connect(self._clear_stale_error)
         # run state
         self._worker = None
         self._rec = None
@@ -154,8 +202,12 @@ class ReconstructionWidget(Container):
         self._closing = threading.Event()
         self._ri_layer = None
         self._acq_layer = None
-        self._task_id = None
         self._close_watcher = None
+        self._time_left: TimeLeft | None = None
+        self._run_name = ""
+        self._runs = 0
+        self._stage_iterations: list[int] = []
+        self.last_command: str | None = None
         self.cancelled = False
         #: (stage, iteration, stage_complete) of every update written into the RI layer (for tests and logs).
         self.layer_updates: list[tuple[int, int, bool]] = []
@@ -167,6 +219,7 @@ class ReconstructionWidget(Container):
         self.compare_button.changed.connect(lambda: self.show_comparison(int(self.compare_index.value)))
         self.coverage_button.changed.connect(self.show_coverage)
         self.layer.changed.connect(self._on_layer_changed)
+        follow_ndisplay(napari_viewer)
         follow_layers(napari_viewer, self.layer, self._refresh)
 
     def _setting(self, name: str, label: str, step: float | None = None):
@@ -184,18 +237,48 @@ class ReconstructionWidget(Container):
     def _on_layer_changed(self, layer=None) -> None:
         if layer is not None:
             self.compare_index.max = max(0, int(np.shape(layer.data)[0]) - 1)
+            for event in (layer.events.scale, layer.events.translate):  # Apply optics changes them: re-check
+                event.connect(self._update_run_state)
+        self._update_run_state()
+
+    def _clear_stale_error(self, _value=None) -> None:
+        if self.feedback.last_error is not None:
+            self.feedback.info("")
+
+    def run_problem(self) -> str | None:
+        """Why Reconstruct is disabled (no image stack, or its optics missing, naming the fields), or None."""
+        try:
+            acquisition_of(self.layer.value)
+        except FDTInputError as exc:
+            return str(exc)
+        return None
+
+    def _update_run_state(self, _event=None) -> None:
+        if self.running:
+            return
+        problem = self.run_problem()
+        self.run_button.enabled = problem is None
+        self.masks_button.enabled = problem is None and not self.tasks.is_running("masks")
+        if problem is not None:
+            self.status.value = f"Reconstruct needs: {problem}"
+        elif self.status.value.startswith("Reconstruct needs"):
+            self.status.value = ""
 
     # -- settings -----------------------------------------------------------------------------
     def config(self) -> SolverConfig:
         """The settings in the widget over the last loaded ones, checked (raises :class:`FDTInputError`)."""
-        return merge_config(self._base, {name: getattr(self, name).value for name in _FIELDS})
+        values = {name: getattr(self, name).value for name in _FIELDS}
+        for name in _ONE_BASED:
+            values[name] = int(values[name]) - 1
+        return merge_config(self._base, values)
 
     def set_config(self, config: SolverConfig) -> None:
         """Show ``config`` in the widget; settings it does not show are kept for saving and running."""
         self._base = config
         for name in _FIELDS:
             value = getattr(config, name)
-            getattr(self, name).value = format_stages(value) if name == "stages" else value
+            getattr(self, name).value = (format_stages(value) if name == "stages" else
+                                         value + 1 if name in _ONE_BASED else value)
 
     def save_settings(self, path: str | Path) -> Path:
         """Write the settings as ``fdt reconstruct --config`` reads them."""
@@ -232,9 +315,8 @@ class ReconstructionWidget(Container):
         return not self._done.is_set()
 
     def start(self) -> None:
-        """Check everything, then start the reconstruction in a worker thread."""
-        from napari.qt.threading import create_worker
-        from superqt.utils import GeneratorWorker  # without napari's relay: errors and warnings are shown below
+        """Check everything, then start the reconstruction in a worker thread (a new RI layer for this run)."""
+        from superqt.utils import GeneratorWorker  # public superqt API: errors and warnings are shown below
 
         if self.running:
             return
@@ -247,23 +329,27 @@ class ReconstructionWidget(Container):
             device = self.device.value
             from napari_fdt.device import resolve_device
 
-            resolve_device(device)
+            device_type = resolve_device(device).type
+            self.feedback.info("")
             self._acq_layer = layer
             self._rec, self._report, self.cancelled = None, None, False
             self.layer_updates = []
             stop, done, closing = threading.Event(), threading.Event(), threading.Event()
+            self._runs += 1
+            self._run_name = f"{layer.name} RI #{self._runs} ({format_stages(config.stages)}, seed {config.seed})"
             n_b = acq.optics.n_background
-            data, kwargs, kind = ri_layer(np.full((acq.optics.n_slices, *acq.image_shape), n_b, np.float32),
-                                          acq.optics, f"{layer.name} RI", owner=layer.metadata.get(META_ID))
+            data, kwargs, _ = ri_layer(np.full((acq.optics.n_slices, *acq.image_shape), n_b, np.float32),
+                                       acq.optics, self._run_name, owner=layer.metadata.get(META_ID))
             kwargs["contrast_limits"] = (n_b, n_b + 0.5 * config.delta_n_max)
-            self._ri_layer = put_layer(self._viewer, (data, kwargs, kind))
-            self._ri_layer.metadata.pop(META_REPORT, None)
-            self._ri_layer.contrast_limits = kwargs["contrast_limits"]
-            worker = create_worker(
+            kwargs["metadata"]["fdt_run"] = self._runs
+            self._ri_layer = self._viewer.add_image(data, **kwargs)  # one layer per run: earlier runs are kept
+            self._stage_iterations = [s.iterations for s in config.stages]
+            self._time_left = TimeLeft(self._stage_iterations, stage_costs(acq.optics, acq.image_shape, config, acq.n_images,
+                                                                                device_type))
+            worker = GeneratorWorker(
                 reconstruction_job, acq, config, device=device, initial_sources_um=sources, stop=stop,
                 done=done, closing=closing, min_interval_s=UPDATE_INTERVAL_S,
-                acquisition_path=layer.metadata.get(META_PATH), _start_thread=False, _ignore_errors=True,
-                _worker_class=GeneratorWorker,
+                acquisition_path=layer.metadata.get(META_PATH),
             )
             worker.yielded.connect(self._on_update)
             worker.returned.connect(self._on_returned)
@@ -276,11 +362,12 @@ class ReconstructionWidget(Container):
             self.progress.value = 0
             self.curve.reset(config.total_iterations)
             self.curve_caption.value = ""
+            self.losses.value = ""
             self._set_running(True)
-            self.feedback.info(f"reconstructing {layer.name} on {device}…")
+            self.status.value = f"run #{self._runs}: starting on {device}…"
             self._watch_close()
             self._t0 = time.perf_counter()
-        if worker is not None:  # started outside the guard's warning capture (see _widget_common._THREADS)
+        if worker is not None:  # started outside the guard's warning capture (see widget_common._THREADS)
             track_thread(worker, self._done)
             worker.start()
 
@@ -291,55 +378,41 @@ class ReconstructionWidget(Container):
             self.status.value = "cancelling at the next iteration…"
 
     def _set_running(self, running: bool) -> None:
-        self.run_button.enabled = not running
+        self.run_button.enabled = not running and self.run_problem() is None
         self.cancel_button.enabled = running
         self.load_settings_button.enabled = not running
         has_result = (not running) and self._rec is not None and self._report is not None
         self.save_button.enabled = has_result and not self.tasks.is_running("save")
+        self.command_button.enabled = not running and self.layer.value is not None
         self.compare_button.enabled = has_result and not self.tasks.is_running("comparison")
         self.coverage_button.enabled = not self.tasks.is_running("coverage")
+        self.masks_button.enabled = self.run_problem() is None and not self.tasks.is_running("masks")
 
     def _watch_close(self) -> None:
-        """Stop the run when the viewer closes: napari's task status (asks before closing) or a close filter."""
-        window = getattr(self._viewer, "window", None)
-        register = getattr(window, "_register_task_status", None)
-        if register is not None:
-            from napari.utils.task_status import Status
+        """Stop the run when napari's window closes; a user closing it is asked once, the run named."""
+        if self._close_watcher is None:
+            self._close_watcher = CloseWatcher(self.native.window(), self._on_viewer_closing, confirm=self._confirm_close)
 
-            self._task_id = register("napari-fdt", Status.BUSY, "reconstruction running", cancel_callback=self._on_viewer_closing)
-        elif self._close_watcher is None:
-            self._close_watcher = CloseWatcher(self.native.window(), self._on_viewer_closing)
+    def _confirm_close(self) -> bool:
+        """Ask before closing napari during a run; True: close (the run stops)."""
+        if not self.running:
+            return True
+        from qtpy.QtWidgets import QMessageBox
 
-    def _task_status(self, status: str, text: str = "") -> None:
-        window = getattr(self._viewer, "window", None)
-        update = getattr(window, "_update_task_status", None)
-        if update is not None and self._task_id is not None:
-            from napari.utils.task_status import Status
-
-            update(self._task_id, getattr(Status, status), text)
+        answer = QMessageBox.question(
+            self.native.window(), "napari-fdt: reconstruction running",
+            f"The reconstruction {self._run_name} is running ({self.status.value}).\n\n"
+            "Close napari and stop it? Nothing of this run is saved.",
+            QMessageBox.StandardButton.Yes | QMessageBox.StandardButton.No, QMessageBox.StandardButton.No)
+        return answer == QMessageBox.StandardButton.Yes
 
     def _on_viewer_closing(self) -> bool:
-        """The viewer closes: stop the thread and wait (at most 60 s) until it has ended.
-
-        napari itself asks its workers to quit on close (``worker.quit()``); the worker then drops the
-        generator at its next yield. Either way the thread ends within one iteration; a dropped job
-        generator is closed here so that its clean-up runs now.
-        """
+        """The viewer closes: stop the run and wait (at most 60 s) until its thread has ended."""
         if not self.running:
             return False
         self._closing.set()
         self._stop.set()
-        worker = self._worker
-        deadline = time.monotonic() + 60.0
-        while not self._done.is_set() and time.monotonic() < deadline:
-            if worker is not None and not worker.is_running:
-                gen = getattr(worker, "_gen", None)  # dropped by worker.quit(): close it here
-                if gen is not None:
-                    gen.close()
-                self._done.set()  # the job can no longer run
-                break
-            time.sleep(0.01)
-        self._done.wait(timeout=max(0.0, deadline - time.monotonic()))
+        self._done.wait(timeout=60.0)
         return True
 
     def _on_update(self, update: Update) -> None:
@@ -352,9 +425,11 @@ class ReconstructionWidget(Container):
             return
         snap = update.snapshot
         self.progress.value = snap.global_iteration
-        self.status.value = (f"stage {snap.stage + 1}/{snap.n_stages} (×{snap.factor}), iteration "
-                             f"{snap.iteration}/{snap.stage_iterations}; {snap.elapsed_s:.0f} s elapsed, "
-                             f"about {snap.eta_s:.0f} s left")
+        self._time_left.add(snap.stage, snap.iteration, snap.elapsed_s)
+        left = self._time_left.seconds_left()
+        left_txt = "" if left is None else f", about {_duration(left)} left"
+        self.status.value = (f"run #{self._runs}: stage {snap.stage + 1}/{snap.n_stages} (×{snap.factor}), iteration "
+                             f"{snap.iteration}/{snap.stage_iterations}; {_duration(snap.elapsed_s)} elapsed{left_txt}")
         self.losses.value = "loss: " + ", ".join(f"{k} {v:.4g}" for k, v in snap.losses.items())
         self.curve.add(snap)
         self.curve_caption.value = "error: " + self.curve.curve.caption()
@@ -362,16 +437,19 @@ class ReconstructionWidget(Container):
             self._show_ri(update.ri)
             self.layer_updates.append((snap.stage, snap.iteration, snap.stage_complete))
             # (no warning capture here: the worker owns the process's warning hook while it runs)
-            set_sources(self._viewer, self._acq_layer, snap.sources_um)
+            set_sources(self._viewer, self._acq_layer, snap.sources_um, kind="calibrated", name=self._calibrated_name())
+
+    def _calibrated_name(self) -> str:
+        return f"{self._acq_layer.name} sources calibrated #{self._runs}"
 
     def _show_ri(self, ri: np.ndarray) -> None:
         layer = self._ri_layer
         if layer not in self._viewer.layers:  # the user deleted it: add it again
             acq = acquisition_of(self._acq_layer)
-            self._ri_layer = layer = put_layer(self._viewer, ri_layer(ri, acq.optics, f"{self._acq_layer.name} RI",
-                                                                      owner=self._acq_layer.metadata.get(META_ID)))
+            data, kwargs, _ = ri_layer(ri, acq.optics, self._run_name, owner=self._acq_layer.metadata.get(META_ID))
+            self._ri_layer = layer = self._viewer.add_image(data, **kwargs)
         layer.data = ri
-        lo = float(self._acq_layer.metadata["fdt_acquisition"].optics.n_background)
+        lo = float(self._acq_layer.metadata[META_ACQUISITION].optics.n_background)
         layer.contrast_limits = (lo, max(lo + 1e-4, float(ri.max())))
 
     def _on_returned(self, result: JobResult) -> None:
@@ -383,31 +461,35 @@ class ReconstructionWidget(Container):
         if result.ri is None:
             if self._ri_layer is not None and self._ri_layer in self._viewer.layers:
                 self._viewer.layers.remove(self._ri_layer)
+            for layer in list(self._viewer.layers):
+                if layer.name == self._calibrated_name() and layer.metadata.get(META_KIND) == "calibrated":
+                    self._viewer.layers.remove(layer)
             self._ri_layer = None
             self._rec = None
-            self.status.value = "cancelled before the first stage ended: nothing kept"
-            self._task_status("CANCELLED")
+            self.progress.value = 0
+            self.status.value = f"run #{self._runs} cancelled before the first stage ended: nothing kept"
             return
         self._report = result.report
         self._show_ri(result.ri)
         self._ri_layer.metadata[META_REPORT] = result.report
-        set_sources(self._viewer, self._acq_layer, result.sources_um)
+        set_sources(self._viewer, self._acq_layer, result.sources_um, kind="calibrated", name=self._calibrated_name())
         n = len(result.rec.config.stages)
         fit = (result.report or {}).get("image_fit", {})
         fit_txt = f"; image fit: relative error {fit['image_relative_error']:.3f}" if "image_relative_error" in fit else ""
         if result.cancelled:
-            self.status.value = f"cancelled: showing the last complete stage ({result.completed_stages}/{n}){fit_txt}"
-            self._task_status("CANCELLED")
+            self.progress.value = sum(self._stage_iterations[: result.completed_stages])
+            self.status.value = (f"run #{self._runs} cancelled: showing the last complete stage "
+                                 f"({result.completed_stages}/{n}){fit_txt}")
         else:
             self.progress.value = self.progress.max
-            self.status.value = f"done: {n} stages in {result.rec.elapsed_s:.1f} s on {result.rec.device}{fit_txt}"
-            self._task_status("COMPLETED")
+            self.status.value = (f"run #{self._runs} done: {n} stages in {result.rec.elapsed_s:.1f} s on "
+                                 f"{result.rec.device}{fit_txt}")
 
     def _on_error(self, exc: Exception) -> None:
-        self._task_status("FAILED", str(exc))
         if self._closing.is_set():
             return
-        self.status.value = "failed"
+        self.progress.value = 0
+        self.status.value = f"run #{self._runs} failed"
         self.feedback.exception(exc)
 
     def _on_warning(self, args: tuple) -> None:
@@ -442,14 +524,18 @@ class ReconstructionWidget(Container):
     def _save_result_dialog(self) -> None:
         from qtpy.QtWidgets import QFileDialog
 
-        path, _ = QFileDialog.getSaveFileName(self.native, "Save RI volume", "RI.ome.tif", "OME-TIFF (*.ome.tif *.tif)")
+        suggestion = (self._run_name.split(" (")[0].replace(" #", "_").replace(" ", "_") or "RI") + ".ome.tif"
+        path, _ = QFileDialog.getSaveFileName(self.native, "Save RI volume", suggestion, "OME-TIFF (*.ome.tif *.tif)")
         if path:
             self.save_result_in_background(path)
 
     def save_result_in_background(self, path: str | Path):
-        """:meth:`save_result` in a worker thread (the *Save RI…* button); returns the worker, or None if refused."""
+        """:meth:`save_result` in a worker thread (the *Save RI…* button); returns the worker, or None if refused.
+
+        A name without ``.tif``/``.tiff`` gets ``.ome.tif`` (what the plugin's reader opens)."""
         from napari_fdt.recon.report import write_result
 
+        path = with_tiff_suffix(path)
         job = None
         with self.feedback.guard():
             rec = self._result()
@@ -517,3 +603,70 @@ class ReconstructionWidget(Container):
             return None
         return self.tasks.start("coverage", job, show, buttons=(self.coverage_button,),
                                 message=f"counting the sources that light each voxel of {layer.name}…")
+
+    # -- coherence masks and the command line --------------------------------------------------------
+    def preview_masks(self):
+        """The coherence masks of all sources for this widget's mask threshold (in a worker thread) → an image stack layer."""
+        job = None
+        with self.feedback.guard():
+            layer = self.layer.value
+            acq = acquisition_of(layer)
+            sources = sources_for(self._viewer, layer, acq)
+            threshold = float(self.mask_threshold.value)
+            job = lambda: mask_stack(acq, sources, threshold=threshold)  # noqa: E731
+
+        def show(masks: np.ndarray) -> None:
+            o = acq.optics
+            put_layer(self._viewer, (masks[:, None], dict(
+                name=f"{layer.name} masks", scale=stack_scale(o.pixel_size_um, o.thickness_um),
+                translate=stack_translate(acq.image_shape, o.pixel_size_um, o.thickness_um), units=STACK_UNITS,
+                axis_labels=STACK_AXIS_LABELS, colormap="green", blending="additive", opacity=0.5, contrast_limits=(0, 1),
+                metadata={META_KIND: "masks", META_OWNER: layer.metadata.get(META_ID)}), "image"))
+            self.feedback.info(f"masks of {len(masks)} sources at threshold {threshold:g}: "
+                               f"{100 * masks.mean():.0f} % of the pixels on average")
+
+        if job is None:
+            return None
+        return self.tasks.start("masks", job, show, buttons=(self.masks_button,),
+                                message=f"computing the masks of {layer.name}…")
+
+    def copy_command(self) -> str | None:
+        """The ``fdt reconstruct`` line that repeats this widget's run, to the clipboard; None if refused.
+
+        It needs the acquisition as a folder on disk that holds what the widget uses (optics and sources as
+        edited): the layer's folder if they are unchanged, else *Save acquisition…* first. The settings are written
+        beside that folder (``<folder>_settings.json``, a new name each time: nothing is overwritten).
+        """
+        from napari_fdt.data.io import read_acquisition
+
+        with self.feedback.guard():
+            layer = self.layer.value
+            acq = acquisition_of(layer)
+            config = self.config()
+            folder = layer.metadata.get(META_PATH)
+            if not folder or not (Path(folder) / "acquisition.json").is_file():
+                raise FDTInputError("Copy command", f"{layer.name} is not an acquisition folder on disk",
+                                    "press Save acquisition… in the FDT acquisition widget first")
+            on_disk = read_acquisition(folder)
+            sources = sources_for(self._viewer, layer, acq, required=False)
+            same_sources = (sources is None and on_disk.sources_um is None) or (
+                sources is not None and on_disk.sources_um is not None
+                and np.allclose(sources, on_disk.sources_um, rtol=0, atol=1e-9))
+            if on_disk.optics != acq.optics or not same_sources:
+                raise FDTInputError("Copy command", f"the optics or sources of {layer.name} differ from {folder}",
+                                    "press Save acquisition… in the FDT acquisition widget to write them, then copy again")
+            folder = Path(folder)
+            settings = unique_path(folder.with_name(f"{folder.name}_settings.json"))
+            config.save(settings)
+            out = unique_path(folder.with_name(f"{folder.name}_RI.ome.tif"))
+            command = format_command(reconstruct_command(folder, out, settings, device=self.device.value))
+            self.last_command = command
+            try:
+                from qtpy.QtWidgets import QApplication
+
+                QApplication.clipboard().setText(command)
+            except Exception:  # noqa: BLE001 (no clipboard on this display: the line is shown below anyway)
+                pass
+            self.feedback.info(f"copied: {command}")
+            return command
+        return None

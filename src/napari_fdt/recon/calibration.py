@@ -14,13 +14,16 @@ from typing import Any
 import numpy as np
 import torch
 
+from napari_fdt.physics.aberrations import ZERNIKE_MODES
 from napari_fdt.physics.optics import Optics
 from napari_fdt.recon.config import SolverConfig
 
 __all__ = ["Calibration"]
 
 #: The tensors of :class:`Calibration`, in the order of its state dict (and of the checkpoint's keys).
-PARAMETERS = ("sources", "log_gain", "pixel_scale", "spacing_scale", "depth_offset_um")
+PARAMETERS = ("sources", "log_gain", "pixel_scale", "spacing_scale", "depth_offset_um", "na_scale", "pupil_edge", "zernike")
+#: Smallest calibrated pupil edge (relative to NA/λ): a hard edge has no gradient in NA.
+MIN_CALIBRATED_EDGE = 0.002
 
 
 class Calibration:
@@ -34,11 +37,14 @@ class Calibration:
     device, dtype: of the tensors.
 
     Tensors: ``sources`` (N, 3) µm, ``log_gain`` (N,), ``pixel_scale`` and ``spacing_scale`` () (1 = the
-    acquisition's value), ``depth_offset_um`` () µm added to every source's depth.
+    acquisition's value), ``depth_offset_um`` () µm added to every source's depth; the pupil's ``na_scale`` () and
+    ``pupil_edge`` () (``calibrate_pupil``; the edge used is ``|pupil_edge|``, started at least at
+    :data:`MIN_CALIBRATED_EDGE`) and the Zernike coefficients ``zernike`` (6,) radians
+    (``calibrate_aberrations``; :data:`napari_fdt.physics.aberrations.ZERNIKE_MODES`).
     """
 
     def __init__(self, sources_um: np.ndarray, config: SolverConfig, optics: Optics, *, device: torch.device,
-                 dtype: torch.dtype) -> None:
+                 dtype: torch.dtype, pupil_edge: float = 0.03) -> None:
         self.config = config
         self.optics = optics
         n = len(sources_um)
@@ -47,6 +53,14 @@ class Calibration:
         self.pixel_scale = torch.ones((), device=device, dtype=dtype)
         self.spacing_scale = torch.ones((), device=device, dtype=dtype)
         self.depth_offset_um = torch.zeros((), device=device, dtype=dtype)
+        self.na_scale = torch.ones((), device=device, dtype=dtype)
+        self.pupil_edge = torch.tensor(max(float(pupil_edge), MIN_CALIBRATED_EDGE), device=device, dtype=dtype)
+        self.zernike = torch.zeros(len(ZERNIKE_MODES), device=device, dtype=dtype)
+        #: whether the pupil's NA and edge, and the Zernike coefficients, are in the model (and trained from
+        #: ``calibration_from_stage``): ``calibrate_pupil`` / ``calibrate_aberrations`` when true, else off until the
+        #: solver's choice of model parts (:mod:`napari_fdt.recon.model_parts`) switches them on
+        self.fit_pupil = config.calibrate_pupil in (True, "true")
+        self.fit_aberrations = config.calibrate_aberrations in (True, "true")
         #: whether the gains hold their least-squares start (:meth:`set_gains`)
         self.gain_initialised = False
         #: one Adam for the whole run, built by the first :meth:`set_trainable`
@@ -77,6 +91,10 @@ class Calibration:
             "pixel_size_um": optics.pixel_size_um * float(self.pixel_scale.detach()),
             "slice_spacing_um": optics.slice_spacing_um * float(self.spacing_scale.detach()),
             "source_depth_offset_um": float(self.depth_offset_um.detach()),
+            **({"na": optics.na * float(self.na_scale.detach()), "pupil_edge": abs(float(self.pupil_edge.detach()))}
+               if self.fit_pupil else {}),
+            **({f"aberration_{m}_rad": float(v) for m, v in zip(ZERNIKE_MODES, self.zernike.detach().cpu().tolist())}
+               if self.fit_aberrations else {}),
         }
 
     def optics_overrides(self, stage_optics: Optics, envelope: bool, shared_frozen: bool = False) -> dict[str, torch.Tensor]:
@@ -92,6 +110,13 @@ class Calibration:
             out["pixel_size_um"] = stage_optics.pixel_size_um * pixel
         if cfg.calibrate_slice_spacing:
             out["slice_spacing_um"] = stage_optics.slice_spacing_um * spacing
+        if not envelope:  # the envelope model keeps the acquisition's pupil
+            if self.fit_pupil:
+                na_scale, edge = (self.na_scale.detach(), self.pupil_edge.detach()) if shared_frozen else (self.na_scale, self.pupil_edge)
+                out["na"] = stage_optics.na * na_scale
+                out["pupil_edge"] = torch.abs(edge)
+            if self.fit_aberrations:
+                out["zernike"] = self.zernike.detach() if shared_frozen else self.zernike
         return out
 
     def set_gains(self, gains: torch.Tensor) -> None:
@@ -113,12 +138,17 @@ class Calibration:
         self.depth_offset_um.requires_grad_(on and cfg.calibrate_source_depth)
         self.pixel_scale.requires_grad_(on and cfg.calibrate_pixel_size)
         self.spacing_scale.requires_grad_(on and cfg.calibrate_slice_spacing)
+        self.na_scale.requires_grad_(on and self.fit_pupil)
+        self.pupil_edge.requires_grad_(on and self.fit_pupil)
+        self.zernike.requires_grad_(on and self.fit_aberrations)
         self.log_gain.requires_grad_(cfg.calibrate_gain)
         if self.optimiser is None:
             self.optimiser = CalibrationOptimiser(self.sources, [
                 {"params": [self.log_gain], "lr": cfg.lr_log_gain},
                 {"params": [self.pixel_scale, self.spacing_scale], "lr": cfg.lr_global},
                 {"params": [self.depth_offset_um], "lr": cfg.lr_depth_offset_um},
+                {"params": [self.na_scale, self.pupil_edge], "lr": cfg.lr_pupil},
+                {"params": [self.zernike], "lr": cfg.lr_aberrations},
             ], config=cfg)
         self.optimiser.set_visit_interval(len(self.sources) / cfg.stage_batch(stage_index), self.max_visit_step_um())
 
@@ -130,7 +160,7 @@ class Calibration:
 
     def shared_parameters(self) -> list[torch.Tensor]:
         """The parameters every image's gradient reaches (summed over ranks in a distributed run)."""
-        return [self.pixel_scale, self.spacing_scale, self.depth_offset_um]
+        return [self.pixel_scale, self.spacing_scale, self.depth_offset_um, self.na_scale, self.pupil_edge, self.zernike]
 
     def per_source_parameters(self) -> list[torch.Tensor]:
         """The parameters with one row per image (each row's gradient comes from its own image only)."""
@@ -147,14 +177,16 @@ class Calibration:
 
     # -- state ---------------------------------------------------------------------------------
     def copy_values(self) -> dict[str, torch.Tensor]:
-        """Copies of the five tensors (on their device), for :meth:`restore_values` after a cancel."""
+        """Copies of the tensors (on their device), for :meth:`restore_values` after a cancel."""
         return {name: getattr(self, name).detach().clone() for name in PARAMETERS}
 
     def restore_values(self, values: dict[str, torch.Tensor]) -> None:
-        """Set the five tensors in place from :meth:`copy_values` or :meth:`state_dict`."""
+        """Set the tensors in place from :meth:`copy_values` or :meth:`state_dict` (a checkpoint without the pupil's
+        and aberrations' tensors, from an earlier version, keeps their start values)."""
         with torch.no_grad():
             for name in PARAMETERS:
-                getattr(self, name).copy_(values[name])
+                if name in values:
+                    getattr(self, name).copy_(values[name])
 
     def state_dict(self) -> dict[str, Any]:
         """The tensors (on the CPU), whether the gains were initialised (``gain_initialised``) and the optimiser's state (``cal_opt``)."""

@@ -14,25 +14,46 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import Any, Literal, Optional
 
-from pydantic import Field, model_validator
+from pydantic import BeforeValidator, Field, model_validator
 
 from napari_fdt.errors import FDTInputError
 from napari_fdt.schema import markdown_table, schema_dataclass, setting
 
-__all__ = ["StageConfig", "SolverConfig", "load_config", "COHERENCE_MODELS", "BACKWARD_MODES", "COARSE_MODELS", "resolve_coarse_model", "settings_markdown"]
+__all__ = ["StageConfig", "SolverConfig", "AutoWeight", "AUTO", "load_config", "COHERENCE_MODELS", "BACKWARD_MODES", "COARSE_MODELS",
+           "resolve_coarse_model", "settings_markdown"]
 
-CoherenceModel = Literal["none", "mask", "spectral", "mask+spectral"]
+#: "auto": the spectral model where the validation error shows it (:mod:`napari_fdt.recon.model_parts`), else none.
+CoherenceModel = Literal["auto", "none", "mask", "spectral", "mask+spectral"]
 #: Model of the coarse stages; "auto": the envelope model on a CPU (12× cheaper than multi-slice there),
 #: multi-slice on a GPU (where the envelope model's many small kernels made it slower; docs/benchmarks.md).
 CoarseModel = Literal["auto", "envelope", "multislice"]
 #: How the multi-slice model forms gradients (:mod:`napari_fdt.model.slice_loop`); "autograd" is the plain reference.
 BackwardMode = Literal["auto", "stored", "reversible", "checkpoint", "autograd"]
 Activation = Literal["paper", "signed"]
+
+
+def _bool_to_text(value: Any) -> Any:
+    """JSON ``true``/``false`` (and Python bools) as the strings of the ``Literal``."""
+    return ("true" if value else "false") if isinstance(value, bool) else value
+
+
+#: Pixel integration of the camera: "auto" (the acquisition's statement, else the physical rule), "true", "false"
+#: (JSON booleans are accepted and stored as these strings).
+PixelIntegration = typing.Annotated[Literal["auto", "true", "false"], BeforeValidator(_bool_to_text)]
+#: An optional part of the model: "auto" (chosen by the validation error, :mod:`napari_fdt.recon.model_parts`),
+#: "true", "false" (JSON booleans are accepted and stored as these strings).
+Switch = typing.Annotated[Literal["auto", "true", "false"], BeforeValidator(_bool_to_text)]
 #: What the held-out images' error does to a stage: "best" returns to the stage's iterate of lowest validation error,
 #: "stop" also ends the stage once it has risen for ``early_stopping_patience`` snapshots, "off" ignores it.
 EarlyStopping = Literal["best", "stop", "off"]
 #: How the per-source positions step (:class:`~napari_fdt.recon.calibration.CalibrationOptimiser`).
 SourceStep = Literal["per_visit", "dense"]
+#: A regularisation weight: a number ≥ 0, or ``"auto"``: chosen from the data by the validation error
+#: (:mod:`napari_fdt.recon.regularisation`, ``docs/solver.md``).
+AutoWeight = typing.Union[typing.Annotated[float, Field(ge=0, strict=True)], Literal["auto"]]
+
+#: The value of a setting chosen from the data.
+AUTO = "auto"
 
 COHERENCE_MODELS: tuple[str, ...] = typing.get_args(CoherenceModel)
 COARSE_MODELS: tuple[str, ...] = typing.get_args(CoarseModel)
@@ -83,8 +104,12 @@ class SolverConfig:
     l1_ramp_end: float = setting(1.0, ge=0, le=1, description="fraction of the run where α reaches `l1_l2_total`",
                                  fix="the L1 weight rises over this fraction of the run")
     ssim_weight: float = setting(0.0, ge=0, description="γ, weight of 1 − SSIM", fix="0 switches the term off")
-    tv_xy_weight: float = setting(0.0, ge=0, description="τ_xy, weight of the lateral total variation", fix="0 switches the term off")
-    tv_z_weight: float = setting(0.0, ge=0, description="τ_z, weight of the axial total variation", fix="0 switches the term off")
+    tv_xy_weight: AutoWeight = setting(
+        "auto", strict=False, description="τ_xy, weight of the lateral total variation; `\"auto\"`: chosen by the validation error "
+        "(docs/solver.md, needs a validation split; 0 without one)", fix='give a number >= 0 (0 switches the term off) or "auto"')
+    tv_z_weight: AutoWeight = setting(
+        "auto", strict=False, description="τ_z, weight of the axial total variation; `\"auto\"`: chosen with τ_xy (τ_z = τ_xy / 2)",
+        fix='give a number >= 0 (0 switches the term off) or "auto"')
     # self-calibration
     calibrate_sources: bool = setting(True, description="fit each source's lateral position")
     calibrate_gain: bool = setting(True, description="fit each image's gain")
@@ -99,7 +124,10 @@ class SolverConfig:
     lr_global: float = setting(1e-3, gt=0, description="Adam step of the pixel-size and slice-spacing scales (relative)")
     source_depth_um: Optional[_POSITIVE_DEPTH] = setting(None, strict=False, description="depth guess when the acquisition has no `sources_um`, µm")
     # partial coherence
-    coherence: CoherenceModel = setting("none", strict=False, description="`\"none\"`, `\"mask\"`, `\"spectral\"`, `\"mask+spectral\"`")
+    coherence: CoherenceModel = setting(
+        "auto", strict=False, description="`\"none\"`, `\"mask\"`, `\"spectral\"` (an emission band of `bandwidth_um`), "
+        "`\"mask+spectral\"`; `\"auto\"`: spectral where it lowers the validation error by more than noise, else none "
+        "(docs/solver.md, \"Model parts\")")
     mask_threshold: float = setting(0.5, gt=0, lt=1, description="mask binarisation level, fraction of each image's maximum",
                                     fix="the paper binarises at about 0.5 of the maximum")
     bandwidth_um: float = setting(0.03, ge=0, description="emission FWHM for the spectral model, µm")
@@ -112,15 +140,16 @@ class SolverConfig:
         "image, fastest), `\"reversible\"` (re-propagates the field backwards: memory independent of the number of slices; grids without "
         "evanescent frequencies only), `\"checkpoint\"` (≈2√N fields), `\"autograd\"` (plain autograd, the reference); `\"auto\"`: stored "
         "when it fits in 80 % of the free memory, else the leanest valid mode", fix="auto picks the fastest that fits in memory")
-    obliquity_correction: bool = setting(
-        False, description="scale each source's phase screens by 1/cos θ of its ray (the thin screen's obliquity error, `docs/physics.md` "
-        "§6); multi-slice stages, plain autograd")
+    obliquity_correction: Switch = setting(
+        "auto", strict=False, description="scale each source's phase screens by 1/cos θ of its ray (the thin screen's obliquity error, "
+        "`docs/physics.md` §6; multi-slice stages, plain autograd): `true`, `false`, or `\"auto\"`: on where it lowers the validation "
+        "error by more than noise (docs/solver.md, \"Model parts\")", fix="use \"auto\", true or false")
     # validation
     validation_fraction: float = setting(
-        0.0, ge=0.0, le=0.25, description="share of the images held out of training, spread over the field (at least 3, at most a quarter; "
+        0.1, ge=0.0, le=0.25, description="share of the images held out of training, spread over the field (at least 3, at most a quarter; "
         "0: none). Their error, predicted through the volume with closed-form gains, is the validation error of every snapshot and of "
-        "RI.json: how far to trust the volume without ground truth. Held-out images still fit their own position and gain, never the "
-        "volume. Off by default: holding out 10 % changed the relative Δn error by −8 % to +25 % over four scenes (docs/solver.md)",
+        "RI.json: how far to trust the volume without ground truth, and what `\"auto\"` weights and early stopping are chosen by. "
+        "Held-out images still fit their own position and gain, never the volume",
         fix="0.1 holds out 10 %; 0 turns validation off")
     early_stopping: EarlyStopping = setting(
         "best", strict=False, description="`\"best\"`: each stage ends on its iterate of lowest validation error (when the last is worse "
@@ -139,6 +168,26 @@ class SolverConfig:
         "scene, docs/solver.md): plain Adam on all rows (a row then moves about "
         "`lr_sources_um·√(N/B)` per visit, too little when N/B is large)", fix="choose per_visit or dense")
     lr_depth_offset_um: float = setting(0.02, gt=0, description="Adam step of the common depth offset of the sources, µm per iteration")
+    # camera and objective (docs/physics.md §3; issue 13)
+    pixel_integration: PixelIntegration = setting(
+        "auto", strict=False, description="record each pixel's mean intensity over its area instead of the value at its centre: "
+        "`\"auto\"`: what `acquisition.json`'s `pixel_integration` says, else chosen by the validation error (docs/solver.md, "
+        "\"Model parts\"; without a validation split: on when the intensity's band 2·NA/λ exceeds the camera's Nyquist "
+        "1/(2·pixel_size_um)); `true`, `false` (JSON booleans or strings). Multi-slice stages",
+        fix="use \"auto\", true or false")
+    pupil_edge: Optional[typing.Annotated[float, Field(ge=0.0, lt=0.5)]] = setting(
+        None, strict=False, description="half-width of the pupil's raised-cosine edge relative to NA/λ (0: a hard pupil, held "
+        "exactly); null: `acquisition.json`'s `pupil_edge`, else 0.03", fix="0 for a hard pupil, 0.03 the default soft edge")
+    calibrate_pupil: Switch = setting(
+        "auto", strict=False, description="fit the pupil's NA (a global scale) and edge width (multi-slice stages): `true`, `false`, or "
+        "`\"auto\"`: where the fit lowers the validation error by more than noise (docs/solver.md, \"Model parts\")",
+        fix="use \"auto\", true or false")
+    calibrate_aberrations: Switch = setting(
+        "auto", strict=False, description="fit a pupil phase of Zernike modes: defocus, astigmatism, coma, primary spherical (radians, Noll; "
+        "multi-slice stages): `true`, `false`, or `\"auto\"`: where the fit lowers the validation error by more than noise "
+        "(docs/solver.md, \"Model parts\")", fix="use \"auto\", true or false")
+    lr_pupil: float = setting(1e-3, gt=0, description="Adam step of the NA scale (relative) and the pupil edge width")
+    lr_aberrations: float = setting(0.02, gt=0, description="Adam step of the Zernike coefficients, radians")
 
     @model_validator(mode="after")
     def _cross_field(self) -> "SolverConfig":

@@ -420,8 +420,11 @@ class LossWeights:
 
     @classmethod
     def from_config(cls, config: SolverConfig) -> "LossWeights":
-        """The weights of a (validated) solver configuration."""
-        return cls(config.l1_l2_total, config.ssim_weight, config.tv_xy_weight, config.tv_z_weight,
+        """The weights of a (validated) solver configuration; a weight set to ``"auto"`` starts at 0 (the solver
+        sets it when it has chosen it, :mod:`napari_fdt.recon.regularisation`)."""
+        def fixed(w: float | str) -> float:
+            return 0.0 if w == "auto" else w
+        return cls(config.l1_l2_total, config.ssim_weight, fixed(config.tv_xy_weight), fixed(config.tv_z_weight),
                    config.l1_ramp_start, config.l1_ramp_end)
 
 

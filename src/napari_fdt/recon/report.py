@@ -15,7 +15,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from napari_fdt.data.io import report_path, write_json_atomic, write_volume_tiff
+from napari_fdt.data.io import check_report_free, report_path, write_json_atomic
+from napari_fdt.data.volumes import write_volume
 from napari_fdt.model.render import iter_batches
 from napari_fdt.recon.metrics import image_metrics, ri_metrics
 from napari_fdt.recon.solver import Reconstructor
@@ -85,6 +86,9 @@ def build_report(
             "gains": rec.gains().tolist(),
         },
         "stages": [r.to_dict() for r in rec.stages],
+        "regularisation": {"tv_xy_weight": rec.loss_weights.tv_xy, "tv_z_weight": rec.loss_weights.tv_z,
+                           "chosen": None if rec.tv_choice is None else rec.tv_choice.to_dict()},
+        "model_parts": model_parts_summary(rec),
         "seconds_total": rec.elapsed_s,
         "history": rec.history,
         "final_losses": rec.final_losses,
@@ -109,11 +113,33 @@ def build_report(
     return report
 
 
+def model_parts_summary(rec: Reconstructor) -> dict[str, Any]:
+    """RI.json's ``model_parts``: each optional part of the model on or off and why (:mod:`napari_fdt.recon.model_parts`),
+    ``needed`` (the parts on), and the choice's trials and cost when the data chose (``chosen``; None before)."""
+    choice = rec.parts_choice
+    return {"parts": dict(rec.parts), "needed": [p for p, on in rec.parts.items() if on],
+            "chosen_by": None if choice is None else dict(choice.chosen_by),
+            "chosen": None if choice is None or not choice.trials else choice.to_dict()}
+
+
+def describe_parts(summary: dict[str, Any]) -> str:
+    """One line for people: which parts the scene needed, by what, and what the choice cost (CLI and widget)."""
+    chosen = summary.get("chosen")
+    needed = ", ".join(summary.get("needed") or []) or "none"
+    if not chosen:
+        return f"model parts on: {needed}"
+    tried = ", ".join(f"{t['part']} {'on' if t['on'] else 'off'} ({-100 * t.get('improvement', 0.0) / max(chosen['reference_error'] or 1e-30, 1e-30):+.1f} %)"
+                      for t in chosen["trials"] if "improvement" in t)
+    return (f"model parts on: {needed} (chosen by the validation error {chosen['reference_error']:.4f} in stage {chosen['stage'] + 1}, "
+            f"{chosen['seconds']:.1f} s; change of the held-out error with each part: {tried})")
+
+
 def write_result(rec: Reconstructor, out: str | Path, report: dict[str, Any], *, overwrite: bool = False) -> tuple[Path, Path]:
-    """Write ``out`` (OME-TIFF, absolute RI, float32, ZYX) and ``out``'s ``.json`` report, each atomically."""
+    """Write ``out`` (OME-TIFF, or OME-Zarr for a ``.zarr`` name; absolute RI, float32, ZYX) and ``out``'s ``.json`` report, each atomically."""
     out = Path(out)
     o = rec.acquisition.optics
     json_path = report_path(out)
-    write_volume_tiff(out, rec.ri_full(), (o.slice_spacing_um, o.pixel_size_um, o.pixel_size_um), overwrite=overwrite)
+    check_report_free(out)  # RI.tif and RI.ome.tif share RI.json: never replace another volume's report
+    write_volume(out, rec.ri_full(), (o.slice_spacing_um, o.pixel_size_um, o.pixel_size_um), overwrite=overwrite)
     write_json_atomic(json_path, report, overwrite=overwrite)
     return out, json_path

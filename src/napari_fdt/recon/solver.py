@@ -20,7 +20,10 @@ gradients of the shared parameters are summed over ranks, and the result equals 
 
 from __future__ import annotations
 
+import copy
+import dataclasses
 import time
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable, Iterator, Sequence
@@ -30,7 +33,7 @@ import torch
 
 from napari_fdt.data.acquisition import Acquisition
 from napari_fdt.device import resolve_device
-from napari_fdt.errors import FDTInputError
+from napari_fdt.errors import FDTInputError, FDTWarning
 from napari_fdt.model.coherence import coherence_masks, emission_spectrum, spectral_images
 from napari_fdt.model.gain import least_squares_gain
 from napari_fdt.model.render import iter_batches
@@ -39,9 +42,22 @@ from napari_fdt.recon.calibration import Calibration
 from napari_fdt.recon.checkpoint import checkpoint_path, checkpoint_state, read_checkpoint, restore_checkpoint, write_checkpoint
 from napari_fdt.recon.config import SolverConfig, resolve_coarse_model
 from napari_fdt.recon.losses import BatchShare, LossWeights, as_floats, total_loss
+from napari_fdt.recon.model_parts import (
+    BINARY_PARTS,
+    FIT_IMAGES,
+    FIT_ITERATIONS,
+    FIT_RATES,
+    FITTED_PARTS,
+    PARTS,
+    PartsChoice,
+    decide,
+    parts_stage,
+    requested_parts,
+)
 from napari_fdt.recon.preflight import check_memory, warn_about_images, warn_about_sampling
-from napari_fdt.recon.stages import Stage, build_stage
-from napari_fdt.recon.validation import BestIterate, holdout_indices, relative_image_error
+from napari_fdt.recon.regularisation import PROBE_SHARE, TV_PATH, TVChoice, candidate_weights, pick, selection_stages, tv_is_auto
+from napari_fdt.recon.stages import Stage, build_stage, camera_model_options, stated_pixel_integration
+from napari_fdt.recon.validation import BestIterate, holdout_indices, per_image_errors, relative_image_error
 from napari_fdt.recon.volume import RIVolume, upsample_to
 
 if TYPE_CHECKING:
@@ -164,7 +180,6 @@ class Reconstructor:
         cfg = self.config
         #: the coarse stages' model after resolving "auto" for this device
         self.coarse_model = resolve_coarse_model(cfg.coarse_model, self.device.type)
-        o = acquisition.optics
         n_img = acquisition.n_images
         if initial_sources_um is None:
             if acquisition.sources_um is not None:
@@ -191,7 +206,7 @@ class Reconstructor:
         #: (N, H, W) float32 images / image_scale, on the CPU (each stage averages them to its grid)
         self.images = torch.from_numpy(imgs / mean)
         self.full_shape = acquisition.image_shape
-        self.calibration = Calibration(src, cfg, o, device=self.device, dtype=self.dtype)
+        self.calibration = self._new_calibration()
         self.volume: RIVolume | None = None
         self.volume_factor: int | None = None
         #: (V,) indices of the held-out images, spread over the field (empty: no validation). They are drawn in
@@ -207,12 +222,21 @@ class Reconstructor:
         self.elapsed_s = 0.0
         self.last_complete: Snapshot | None = None
         self.final_losses: dict[str, float] = {}
-        if cfg.coherence in ("spectral", "mask+spectral"):
-            lams, ws = emission_spectrum(o.wavelength_um, cfg.bandwidth_um, cfg.n_wavelengths)
-            self.wavelengths, self.weights = list(map(float, lams)), list(map(float, ws))
-        else:
-            self.wavelengths, self.weights = None, None
+        #: the optional model parts (:mod:`napari_fdt.recon.model_parts`) as now switched; "auto" ones are off until chosen
+        self.parts: dict[str, bool] = {}
+        #: what the choice of the "auto" parts tried and chose (None until made)
+        self.parts_choice: PartsChoice | None = None
+        self.wavelengths, self.weights = None, None
+        self._init_parts()
         self.loss_weights = LossWeights.from_config(cfg)
+        #: the TV weights chosen from the data ("auto"; :mod:`napari_fdt.recon.regularisation`), None until chosen
+        #: or when the weights are fixed numbers
+        self.tv_choice: TVChoice | None = None
+        if tv_is_auto(cfg) and not len(self.validation_indices):
+            warnings.warn("tv_xy_weight: \"auto\" chooses the TV weights by the validation error, and this run holds no "
+                          "images out (validation_fraction 0, or too few images): TV is off. Give validation_fraction > 0 "
+                          "or fixed weights", FDTWarning, stacklevel=2)
+            self.tv_choice = TVChoice(*candidate_weights(cfg, 0.0), stage=0, probe_iterations=0, reason="no validation split")
         check_memory(acquisition, cfg, src, self.device, len(self.wavelengths) if self.wavelengths else 1)
 
     # -- the algorithm --------------------------------------------------------------------------
@@ -223,7 +247,262 @@ class Reconstructor:
         grid, make the loss mask, start the gains (once), switch the calibration on or off; then iterate
         (batch, predict, loss, step; a snapshot every ``snapshot_every``), and end with a snapshot and a
         checkpoint (``checkpoint_dir/stage_<i>.pt``).
+
+        With ``"auto"`` TV weights, a pilot first runs the stages up to the selection stage and tries the weights there
+        (:meth:`_pilot`), without snapshots; the run then starts from the beginning with the chosen weights.
         """
+        if self.tv_choice is None and tv_is_auto(self.config) and self.completed_stages == 0:
+            if not self._pilot(should_stop):
+                return
+        yield from self._run_stages(should_stop, checkpoint_dir)
+
+    def _pilot(self, should_stop: Callable[[], bool] | None) -> bool:
+        """Choose the "auto" TV weights: run the stages before the selection stage as the run would (TV off), try the
+        weights at the selection stage (:meth:`_choose_tv`), then return to the initial state with the weights set, so
+        that the run equals one given them as numbers from its first stage on. False when cancelled meanwhile."""
+        t0 = time.perf_counter()
+        for _ in self._run_stages(should_stop, None):  # ends at the selection stage, once the weights are tried
+            pass
+        choice = self.tv_choice
+        self._restart()
+        if choice is None:  # cancelled
+            return False
+        choice.seconds = time.perf_counter() - t0
+        self.tv_choice = choice
+        self.loss_weights = dataclasses.replace(self.loss_weights, tv_xy=choice.tv_xy_weight, tv_z=choice.tv_z_weight)
+        self.elapsed_s = choice.seconds  # the pilot's time is the run's
+        return True
+
+    def _restart(self) -> None:
+        """Back to the state before any stage ran (volume, calibration and its optimiser, batch order, records)."""
+        cfg = self.config
+        self.calibration = self._new_calibration()
+        self.batches = BatchOrder(self.acquisition.n_images, cfg.seed, self.device)
+        self.volume, self.volume_factor = None, None
+        self.completed_stages, self.stages, self.history = 0, [], []
+        self.last_complete, self.final_losses = None, {}
+        self.__dict__.pop("_last_complete_state", None)
+
+    def _new_calibration(self) -> Calibration:
+        """The calibration parameters at their start (the initial sources, the acquisition's optics)."""
+        cal = Calibration(self.initial_sources_um, self.config, self.acquisition.optics, device=self.device, dtype=self.dtype,
+                          pupil_edge=camera_model_options(self.config, self.acquisition)["pupil_edge"])
+        if getattr(self, "parts", None):
+            cal.fit_pupil, cal.fit_aberrations = self.parts["pupil"], self.parts["aberrations"]
+        return cal
+
+    # -- optional model parts ---------------------------------------------------------------------
+    def _init_parts(self) -> None:
+        """Each part's switch before any choice: as set or stated, "auto" ones off; with nothing to choose (or no
+        validation split to choose by) :attr:`parts_choice` is made at once."""
+        cfg = self.config
+        requested = requested_parts(cfg)
+        chosen_by = {p: "setting" for p in PARTS}
+        stated = stated_pixel_integration(cfg, self.acquisition)
+        if cfg.pixel_integration == "auto" and stated is not None:
+            chosen_by["pixel_integration"] = "acquisition"
+        requested["pixel_integration"] = stated
+        #: the parts chosen from the data
+        self._auto_parts = [p for p in PARTS if requested[p] is None]
+        parts = {p: bool(requested[p]) for p in PARTS}
+        if not self._auto_parts:
+            self.apply_parts_choice(PartsChoice(parts, chosen_by))
+        elif not len(self.validation_indices):
+            o = self.acquisition.optics
+            from napari_fdt.physics.camera import needs_pixel_integration
+
+            for p in self._auto_parts:
+                chosen_by[p] = "no validation split"
+                if p == "pixel_integration":  # the physical rule stands in for the data
+                    parts[p] = needs_pixel_integration(o.na, o.wavelength_um, o.pixel_size_um)
+                    chosen_by[p] = "no validation split: physical rule"
+            self.apply_parts_choice(PartsChoice(parts, chosen_by))
+        else:
+            self._set_parts(parts)
+            self._parts_chosen_by = chosen_by
+
+    def _set_parts(self, parts: dict[str, bool]) -> None:
+        """Switch the parts: the spectral model's wavelengths and the calibration's pupil and aberration fits (the stage
+        models take :attr:`parts` when built)."""
+        self.parts = dict(parts)
+        o, cfg = self.acquisition.optics, self.config
+        if parts["spectral"]:
+            lams, ws = emission_spectrum(o.wavelength_um, cfg.bandwidth_um, cfg.n_wavelengths)
+            self.wavelengths, self.weights = list(map(float, lams)), list(map(float, ws))
+        else:
+            self.wavelengths, self.weights = None, None
+        self.calibration.fit_pupil = parts["pupil"]
+        self.calibration.fit_aberrations = parts["aberrations"]
+
+    def apply_parts_choice(self, choice: PartsChoice) -> None:
+        """Take a choice of parts (made here, or read from a checkpoint): switches, and the fitted pupil values when the
+        calibration has not moved them yet."""
+        self.parts_choice = choice
+        self._set_parts(choice.parts)
+
+    def _choose_parts(self, stage: Stage, mask: torch.Tensor | None, should_stop: Callable[[], bool] | None) -> Stage | None:
+        """Choose the "auto" parts at the start of ``stage`` (:mod:`napari_fdt.recon.model_parts`) and return the stage
+        as rebuilt for them; None when stopped meanwhile (the parts are then back to off)."""
+        t0 = time.perf_counter()
+        cal = self.calibration
+        provisional = dict(self.parts)
+        start_values = cal.copy_values()
+        ref_err, ref_each = self._validation(stage, mask, per_image=True)
+        reference = (ref_err, list(ref_each))
+        trials: list[dict[str, Any]] = []
+
+        def cancel() -> None:
+            cal.restore_values(start_values)
+            self._set_parts(provisional)
+
+        for part in [p for p in BINARY_PARTS if p in self._auto_parts]:
+            if self._stop_requested(should_stop):
+                cancel()
+                return None
+            t1 = time.perf_counter()
+            self._set_parts({**self.parts, part: True})
+            variant = stage if part == "spectral" else self._build_stage(stage.index)
+            vmask = self._loss_mask(variant)
+            err, each = self._validation(variant, vmask, per_image=True)
+            verdict = decide(ref_each, each)
+            trials.append({"part": part, "validation_error": err, "image_errors": each, **verdict,
+                           "seconds": time.perf_counter() - t1})
+            if verdict["on"]:
+                stage, mask, ref_each = variant, vmask, each
+            else:
+                self._set_parts({**self.parts, part: False})
+        fitted_auto = [p for p in FITTED_PARTS if p in self._auto_parts]
+        if fitted_auto:
+            t1 = time.perf_counter()
+            cache = self._exit_cache(stage)
+            cache_s = time.perf_counter() - t1
+            kept: list[str] = []
+            for part in fitted_auto:
+                t1 = time.perf_counter()
+                before = cal.copy_values()
+                if not self._fit_pupil_parts(stage, cache, [part], should_stop):
+                    cancel()
+                    return None
+                self._set_parts({**self.parts, part: True})
+                err, each = self._validation(stage, mask, per_image=True)
+                verdict = decide(ref_each, each)
+                trials.append({"part": part, "validation_error": err, "image_errors": each, **verdict,
+                               "fitted": self._pupil_values([part]), "seconds": time.perf_counter() - t1 + cache_s})
+                cache_s = 0.0
+                if verdict["on"]:
+                    kept.append(part)
+                    ref_each = each
+                else:
+                    self._set_parts({**self.parts, part: False})
+                    cal.restore_values(before)
+            if len(kept) > 1:  # refit together from the separate fits; kept if the held-out images agree
+                t1 = time.perf_counter()
+                before = cal.copy_values()
+                if not self._fit_pupil_parts(stage, cache, kept, should_stop):
+                    cancel()
+                    return None
+                err, each = self._validation(stage, mask, per_image=True)
+                joint = float(np.mean(each)) <= float(np.mean(ref_each))
+                trials.append({"part": "+".join(kept), "validation_error": err, "image_errors": each, "on": joint,
+                               "fitted": self._pupil_values(kept), "seconds": time.perf_counter() - t1})
+                if joint:
+                    ref_each = each
+                else:
+                    cal.restore_values(before)
+        chosen_by = {p: ("validation" if p in self._auto_parts else self._parts_chosen_by[p]) for p in PARTS}
+        choice = PartsChoice(dict(self.parts), chosen_by, stage=stage.index, reference_error=reference[0],
+                             reference_image_errors=reference[1], trials=trials,
+                             fitted=self._pupil_values([p for p in FITTED_PARTS if self.parts[p]]),
+                             seconds=time.perf_counter() - t0)
+        self.apply_parts_choice(choice)
+        return stage
+
+    def _pupil_values(self, parts: list[str]) -> dict[str, Any]:
+        """The calibration's current pupil values of ``parts``: NA and edge, Zernike coefficients by mode (rad)."""
+        from napari_fdt.physics.aberrations import ZERNIKE_MODES
+
+        cal, out = self.calibration, {}
+        if "pupil" in parts:
+            out["na"] = self.acquisition.optics.na * float(cal.na_scale.detach())
+            out["pupil_edge"] = abs(float(cal.pupil_edge.detach()))
+        if "aberrations" in parts:
+            out["zernike_rad"] = dict(zip(ZERNIKE_MODES, (float(v) for v in cal.zernike.detach().cpu())))
+        return out
+
+    def _fit_images(self) -> torch.Tensor:
+        """Up to :data:`FIT_IMAGES` training images, evenly spread over them (the subset the pupil parts are fitted to)."""
+        train = np.setdiff1d(np.arange(self.acquisition.n_images), self.validation_indices)
+        pick_ = np.unique(np.round(np.linspace(0, len(train) - 1, min(FIT_IMAGES, len(train)))).astype(int))
+        return torch.as_tensor(train[pick_], device=self.device)
+
+    def _exit_cache(self, stage: Stage) -> list[tuple[torch.Tensor, list[tuple[float | None, float, torch.Tensor, torch.Tensor]]]]:
+        """For chunks of the fit images: (indices, [(wavelength, weight, exit spectra, source spectra)]) through the current
+        volume and sources (:meth:`MultiSliceModel.exit_spectra`), computed once for every pupil tried."""
+        cal, model = self.calibration, stage.model
+        base = {k: v for k, v in cal.optics_overrides(stage.optics, False, shared_frozen=True).items()
+                if k not in ("na", "pupil_edge", "zernike")}
+        lams = list(zip(self.wavelengths, self.weights)) if self.wavelengths else [(None, 1.0)]
+        out = []
+        with torch.no_grad():
+            dn = stage.to_field_grid(self.volume.delta_n())
+            idx_all = self._fit_images()
+            for sl in iter_batches(len(idx_all), self.config.batch_size):
+                idx = idx_all[sl]
+                src = stage.stage_sources(cal.calibrated_sources()[idx])
+                per = []
+                for lam, w in lams:
+                    k = model.kernels(**base, wavelength_um=lam) if (base or lam is not None) else None
+                    per.append((lam, w, *model.exit_spectra(dn, src, k)))
+                out.append((idx, per))
+        self._exit_cache_base = base
+        return out
+
+    def _fit_pupil_parts(self, stage: Stage, cache, parts: list[str], should_stop: Callable[[], bool] | None) -> bool:
+        """Fit the parameters of ``parts`` ("pupil", "aberrations") to the fit images with the volume and sources fixed:
+        :data:`FIT_ITERATIONS` Adam steps on the sum of the images' squared relative errors (gains in closed form),
+        from the calibration's current values, which are set to the result. False when stopped."""
+        cal, model, base = self.calibration, stage.model, self._exit_cache_base
+        na = cal.na_scale.detach().clone().requires_grad_("pupil" in parts)
+        edge = cal.pupil_edge.detach().clone().requires_grad_("pupil" in parts)
+        zern = cal.zernike.detach().clone().requires_grad_("aberrations" in parts)
+        groups = []
+        if "pupil" in parts:
+            groups += [{"params": [na], "lr": FIT_RATES["na_scale"]}, {"params": [edge], "lr": FIT_RATES["pupil_edge"]}]
+        if "aberrations" in parts:
+            groups.append({"params": [zern], "lr": FIT_RATES["zernike"]})
+        opt = torch.optim.Adam(groups, betas=(0.9, 0.99))
+        on_pupil = "pupil" in parts or self.parts["pupil"]
+        on_aber = "aberrations" in parts or self.parts["aberrations"]
+        for _ in range(FIT_ITERATIONS):
+            if self._stop_requested(should_stop):
+                return False
+            opt.zero_grad(set_to_none=True)
+            for idx, per in cache:
+                over = dict(base)
+                if on_pupil:
+                    over.update(na=stage.optics.na * na, pupil_edge=torch.abs(edge))
+                if on_aber:
+                    over["zernike"] = zern
+                src = stage.stage_sources(cal.calibrated_sources()[idx]).detach()
+                pred = None
+                for lam, w, exit_spec, spec0 in per:
+                    img = model.intensity_from_exit(exit_spec, spec0, src, wavelength_um=lam, **over) * w
+                    pred = img if pred is None else pred + img
+                measured = stage.images[idx]
+                m = None
+                g = least_squares_gain(pred, measured, m)
+                resid = (g.reshape(-1, 1, 1) * pred - measured).square().sum(dim=(-2, -1))
+                loss = (resid / measured.square().sum(dim=(-2, -1)).clamp_min(1e-30)).sum()
+                loss.backward()
+            opt.step()
+        with torch.no_grad():
+            cal.na_scale.copy_(na)
+            cal.pupil_edge.copy_(edge)
+            cal.zernike.copy_(zern)
+        return True
+
+    def _run_stages(self, should_stop: Callable[[], bool] | None, checkpoint_dir: str | Path | None) -> Iterator[Snapshot]:
+        """The stages from the first not yet completed (the body of :meth:`run`)."""
         cfg = self.config
         torch.manual_seed(cfg.seed + self.completed_stages)
         global_it = sum(s.iterations for s in cfg.stages[: self.completed_stages])
@@ -241,35 +520,110 @@ class Reconstructor:
             record = self._record(stage)
             best = BestIterate(tolerance=cfg.early_stopping_tolerance)
             t0 = time.perf_counter()
-            terms: dict = {}
-            train_error = None
-            it = 0
-            for it in range(1, stage.iterations + 1):
-                if self._stop_requested(should_stop):
+            if self.tv_choice is None and tv_is_auto(cfg) and si in selection_stages(cfg):
+                self._choose_tv(stage, mask, batch_size, data_range, global_it, should_stop)
+                return  # the pilot (run) ends here and starts the run again with the choice
+            choose = False  # whether the "auto" parts are chosen at the end of this stage
+            if self.parts_choice is None and si == parts_stage(cfg):
+                if stage.envelope:  # the parts belong to the multi-slice model: nothing to choose on this run's stages
+                    self.apply_parts_choice(PartsChoice(dict(self.parts), {p: "not chosen: no multi-slice stage" if p in self._auto_parts
+                                                                        else self._parts_chosen_by[p] for p in PARTS}))
+                else:
+                    choose = True
+                    stage_start = self._capture_branch(), global_it
+            while True:  # a second pass when the choice of parts switched some on
+                if len(self.validation_indices) and cfg.early_stopping != "off":
+                    # The stage's starting volume is a candidate too: a stage that only makes the held-out images worse
+                    # ends where it began (from stage 0 on: never a volume that explains them worse than no object).
+                    self._track_validation(stage, mask, best, 0)
+                terms: dict = {}
+                train_error = None
+                it = 0
+                for it in range(1, stage.iterations + 1):
+                    if self._stop_requested(should_stop):
+                        self.elapsed_s += time.perf_counter() - t0
+                        return
+                    progress = global_it / max(1, cfg.total_iterations)
+                    snapshot_due = it == stage.iterations or it % cfg.snapshot_every == 0
+                    terms, err = self._step(stage, mask, vol_opt, batch_size, data_range, progress, snapshot_due)
+                    train_error = err if snapshot_due else train_error
+                    global_it += 1
+                    if it == stage.iterations:
+                        break
+                    if it % cfg.snapshot_every == 0:
+                        val = self._track_validation(stage, mask, best, it)
+                        snap = self._snapshot(stage, it, global_it, terms, t0, False, val, train_error)
+                        paused = time.perf_counter()
+                        yield snap
+                        t0 += time.perf_counter() - paused  # time spent by the consumer is not the solver's
+                        if cfg.early_stopping == "stop" and best.stalled(cfg.early_stopping_patience):
+                            record.stopped_at = it
+                            global_it += stage.iterations - it  # progress and later stages' numbering as if it had run
+                            break
+                val = self._end_on_best(stage, mask, best, it, record)
+                if not choose:
+                    break
+                choose = False
+                chosen = self._choose_parts(stage, mask, should_stop)
+                if chosen is None:
                     self.elapsed_s += time.perf_counter() - t0
                     return
-                progress = global_it / max(1, cfg.total_iterations)
-                snapshot_due = it == stage.iterations or it % cfg.snapshot_every == 0
-                terms, err = self._step(stage, mask, vol_opt, batch_size, data_range, progress, snapshot_due)
-                train_error = err if snapshot_due else train_error
-                global_it += 1
-                if it == stage.iterations:
+                self.parts_choice.iteration = it
+                if not any(self.parts[p] for p in self._auto_parts):
                     break
-                if it % cfg.snapshot_every == 0:
-                    val = self._track_validation(stage, mask, best, it)
-                    snap = self._snapshot(stage, it, global_it, terms, t0, False, val, train_error)
-                    paused = time.perf_counter()
-                    yield snap
-                    t0 += time.perf_counter() - paused  # time spent by the consumer is not the solver's
-                    if cfg.early_stopping == "stop" and best.stalled(cfg.early_stopping_patience):
-                        record.stopped_at = it
-                        global_it += stage.iterations - it  # progress and later stages' numbering as if it had run
-                        break
-            val = self._end_on_best(stage, mask, best, it, record)
+                # Parts the data needs: the stage again from its start, with them on from the fitted values.
+                fitted = {name: getattr(self.calibration, name).detach().clone() for name in ("na_scale", "pupil_edge", "zernike")}
+                self._restore_branch(stage_start[0])
+                self.calibration.restore_values(fitted)
+                global_it = stage_start[1]
+                stage, mask = chosen, self._loss_mask(chosen)
+                self.calibration.set_trainable(si)
+                vol_opt = torch.optim.Adam([self.volume.x], lr=cfg.lr_ri, betas=(0.9, 0.99))
+                data_range = float(stage.images.max())
+                best = BestIterate(tolerance=cfg.early_stopping_tolerance)
+                record.stopped_at = None
             snap = self._complete_stage(stage, record, global_it, terms, t0, val, train_error)
             if checkpoint_dir is not None and (self.group is None or self.group.is_writer):
                 self.save_checkpoint(checkpoint_path(checkpoint_dir, si))
             yield snap
+
+    # -- automatic regularisation ---------------------------------------------------------------
+    def _choose_tv(self, stage: Stage, mask: torch.Tensor | None, batch_size: int, data_range: float, global_it: int,
+                   should_stop: Callable[[], bool] | None) -> None:
+        """Try every weight of the TV path from the stage's starting state and set :attr:`tv_choice` to the one the
+        held-out images prefer (:mod:`napari_fdt.recon.regularisation`); left None when stopped (cancelled) meanwhile.
+        The state is then a trial's: the pilot (:meth:`_pilot`) starts the run again."""
+        cfg = self.config
+        t0 = time.perf_counter()
+        n_probe = max(1, int(round(PROBE_SHARE * stage.iterations)))
+        start = self._capture_branch()
+        trials = []
+        for tau in TV_PATH:
+            self._restore_branch(start)
+            xy, z = candidate_weights(cfg, tau)
+            self.loss_weights = dataclasses.replace(self.loss_weights, tv_xy=xy, tv_z=z)
+            vol_opt = torch.optim.Adam([self.volume.x], lr=cfg.lr_ri, betas=(0.9, 0.99))
+            for it in range(n_probe):
+                if self._stop_requested(should_stop):
+                    return
+                self._step(stage, mask, vol_opt, batch_size, data_range, (global_it + it) / max(1, cfg.total_iterations))
+            err, each = self._validation(stage, mask, per_image=True)
+            trials.append({"tau": tau, "tv_xy_weight": xy, "tv_z_weight": z, "validation_error": err, "image_errors": each})
+        win = pick(trials)
+        self.tv_choice = TVChoice(win["tv_xy_weight"], win["tv_z_weight"], stage=stage.index, probe_iterations=n_probe,
+                                  trials=trials, seconds=time.perf_counter() - t0)
+
+    def _capture_branch(self) -> dict[str, Any]:
+        """A full copy of what training changes (volume, calibration and its optimiser, batch order), to start
+        several candidates from one state."""
+        return {**self._capture(), "cal_opt": copy.deepcopy(self.calibration.optimiser.state_dict()),
+                "batches": copy.deepcopy(self.batches.state_dict())}
+
+    def _restore_branch(self, state: dict[str, Any]) -> None:
+        """Return to a :meth:`_capture_branch` (copies again, so the state can be restored more than once)."""
+        self._restore(state, keep_bookkeeping=True)
+        self.calibration.optimiser.load_state_dict(copy.deepcopy(state["cal_opt"]))
+        self.batches.load_state_dict(copy.deepcopy(state["batches"]))
 
     # -- per-stage set-up -----------------------------------------------------------------------
     def _build_stage(self, stage_index: int) -> Stage:
@@ -279,7 +633,8 @@ class Reconstructor:
         return build_stage(stage_index, sc.factor, sc.iterations, self.acquisition.optics, self.images,
                            self.calibration.sources_um(), device=self.device,
                            coarse_model=self.coarse_model, backward_mode=cfg.backward_mode,
-                           obliquity="per_source" if cfg.obliquity_correction else "none")
+                           obliquity="per_source" if self.parts["obliquity"] else "none",
+                           **{**camera_model_options(cfg, self.acquisition), "pixel_integration": self.parts["pixel_integration"]})
 
     def _carry_volume_to(self, stage: Stage) -> None:
         """Make the RI grid on the stage's grid (first stage) or resample it there from the previous stage's."""
@@ -395,6 +750,11 @@ class Reconstructor:
         reaches the volume) and their gains refitted in closed form; ``mask`` (N, h_f, w_f) as the loss's. Every
         rank computes the same number (no collective; in a distributed run after the rows are shared).
         """
+        out = self._validation(stage, mask)
+        return None if out is None else out[0]
+
+    def _validation(self, stage: Stage, mask: torch.Tensor | None, per_image: bool = False) -> tuple[float, list[float]] | None:
+        """(validation error, each held-out image's error (empty unless asked)); None without a split."""
         held = self.validation_indices
         if not len(held):
             return None
@@ -403,7 +763,9 @@ class Reconstructor:
             preds = [self._predict_normalised(stage, dn, torch.as_tensor(held[sl], device=self.device))
                      for sl in iter_batches(len(held), self.config.batch_size)]
         idx = torch.as_tensor(held, device=self.device)
-        return relative_image_error(torch.cat(preds), stage.images[idx], None if mask is None else mask[idx], fit_gain=True)
+        pred, measured, m = torch.cat(preds), stage.images[idx], None if mask is None else mask[idx]
+        each = per_image_errors(pred, measured, m, fit_gain=True) if per_image else []
+        return relative_image_error(pred, measured, m, fit_gain=True), each
 
     def _track_validation(self, stage: Stage, mask: torch.Tensor | None, best: BestIterate, it: int) -> float | None:
         """The validation error now, recorded in ``best`` (with a copy of the state when it is the lowest yet)."""

@@ -23,6 +23,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from napari_fdt.errors import FDTInputError
 from napari_fdt.model.envelope import EnvelopeModel
 from napari_fdt.model.forward import MultiSliceModel
 from napari_fdt.model.protocol import ImageModel
@@ -30,7 +31,8 @@ from napari_fdt.physics.grid import DEFAULT_PUPIL_TAPER, GridPlan, plan_grid
 from napari_fdt.physics.optics import Optics
 from napari_fdt.recon.volume import upsample_to
 
-__all__ = ["Stage", "build_stage", "block_average", "stage_optics", "field_factor", "multislice_plan"]
+__all__ = ["Stage", "build_stage", "block_average", "stage_optics", "field_factor", "multislice_plan", "camera_model_options",
+           "stated_pixel_integration"]
 
 #: Fraction of the coarse grid's Nyquist frequency the stage pupil's outer edge may reach.
 NYQUIST_FILL = 0.95
@@ -152,12 +154,15 @@ def build_stage(
     coarse_model: str = "envelope",
     backward_mode: str = "auto",
     obliquity: str = "none",
+    pupil_edge: float | None = None,
+    pixel_integration: bool = False,
 ) -> Stage:
     """Set up one stage for the current source estimates (the window gets some slack for calibration moves).
 
     ``coarse_model="envelope"`` uses :class:`~napari_fdt.model.envelope.EnvelopeModel` on the stage grid for
     factors > 1; ``"multislice"`` keeps the multi-slice model on the grid the pupil needs.
-    ``backward_mode``, ``obliquity``: see :class:`~napari_fdt.model.forward.MultiSliceModel` (multi-slice stages only).
+    ``backward_mode``, ``obliquity``, ``pupil_edge``, ``pixel_integration``: see
+    :class:`~napari_fdt.model.forward.MultiSliceModel` (multi-slice stages only; :func:`camera_model_options`).
     """
     _, big_h, big_w = images_normalised.shape
     dx = optics.pixel_size_um
@@ -173,7 +178,54 @@ def build_stage(
     g, opt, shift, plan = multislice_plan(optics, factor, (big_h, big_w), sources_um,
                                           depth_slack_um=depth_slack_um, offset_slack_um=offset_slack_um)
     h, w = plan.image_shape
-    model = MultiSliceModel(opt, plan, device=device, backward_mode=backward_mode, obliquity=obliquity)
+    model = MultiSliceModel(opt, plan, device=device, backward_mode=backward_mode, obliquity=obliquity,
+                            pupil_edge=pupil_edge, pixel_integration=pixel_integration)
     imgs = block_average(images_normalised[:, : h * g, : w * g], g).to(device)
     grid = (big_h // factor, big_w // factor)
     return Stage(index, factor, g, iterations, opt, model, imgs, shift, grid, plan.padded_shape)
+
+
+def camera_model_options(config, acquisition) -> dict:
+    """``pupil_edge`` and ``pixel_integration`` of the stage models for a solver configuration and an acquisition.
+
+    ``config.pupil_edge`` None: ``acquisition.json``'s optional ``pupil_edge`` (default 0.03). ``pixel_integration``
+    ``"auto"``: ``acquisition.json``'s optional ``pixel_integration`` if stated; a simulated folder without it was
+    written before the camera model existed, with point samples (off); otherwise (a real camera) the physical rule
+    :func:`napari_fdt.physics.camera.needs_pixel_integration`. Integration over the acquisition's pixels carries
+    to coarse stages: the block average of pixel means is the mean over the larger pixel.
+    """
+    from napari_fdt.physics.camera import needs_pixel_integration
+
+    extra = getattr(acquisition, "extra", None) or {}
+    optics = acquisition.optics
+    edge = config.pupil_edge
+    if edge is None:
+        edge = extra.get("pupil_edge", DEFAULT_PUPIL_TAPER)
+        if isinstance(edge, bool) or not isinstance(edge, (int, float)) or not (0.0 <= edge < 0.5):
+            raise FDTInputError("pupil_edge", f"acquisition.json's pupil_edge must be a number in [0, 0.5), got {edge!r}",
+                                "0 for a hard pupil, 0.03 the default soft edge, or remove the key")
+        edge = float(edge)
+    stated = stated_pixel_integration(config, acquisition)
+    integrate = needs_pixel_integration(optics.na, optics.wavelength_um, optics.pixel_size_um) if stated is None else stated
+    return {"pupil_edge": edge, "pixel_integration": integrate}
+
+
+def stated_pixel_integration(config, acquisition) -> bool | None:
+    """Pixel integration as the setting or the acquisition states it; None when nothing does (``"auto"`` on a real
+    camera's data without the key): the solver then chooses by the data (:mod:`napari_fdt.recon.model_parts`).
+
+    ``true``/``false``: as set; ``"auto"``: ``acquisition.json``'s ``pixel_integration`` if present, False for a
+    simulated folder without it (written before the camera model existed, with point samples)."""
+    from napari_fdt.physics.camera import resolve_pixel_integration
+
+    extra = getattr(acquisition, "extra", None) or {}
+    optics = acquisition.optics
+    setting_ = config.pixel_integration
+    if setting_ == "auto":
+        if "pixel_integration" in extra:
+            setting_ = extra["pixel_integration"]
+        elif "simulated" in extra:
+            return False
+        else:
+            return None
+    return resolve_pixel_integration(setting_, optics.na, optics.wavelength_um, optics.pixel_size_um)

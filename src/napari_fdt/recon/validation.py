@@ -19,7 +19,7 @@ import torch
 from napari_fdt.errors import FDTWarning
 from napari_fdt.model.gain import least_squares_gain
 
-__all__ = ["holdout_indices", "spread_picks", "relative_image_error", "BestIterate", "MIN_VALIDATION_IMAGES"]
+__all__ = ["holdout_indices", "spread_picks", "relative_image_error", "per_image_errors", "BestIterate", "MIN_VALIDATION_IMAGES"]
 
 #: Fewest held-out images a split may have; with fewer, the error of one badly placed source would dominate.
 MIN_VALIDATION_IMAGES = 3
@@ -93,6 +93,13 @@ def relative_image_error(pred: torch.Tensor, measured: torch.Tensor, mask: torch
     err = ((pred - measured) ** 2 * m).sum()
     ref = (measured * measured * m).sum().clamp_min(1e-30)
     return float(torch.sqrt(err / ref))
+
+
+def per_image_errors(pred: torch.Tensor, measured: torch.Tensor, mask: torch.Tensor | None = None, *,
+                     fit_gain: bool = False) -> list[float]:
+    """:func:`relative_image_error` of each image of a stack (B,), as floats (same gains and mask)."""
+    return [relative_image_error(pred[i:i + 1], measured[i:i + 1], None if mask is None else mask[i:i + 1], fit_gain=fit_gain)
+            for i in range(measured.shape[0])]
 
 
 @dataclass

@@ -22,6 +22,8 @@ from napari_fdt.errors import FDTInputError
 from napari_fdt.model.coherence import coherence_length_um, emission_spectrum
 from napari_fdt.model.forward import MultiSliceModel
 from napari_fdt.model.render import render_images
+from napari_fdt.physics.aberrations import ZERNIKE_MODES
+from napari_fdt.physics.camera import resolve_pixel_integration
 from napari_fdt.physics.grid import GridPlan, plan_for_sources
 from napari_fdt.physics.optics import Optics
 from napari_fdt.sim.phantoms import bead_phantom, cell_phantom, text_phantom
@@ -148,12 +150,21 @@ def simulate(
     uint16: bool = False,
     bandwidth_um: float = 0.0,
     n_wavelengths: int = 9,
+    pixel_integration: bool | str = False,
+    pupil_edge: float | None = None,
+    aberrations: dict[str, float] | None = None,
 ) -> Simulation:
     """Simulate an acquisition of ``delta_n`` (n_slices, H, W) lit by ``sources_um`` (N, 3).
 
     ``bandwidth_um`` is the FWHM of a Gaussian emission spectrum centred on ``optics.wavelength_um``
     (0: monochromatic, coherent); the clean images are then the spectral sum over ``n_wavelengths``
     Gauss–Hermite wavelengths (``n_wavelengths`` times the cost). Both are recorded in the settings.
+
+    The camera and objective (``docs/physics.md`` §3): ``pixel_integration`` (``"auto"``: on when 2·NA/λ exceeds
+    the camera's Nyquist 1/(2·dx)) averages the intensity over each pixel; ``pupil_edge`` is the pupil's soft edge
+    (None: the default 0.03; 0: a hard pupil, held exactly); ``aberrations`` ``{Zernike mode: radians}`` a pupil
+    phase. ``pixel_integration`` and ``pupil_edge`` go to ``acquisition.json`` (the camera and objective the
+    solver models by default); the aberrations only to the ground truth's settings (the solver calibrates them).
     """
     wavelengths, weights = emission_spectrum(optics.wavelength_um, bandwidth_um, n_wavelengths)
     delta_n = np.asarray(delta_n, dtype=np.float32)
@@ -162,7 +173,9 @@ def simulate(
     src = np.asarray(sources_um, dtype=np.float64).reshape(-1, 3)
     shape = delta_n.shape[1:]
     plan = plan_for_sources(optics, shape, src)
-    model = MultiSliceModel(optics, plan, device=device)
+    integrate = resolve_pixel_integration(pixel_integration, optics.na, optics.wavelength_um, optics.pixel_size_um)
+    model = MultiSliceModel(optics, plan, device=device, pupil_edge=pupil_edge, aberrations=aberrations,
+                            pixel_integration=integrate)
     spectrum = {} if len(wavelengths) == 1 else dict(wavelengths_um=wavelengths, weights=weights)
     clean = render_images(model, delta_n, src, batch_size=batch_size, **spectrum)
     rng = np.random.default_rng(seed)
@@ -181,7 +194,10 @@ def simulate(
                     bandwidth_um=float(bandwidth_um), n_wavelengths=int(n_wavelengths),
                     emission_wavelengths_um=[float(v) for v in wavelengths],
                     emission_weights=[float(v) for v in weights],
-                    coherence_length_um=_json_length(coherence_length_um(optics.wavelength_um, bandwidth_um, optics.n_background)))
-    acq = Acquisition(images=images, optics=optics, sources_um=estimate, extra={"simulated": settings})
+                    coherence_length_um=_json_length(coherence_length_um(optics.wavelength_um, bandwidth_um, optics.n_background)),
+                    pixel_integration=integrate, pupil_edge=model.pupil_edge,
+                    aberrations={k: v for k, v in zip(ZERNIKE_MODES, model.zernike) if v})
+    extra = {"simulated": settings, "pixel_integration": integrate, "pupil_edge": model.pupil_edge}
+    acq = Acquisition(images=images, optics=optics, sources_um=estimate, extra=extra)
     ri = (optics.n_background + delta_n).astype(np.float32)
     return Simulation(acq, ri, src, brightness, scale, plan, settings)

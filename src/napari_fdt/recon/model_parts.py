@@ -1,0 +1,148 @@
+"""Optional parts of the model, switched on where the data shows they matter (issue 13, ``docs/solver.md``).
+
+The parts: the camera's pixel integration (``pixel_integration``), the thin screen's obliquity correction
+(``obliquity_correction``), the spectral model of the emission band (``coherence``), a fit of the pupil's NA and
+edge (``calibrate_pupil``) and a fit of low-order aberrations (``calibrate_aberrations``). Each setting is
+``true``, ``false`` or ``"auto"`` (the default; for ``coherence`` the other values are the coherence models).
+
+How "auto" chooses (:meth:`napari_fdt.recon.solver.Reconstructor._choose_parts`), once, in the finest stage after
+:data:`PARTS_SHARE` of its iterations (the full multi-slice model, and a volume holding the stage's detail: earlier, the
+held-out images' error is mostly the coarse volume's and hides what the model lacks):
+
+1. The reference is the model with the auto parts off: the validation error of each held-out image
+   (:mod:`napari_fdt.recon.validation`; positions as fitted to their own images, gains in closed form).
+2. The parts without parameters (pixel integration, obliquity, spectral), one at a time: the held-out images are
+   predicted with the part on, through the same volume.
+3. The parts with parameters (pupil, aberrations), one at a time on top of what step 2 kept: their parameters are fitted
+   to a subset of the *training* images with the volume and sources held fixed (:data:`FIT_ITERATIONS` Adam steps on
+   the images' relative error with closed-form gains; the field leaving the volume is computed once, the pupil is
+   the only thing recomputed), then the held-out images are predicted with the fitted values. Two kept parts are
+   refitted together.
+4. A part is kept when it explains the held-out images better by more than noise would: the paired improvement
+   ``d_i = e_i(reference) − e_i(part)`` has a mean above :data:`STANDARD_ERRORS` standard errors of that mean and
+   above :data:`MIN_IMPROVEMENT` of the reference error (:func:`decide`). The kept part becomes the reference of the
+   next one.
+
+The finest stage then goes on with the kept parts, from the fitted values. The volume the parts are judged with was
+trained without them, so the test is conservative: a part must show through a volume that may have absorbed some of
+its effect. Without a validation split the auto parts are off (pixel integration: the physical rule of
+:func:`napari_fdt.physics.camera.needs_pixel_integration`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from napari_fdt.recon.config import AUTO, SolverConfig
+
+__all__ = ["PARTS", "BINARY_PARTS", "FITTED_PARTS", "SETTING_OF", "STANDARD_ERRORS", "MIN_IMPROVEMENT", "FIT_ITERATIONS",
+           "FIT_IMAGES", "FIT_RATES", "PARTS_SHARE", "PartsChoice", "decide", "switch", "requested_parts", "parts_stage"]
+
+#: Parts without parameters, tried first, in this order.
+BINARY_PARTS: tuple[str, ...] = ("pixel_integration", "obliquity", "spectral")
+#: Parts with fitted parameters, tried on top of the kept binary parts.
+FITTED_PARTS: tuple[str, ...] = ("pupil", "aberrations")
+PARTS: tuple[str, ...] = BINARY_PARTS + FITTED_PARTS
+#: The setting of each part.
+SETTING_OF: dict[str, str] = {"pixel_integration": "pixel_integration", "obliquity": "obliquity_correction", "spectral": "coherence",
+                              "pupil": "calibrate_pupil", "aberrations": "calibrate_aberrations"}
+#: Standard errors of the mean paired improvement a part must exceed (one-sided; about a 2.5 % false-positive rate
+#: per part for normally distributed differences).
+STANDARD_ERRORS = 2.0
+#: Smallest mean improvement that counts, relative to the reference's validation error: below it a part's gain is
+#: not worth its cost whatever its significance.
+MIN_IMPROVEMENT = 0.01
+#: Share of the finest stage's iterations trained before the choice (with the auto parts off): the volume then holds
+#: the stage's detail, so that what is left of the held-out images' error is mostly what the model lacks.
+PARTS_SHARE = 0.25
+#: Adam steps of the fit of a part's parameters with the volume fixed.
+FIT_ITERATIONS = 30
+#: Training images the parameters are fitted to (evenly spread over the training images).
+FIT_IMAGES = 8
+#: Adam step sizes of the fit: Zernike coefficients (rad), NA scale (relative), pupil edge (relative to NA/λ).
+FIT_RATES: dict[str, float] = {"zernike": 0.05, "na_scale": 0.003, "pupil_edge": 0.005}
+
+
+def switch(value: Any) -> bool | None:
+    """A part's setting as True / False, or None for ``"auto"`` (booleans and ``"true"``/``"false"`` accepted)."""
+    if value == AUTO:
+        return None
+    if isinstance(value, str):
+        return value == "true"
+    return bool(value)
+
+
+def requested_parts(config: SolverConfig) -> dict[str, bool | None]:
+    """Each part's setting: True / False when given, None when ``"auto"`` (before what the acquisition states:
+    ``pixel_integration`` stated by ``acquisition.json`` is resolved by the caller)."""
+    out = {part: switch(getattr(config, SETTING_OF[part])) for part in PARTS if part != "spectral"}
+    coherence = config.coherence
+    out["spectral"] = None if coherence == AUTO else coherence in ("spectral", "mask+spectral")
+    return {part: out[part] for part in PARTS}
+
+
+def parts_stage(config: SolverConfig) -> int:
+    """The stage at whose start the auto parts are chosen: the last stage with iterations (the finest)."""
+    with_iterations = [i for i, s in enumerate(config.stages) if s.iterations > 0]
+    return with_iterations[-1] if with_iterations else len(config.stages) - 1
+
+
+def decide(reference: list[float] | np.ndarray, candidate: list[float] | np.ndarray, *,
+           standard_errors: float = STANDARD_ERRORS, min_improvement: float = MIN_IMPROVEMENT) -> dict[str, Any]:
+    """Whether a part's per-image validation errors ``candidate`` beat ``reference`` (the same images) by more than noise.
+
+    Returns ``{"on", "improvement", "standard_error"}``: the mean of ``reference − candidate``, its standard error
+    (sample standard deviation / √n), and ``on`` = mean > ``standard_errors``·SE and mean > ``min_improvement``·mean
+    reference. With fewer than two images, no part is switched on (no noise estimate).
+    """
+    ref = np.asarray(reference, dtype=np.float64)
+    cand = np.asarray(candidate, dtype=np.float64)
+    if ref.shape != cand.shape:
+        raise ValueError(f"reference and candidate must hold the same images, got {ref.shape} and {cand.shape}")
+    if ref.size < 2:
+        return {"on": False, "improvement": float(ref.mean() - cand.mean()) if ref.size else 0.0, "standard_error": float("nan")}
+    d = ref - cand
+    mean, se = float(d.mean()), float(d.std(ddof=1) / np.sqrt(d.size))
+    on = mean > standard_errors * se and mean > min_improvement * float(ref.mean())
+    return {"on": bool(on), "improvement": mean, "standard_error": se}
+
+
+@dataclass
+class PartsChoice:
+    """What the automatic choice of model parts tried and chose (RI.json's ``model_parts``).
+
+    ``parts``: every part's final switch; ``chosen_by``: per part ``"setting"``, ``"acquisition"`` (stated by
+    ``acquisition.json``), ``"validation"`` (tried) or ``"no validation split"``; ``trials``: per tried part its
+    validation error, per-image errors, improvement and standard error, fitted values and seconds; ``fitted``: the
+    values the finest stage starts from (``zernike_rad`` per mode, ``na``, ``pupil_edge``); ``seconds``: the cost of
+    the choice; ``stage``, ``iteration``: where it was made (after that many iterations of the stage).
+    """
+
+    parts: dict[str, bool]
+    chosen_by: dict[str, str]
+    stage: int = -1
+    iteration: int = 0
+    reference_error: float | None = None
+    reference_image_errors: list[float] = field(default_factory=list)
+    trials: list[dict[str, Any]] = field(default_factory=list)
+    fitted: dict[str, Any] = field(default_factory=dict)
+    seconds: float = 0.0
+
+    @property
+    def needed(self) -> list[str]:
+        """The parts on."""
+        return [p for p in PARTS if self.parts.get(p)]
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"parts": dict(self.parts), "chosen_by": dict(self.chosen_by), "stage": self.stage, "iteration": self.iteration, "reference_error": self.reference_error,
+                "reference_image_errors": list(self.reference_image_errors), "trials": list(self.trials), "fitted": dict(self.fitted),
+                "seconds": self.seconds, "needed": self.needed}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> "PartsChoice":
+        return cls(parts=dict(d["parts"]), chosen_by=dict(d["chosen_by"]), stage=int(d.get("stage", -1)), iteration=int(d.get("iteration", 0)),
+                   reference_error=d.get("reference_error"), reference_image_errors=list(d.get("reference_image_errors", [])),
+                   trials=list(d.get("trials", [])), fitted=dict(d.get("fitted", {})), seconds=float(d.get("seconds", 0.0)))

@@ -1,0 +1,102 @@
+"""Automatic regularisation: the TV weights chosen from the data by the validation error.
+
+With ``tv_xy_weight = "auto"`` (the default; ``tv_z_weight`` likewise) a pilot chooses the weights before the run
+(:meth:`napari_fdt.recon.solver.Reconstructor.run`; the rule and its measured cost are in ``docs/solver.md``):
+
+1. The stages before the *selection stage* (:func:`selection_stages`) run as the run would, without TV; there every
+   candidate of :data:`TV_PATH` trains from the same state (volume, calibration and their optimisers, batch order:
+   common random numbers, so that the candidates differ only by their weight) for :data:`PROBE_SHARE` of the stage's
+   iterations, and ends with the validation error of each held-out image (:mod:`napari_fdt.recon.validation`).
+2. The weight of lowest validation error is the reference; a larger weight wins if it is not significantly worse
+   than it, image by image (:func:`pick`): the mean over the held-out images of its error minus the reference's is at
+   most one standard error of that mean (a paired one-standard-error rule: the candidates are compared on the same
+   images from the same state, so their differences are measured far more precisely than each error). Of such
+   volumes the smoother one is the one that has not filled with what the data cannot constrain; measured, the plain
+   lowest error regularised less than the RI error wanted on beads, cells and deep sources, and the unpaired rule
+   (the spread of each error over the images) more than it wanted on the sample and cells.
+3. The run starts again from its first stage with the chosen weights (an "auto" run equals the fixed-weight run at
+   its choice).
+
+τ_z follows τ_xy at the ratio :data:`TV_Z_RATIO` when both are ``"auto"``; a weight given as a number stays fixed
+while the other is chosen. Without a validation split "auto" means 0 (no TV), with a warning.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from napari_fdt.recon.config import AUTO, SolverConfig
+
+__all__ = ["TV_PATH", "TV_Z_RATIO", "STANDARD_ERRORS", "PROBE_SHARE", "TVChoice", "tv_is_auto", "candidate_weights", "pick",
+           "selection_stages"]
+
+#: Candidate lateral TV weights τ_xy, log-spaced over the range where the measured optimum of our scenes lies
+#: (docs/ablation.md: from 0 on the bundled sample to about 50 on the authors' demo geometry).
+TV_PATH: tuple[float, ...] = (0.0, 1.0, 3.0, 10.0, 30.0, 100.0)
+#: τ_z / τ_xy when both are chosen (the issue's "TV 50/25").
+TV_Z_RATIO = 0.5
+#: Standard errors of the paired difference within which a larger weight still counts as not worse than the best.
+STANDARD_ERRORS = 1.0
+#: Share of the selection stage's iterations each candidate trains for.
+PROBE_SHARE = 0.3
+
+
+def tv_is_auto(config: SolverConfig) -> bool:
+    """Whether any TV weight of ``config`` is chosen from the data."""
+    return AUTO in (config.tv_xy_weight, config.tv_z_weight)
+
+
+def candidate_weights(config: SolverConfig, tau_xy: float) -> tuple[float, float]:
+    """(τ_xy, τ_z) of the candidate ``tau_xy``: "auto" fields take it (τ_z at :data:`TV_Z_RATIO`), numbers stay."""
+    xy = tau_xy if config.tv_xy_weight == AUTO else float(config.tv_xy_weight)
+    if config.tv_z_weight != AUTO:
+        z = float(config.tv_z_weight)
+    elif config.tv_xy_weight == AUTO:
+        z = TV_Z_RATIO * tau_xy
+    else:  # τ_xy fixed, τ_z chosen: the path runs over τ_z itself
+        z = tau_xy
+    return xy, z
+
+
+def pick(trials: list[dict[str, Any]], standard_errors: float = STANDARD_ERRORS) -> dict[str, Any]:
+    """The winning trial. The reference is the lowest ``validation_error``; a trial with a larger weight (``tau``) is
+    as good when the mean of its per-image errors (``image_errors``) minus the reference's, over the same images, is
+    at most ``standard_errors`` standard errors of that mean. The largest such weight wins."""
+    best = min(trials, key=lambda t: t["validation_error"])
+    ref = np.asarray(best.get("image_errors", []), dtype=np.float64)
+
+    def as_good(t: dict[str, Any]) -> bool:
+        d = np.asarray(t.get("image_errors", []), dtype=np.float64) - ref
+        if t is best:
+            return True
+        if d.size < 2:
+            return t["validation_error"] <= best["validation_error"]
+        return d.mean() <= standard_errors * d.std(ddof=1) / np.sqrt(d.size)
+
+    return max((t for t in trials if t["tau"] >= best["tau"] and as_good(t)), key=lambda t: t["tau"])
+
+
+def selection_stages(config: SolverConfig) -> list[int]:
+    """Stages at which the weights are chosen: the last coarse stage (factor > 1), else the first stage."""
+    coarse = [i for i, s in enumerate(config.stages) if s.factor > 1 and s.iterations > 0]
+    return [coarse[-1]] if coarse else [0]
+
+
+@dataclass
+class TVChoice:
+    """What the automatic choice tried and chose (RI.json's ``regularisation``)."""
+
+    tv_xy_weight: float
+    tv_z_weight: float
+    stage: int
+    probe_iterations: int
+    trials: list[dict[str, Any]] = field(default_factory=list)
+    seconds: float = 0.0
+    reason: str = "validation"
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"tv_xy_weight": self.tv_xy_weight, "tv_z_weight": self.tv_z_weight, "stage": self.stage,
+                "probe_iterations": self.probe_iterations, "trials": self.trials, "seconds": self.seconds, "reason": self.reason}

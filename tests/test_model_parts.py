@@ -1,0 +1,136 @@
+"""Optional model parts switched by the data ("auto"): the rule, the cached-exit pupil path, and the choice on scenes
+with and without an aberration (issue 13 item 4)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from napari_fdt.cli import build_parser
+from napari_fdt.errors import FDTInputError
+from napari_fdt.recon.config import SolverConfig, StageConfig
+from napari_fdt.recon.model_parts import PARTS, PartsChoice, decide, requested_parts, switch
+from napari_fdt.recon.solver import Reconstructor
+
+
+def test_settings_accept_auto_true_false() -> None:
+    cfg = SolverConfig()
+    assert (cfg.calibrate_pupil, cfg.calibrate_aberrations, cfg.obliquity_correction, cfg.coherence) == ("auto",) * 4
+    assert requested_parts(cfg) == {p: None for p in PARTS} | {"pixel_integration": None}
+    fixed = SolverConfig(calibrate_pupil=True, calibrate_aberrations="false", obliquity_correction=False, coherence="spectral")
+    assert requested_parts(fixed) == {"pixel_integration": None, "obliquity": False, "spectral": True, "pupil": True, "aberrations": False}
+    assert switch("auto") is None and switch("true") is True and switch(False) is False
+    with pytest.raises(FDTInputError, match=r"^calibrate_pupil: "):
+        SolverConfig(calibrate_pupil="maybe")
+    args = build_parser().parse_args(["reconstruct", "ACQ", "--out", "x.tif", "--calibrate-aberrations", "true",
+                                      "--obliquity-correction", "auto"])
+    assert SolverConfig(calibrate_aberrations=args.calibrate_aberrations).calibrate_aberrations == "true"
+    assert args.obliquity_correction == "auto"
+
+
+def test_decide_is_a_paired_test_against_noise() -> None:
+    ref = np.array([0.10, 0.20, 0.30, 0.40, 0.25])
+    # every image better by 0.01 ± 0.001: far beyond 2 standard errors and 1 % of the reference
+    better = ref - np.array([0.010, 0.011, 0.009, 0.010, 0.010])
+    v = decide(ref, better)
+    assert v["on"] and v["improvement"] == pytest.approx(0.01) and v["standard_error"] == pytest.approx(0.000316, rel=0.01)
+    # the same mean improvement, but as noisy as it is large: mean 0.01, standard error 0.0077 (< 2 SE)
+    noisy = ref - np.array([0.03, -0.01, 0.03, -0.01, 0.01])
+    assert not decide(ref, noisy)["on"]
+    # significant but below 1 % of the reference error (0.25): not worth a part
+    tiny = ref - 0.002
+    assert not decide(ref, tiny)["on"] and decide(ref, tiny, min_improvement=0.0)["on"]
+    assert not decide(ref, ref + 0.01)["on"]  # worse
+    assert not decide([0.2], [0.1])["on"]  # one image: no noise estimate, nothing switched on
+    with pytest.raises(ValueError):
+        decide(ref, ref[:3])
+
+
+def test_parts_choice_round_trips() -> None:
+    c = PartsChoice({p: p == "aberrations" for p in PARTS}, {p: "validation" for p in PARTS}, stage=2, iteration=10,
+                    reference_error=0.1, reference_image_errors=[0.1, 0.1], trials=[{"part": "aberrations", "on": True}],
+                    fitted={"zernike_rad": {"spherical": 0.4}}, seconds=1.5)
+    d = c.to_dict()
+    assert d["needed"] == ["aberrations"]
+    assert PartsChoice.from_dict(d).to_dict() == d
+
+
+@pytest.mark.parametrize("integrate", [False, True])
+def test_intensity_from_exit_equals_the_full_model(integrate: bool) -> None:
+    """The pupil applied to the cached exit spectra gives the model's images for any NA, edge and Zernike phase."""
+    from napari_fdt import Optics
+    from napari_fdt.model.forward import MultiSliceModel
+    from napari_fdt.physics.grid import plan_for_sources
+
+    o = Optics(wavelength_um=0.635, n_background=1.33, na=0.8, pixel_size_um=0.33, n_slices=3, slice_spacing_um=2.0, image_plane_um=0.0)
+    src = torch.tensor([[0.5, -0.3, 12.0], [-1.0, 0.8, 14.0]], dtype=torch.float64)
+    plan = plan_for_sources(o, (24, 24), src.numpy(), warn=False)
+    m = MultiSliceModel(o, plan, device="cpu", dtype=torch.float64, pixel_integration=integrate)
+    g = torch.Generator().manual_seed(0)
+    dn = 0.02 * torch.rand((3, 24, 24), generator=g, dtype=torch.float64)
+    exit_spec, spec0 = m.exit_spectra(dn, src)
+    z = torch.tensor([0.3, 0.0, 0.1, 0.0, -0.2, 0.5], dtype=torch.float64)
+    for over in ({}, {"na": 0.78, "pupil_edge": 0.05}, {"zernike": z}):
+        full = m.intensity(dn, src, **over)
+        cached = m.intensity_from_exit(exit_spec, spec0, src, **over)
+        assert torch.allclose(full, cached, rtol=1e-10, atol=1e-12 * float(full.abs().max()))
+
+
+@pytest.fixture(scope="module")
+def scenes():
+    """A 32×32, 3-slice letters scene (25 noisy images), simulated without and with 1.2 rad of primary spherical
+    aberration (the solver is not told)."""
+    from napari_fdt import Optics, simulate, source_grid
+    from napari_fdt.sim.phantoms import text_phantom
+
+    o = Optics(wavelength_um=0.635, n_background=1.33, na=0.8, pixel_size_um=0.33, n_slices=3,
+               slice_spacing_um=2.0, image_plane_um=0.0)
+    dn = text_phantom((32, 32), 3, text="UC", delta_n=0.04)
+    grid = source_grid(5, 8.0, 15.0)
+    clean = simulate(dn, o, grid, seed=3, device="cpu", photons=5000.0)
+    aberrated = simulate(dn, o, grid, seed=3, device="cpu", photons=5000.0, aberrations={"spherical": 1.2})
+    return clean.acquisition, aberrated.acquisition
+
+
+def _config(**kw) -> SolverConfig:
+    base = dict(stages=[StageConfig(2, 10), StageConfig(1, 30)], batch_size=8, snapshot_every=5, validation_fraction=0.25,
+                tv_xy_weight=0.0, tv_z_weight=0.0, pixel_integration="false", coherence="none", obliquity_correction="false")
+    base.update(kw)
+    return SolverConfig(**base)
+
+
+def _run(acq, cfg) -> Reconstructor:
+    rec = Reconstructor(acq, cfg, device="cpu")
+    for _ in rec.run():
+        pass
+    return rec
+
+
+def test_auto_switches_the_aberrations_on_only_where_the_data_has_them(scenes) -> None:
+    clean, aberrated = scenes
+    rec = _run(aberrated, _config())
+    choice = rec.parts_choice
+    assert choice is not None and choice.parts["aberrations"], choice.trials
+    assert choice.chosen_by["aberrations"] == "validation" and choice.chosen_by["obliquity"] == "setting"
+    # the right mode with the right sign: the fit with the volume held fixed finds part of it (the volume trained without
+    # the part holds the rest), the stage trained again with the part on most of it (true 1.2 rad; defocus and the
+    # sources' common depth offset share some of it)
+    assert 0.15 < choice.fitted["zernike_rad"]["spherical"] < 1.2
+    assert 0.5 < rec.calibration.summary()["aberration_spherical_rad"] < 1.5
+    # the stage ran again with the part on: its held-out error is below the reference the choice started from
+    assert rec.stages[-1].validation_error < choice.reference_error
+    trial = next(t for t in choice.trials if t["part"] == "aberrations")
+    assert trial["improvement"] > 2 * trial["standard_error"]
+    rec0 = _run(clean, _config())
+    assert not any(rec0.parts_choice.parts.values()), rec0.parts_choice.trials
+    assert rec0.parts == {p: False for p in PARTS}
+
+
+def test_no_choice_without_a_split_or_with_fixed_settings(scenes) -> None:
+    clean, _ = scenes
+    rec = Reconstructor(clean, _config(validation_fraction=0.0), device="cpu")
+    assert rec.parts_choice is not None and rec.parts_choice.chosen_by["aberrations"] == "no validation split"
+    assert not rec.parts["aberrations"] and not rec.parts["pupil"]
+    fixed = Reconstructor(clean, _config(calibrate_pupil="false", calibrate_aberrations="true"), device="cpu")
+    assert fixed.parts_choice is not None and fixed.parts["aberrations"] and fixed.calibration.fit_aberrations

@@ -1,0 +1,129 @@
+"""Automatic TV weights (``"auto"``): the rule, and that choosing leaves the run as a fixed-weight run at the choice."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+
+from napari_fdt.cli import build_parser
+from napari_fdt.errors import FDTInputError, FDTWarning
+from napari_fdt.recon.config import SolverConfig, StageConfig
+from napari_fdt.recon.regularisation import TV_PATH, TV_Z_RATIO, candidate_weights, pick, selection_stages
+from napari_fdt.recon.solver import Reconstructor
+
+
+@pytest.fixture(scope="module")
+def scene16():
+    """A 32×32, 4-slice letters scene with 16 noisy images: 3 can be held out."""
+    from napari_fdt import Optics, simulate, source_grid
+    from napari_fdt.sim.phantoms import text_phantom
+
+    o = Optics(wavelength_um=0.635, n_background=1.33, na=0.8, pixel_size_um=0.33, n_slices=4,
+               slice_spacing_um=2.0, image_plane_um=0.0)
+    return simulate(text_phantom((32, 32), 4, text="UC", delta_n=0.05), o, source_grid(4, 8.0, 15.0), seed=2, device="cpu")
+
+
+def _config(**kw) -> SolverConfig:
+    base = dict(stages=[StageConfig(2, 6), StageConfig(1, 6)], batch_size=4, snapshot_every=2, validation_fraction=0.2)
+    base.update(kw)
+    return SolverConfig(**base)
+
+
+def test_auto_is_the_default_and_numbers_still_work() -> None:
+    cfg = SolverConfig()
+    assert cfg.tv_xy_weight == "auto" and cfg.tv_z_weight == "auto" and cfg.validation_fraction == 0.1
+    assert SolverConfig(tv_xy_weight=5, tv_z_weight=2.5).tv_xy_weight == 5.0
+    with pytest.raises(FDTInputError, match=r'^tv_xy_weight: .*"auto"'):
+        SolverConfig(tv_xy_weight="automatic")
+    with pytest.raises(FDTInputError, match=r"^tv_z_weight: must be >= 0"):
+        SolverConfig(tv_z_weight=-1.0)
+    args = build_parser().parse_args(["reconstruct", "ACQ", "--out", "x.tif", "--tv-xy-weight", "auto", "--tv-z-weight", "2.5"])
+    assert args.tv_xy_weight == "auto" and args.tv_z_weight == 2.5
+
+
+def test_pick_is_a_paired_one_standard_error_rule() -> None:
+    """The largest weight not significantly worse than the lowest error, image by image (mean paired difference at
+    most one standard error of it)."""
+    ref = [0.10, 0.20, 0.30, 0.40]
+    trials = [{"tau": 0.0, "validation_error": 0.252, "image_errors": [0.101, 0.202, 0.303, 0.404]},
+              {"tau": 1.0, "validation_error": 0.250, "image_errors": ref},
+              # differences -0.01, +0.02, -0.01, +0.02: mean 0.005, standard error 0.0087: as good
+              {"tau": 3.0, "validation_error": 0.252, "image_errors": [0.09, 0.22, 0.29, 0.42]},
+              # every image worse by 0.004 to 0.006: mean 0.005, standard error 0.0004: worse
+              {"tau": 10.0, "validation_error": 0.255, "image_errors": [0.104, 0.206, 0.305, 0.405]}]
+    assert pick(trials)["tau"] == 3.0
+    assert pick(trials, standard_errors=0.0)["tau"] == 1.0
+    assert pick(trials[:2] + trials[3:])["tau"] == 1.0  # τ 10 is worse on every image, though by less than τ 3 on some
+
+
+def test_candidate_weights_follow_the_auto_fields() -> None:
+    both = SolverConfig()
+    assert candidate_weights(both, 10.0) == (10.0, 10.0 * TV_Z_RATIO)
+    assert candidate_weights(SolverConfig(tv_z_weight=0.0), 10.0) == (10.0, 0.0)
+    assert candidate_weights(SolverConfig(tv_xy_weight=2.0), 10.0) == (2.0, 10.0)
+    assert selection_stages(both) == [1]  # the last coarse stage of 4, 2, 1
+    assert selection_stages(SolverConfig(stages=[StageConfig(1, 10)])) == [0]
+
+
+def test_choosing_leaves_the_run_of_the_chosen_fixed_weight(scene16) -> None:
+    """The candidates all start from the stage's state and that state is restored: an "auto" run ends bit-identical
+    to a run with the chosen weights given as numbers, and its choice is the lowest validation error of its trials."""
+    acq = scene16.acquisition
+    auto = Reconstructor(acq, _config(), device="cpu")
+    list(auto.run())
+    choice = auto.tv_choice
+    assert choice is not None and choice.reason == "validation" and choice.stage == 0
+    assert [t["tau"] for t in choice.trials] == list(TV_PATH)
+    assert all(np.isfinite(t["validation_error"]) for t in choice.trials)
+    assert choice.tv_xy_weight == pick(choice.trials)["tv_xy_weight"]
+    fixed = Reconstructor(acq, _config(tv_xy_weight=choice.tv_xy_weight, tv_z_weight=choice.tv_z_weight), device="cpu")
+    list(fixed.run())
+    assert fixed.tv_choice is None
+    assert np.array_equal(auto.delta_n_full(), fixed.delta_n_full())
+    assert np.array_equal(auto.sources_um(), fixed.sources_um())
+    assert [r.validation_error for r in auto.stages] == [r.validation_error for r in fixed.stages]
+
+
+def test_the_trials_differ_only_by_their_weight(scene16) -> None:
+    """Each trial's error is that of a fixed-weight run stopped after the probe's iterations (same start, same batches).
+    The L1/L2 ramp is held at pure L2 (it depends on the run's length, which differs between the two)."""
+    acq = scene16.acquisition
+    l2 = dict(l1_ramp_start=1.0, l1_ramp_end=1.0)
+    auto = Reconstructor(acq, _config(stages=[StageConfig(2, 6)], **l2), device="cpu")
+    list(auto.run())
+    n = auto.tv_choice.probe_iterations
+    for trial in (auto.tv_choice.trials[0], auto.tv_choice.trials[3]):
+        rec = Reconstructor(acq, _config(stages=[StageConfig(2, n)], tv_xy_weight=trial["tv_xy_weight"], tv_z_weight=trial["tv_z_weight"],
+                                         early_stopping="off", **l2), device="cpu")
+        list(rec.run())
+        assert rec.stages[-1].validation_error == pytest.approx(trial["validation_error"], rel=1e-6)
+
+
+def test_without_a_split_auto_means_no_tv_and_says_so(scene16) -> None:
+    with pytest.warns(FDTWarning, match="auto"):
+        rec = Reconstructor(scene16.acquisition, _config(validation_fraction=0.0), device="cpu")
+    assert rec.tv_choice is not None and rec.tv_choice.reason == "no validation split"
+    assert (rec.loss_weights.tv_xy, rec.loss_weights.tv_z) == (0.0, 0.0)
+
+
+def test_a_resumed_run_keeps_the_choice(scene16, tmp_path) -> None:
+    acq = scene16.acquisition
+    rec = Reconstructor(acq, _config(), device="cpu")
+    list(rec.run(checkpoint_dir=tmp_path))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", FDTWarning)
+        again = Reconstructor.from_checkpoint(tmp_path / "stage_0.pt", acq, device="cpu")
+    assert again.tv_choice.to_dict() == rec.tv_choice.to_dict()
+    assert (again.loss_weights.tv_xy, again.loss_weights.tv_z) == (rec.tv_choice.tv_xy_weight, rec.tv_choice.tv_z_weight)
+    list(again.run())
+    assert np.array_equal(again.delta_n_full(), rec.delta_n_full())
+
+
+def test_cancelling_the_pilot_stops_before_the_first_stage(scene16) -> None:
+    """A cancel during the trials ends the run with nothing completed and no choice (the next run chooses again)."""
+    rec = Reconstructor(scene16.acquisition, _config(), device="cpu")
+    polls = iter(range(1000))
+    snaps = list(rec.run(should_stop=lambda: next(polls) >= 4))  # stage 0 has 6 iterations: stopped inside the trials
+    assert snaps == [] and rec.completed_stages == 0 and rec.tv_choice is None and rec.volume is None
