@@ -63,3 +63,66 @@ def test_dense_mode_keeps_plain_adam_for_the_positions() -> None:
     cal.set_trainable(1)
     assert cal.optimiser.rows is None
     assert any(cal.sources is q and g["lr"] == 0.02 for g in cal.optimiser.adam.param_groups for q in g["params"])
+
+
+def test_matrix_moment_first_step_is_lr_along_the_gradient() -> None:
+    """At the first visit ``V = g·gᵀ``: the step is ``lr·(g·gᵀ + δ·|g|²/3·I)^(-1/2)·g = lr·ĝ/√(1 + δ/3)``."""
+    p = torch.zeros(3, 3, dtype=torch.float64, requires_grad=True)
+    opt = RowAdam([p], lr=0.1, eps=0.0, moment="matrix", damping=0.01)
+    g = torch.tensor([[2.0, -1.0, 0.1], [0.0, 0.0, 0.0], [-3.0, 4.0, 0.0]], dtype=torch.float64)
+    p.grad = g.clone()
+    opt.step()
+    norm = g.norm(dim=1, keepdim=True)
+    expected = torch.where(norm > 0, -0.1 * g / norm.clamp_min(1e-300) / (1 + 0.01 / 3) ** 0.5, torch.zeros_like(g))
+    assert torch.allclose(p.detach(), expected, rtol=1e-10, atol=1e-15)
+
+
+def _valley(n_steps: int, moment: str) -> float:
+    """Distance to the minimum after ``n_steps`` visits of ``½·xᵀHx`` whose soft direction (curvature 1/100 of the
+    others) mixes x and depth like a deep source's ray to the field: (0.5, 0, 1)."""
+    u = torch.tensor([0.5, 0.0, 1.0], dtype=torch.float64) / 1.25 ** 0.5
+    a = torch.tensor([1.0, 0.0, -0.5], dtype=torch.float64) / 1.25 ** 0.5
+    r = torch.stack([a, torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64), u], 1)
+    h = r @ torch.diag(torch.tensor([1.0, 1.0, 0.01], dtype=torch.float64)) @ r.T
+    p = torch.tensor([[1.0, -0.8, 1.2]], dtype=torch.float64, requires_grad=True)
+    opt = RowAdam([p], lr=0.05, moment=moment)
+    for _ in range(n_steps):
+        p.grad = p.detach() @ h
+        opt.step()
+    return float(p.detach().norm())
+
+
+def test_matrix_moment_walks_along_a_coupled_valley() -> None:
+    """Full-matrix second moments whiten the coupled direction: 100 visits bring the row within 0.05 of the
+    minimum (start 1.75 away), where the isotropic scale, stepping across the valley, is still over 1 away."""
+    assert _valley(100, "matrix") < 0.05
+    assert _valley(100, "isotropic") > 1.0
+
+
+def test_steps_longer_than_max_step_are_shortened() -> None:
+    p = torch.zeros(1, 3, dtype=torch.float64, requires_grad=True)
+    opt = RowAdam([p], lr=1.0, moment="matrix", max_step=0.2)
+    p.grad = torch.tensor([[1.0, 2.0, 2.0]], dtype=torch.float64)
+    opt.step()
+    assert float(p.detach().norm()) == pytest.approx(0.2, rel=1e-12)
+
+
+@pytest.mark.parametrize("factors, coarse, in_envelope, frozen", [
+    ((4, 2, 1), "envelope", False, {0, 1}),
+    ((4, 2, 1), "envelope", True, set()),
+    ((4, 2, 1), "multislice", False, set()),
+    ((4, 2), "envelope", False, set()),  # no multi-slice stage follows: the envelope stages are all there is
+])
+def test_positions_train_only_in_multislice_stages(factors, coarse, in_envelope, frozen) -> None:
+    from napari_fdt.recon.solver import position_frozen_stages
+
+    cfg = SolverConfig(stages=[StageConfig(f, 1) for f in factors], calibration_from_stage=0,
+                       calibrate_sources_in_envelope_stages=in_envelope)
+    assert position_frozen_stages(cfg, coarse) == frozen
+    cal = Calibration(np.zeros((4, 3)), cfg, OPTICS, device=torch.device("cpu"), dtype=torch.float32)
+    cal.position_frozen_stages = frozenset(frozen)
+    for i in range(len(factors)):
+        cal.set_trainable(i)
+        assert cal.sources.requires_grad == (i not in frozen)
+        assert cal.depth_offset_um.requires_grad == (i not in frozen)
+        assert cal.log_gain.requires_grad

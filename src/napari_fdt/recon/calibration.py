@@ -61,6 +61,9 @@ class Calibration:
         #: solver's choice of model parts (:mod:`napari_fdt.recon.model_parts`) switches them on
         self.fit_pupil = config.calibrate_pupil in (True, "true")
         self.fit_aberrations = config.calibrate_aberrations in (True, "true")
+        #: stages (indices) whose positions and depth offset stay fixed: the envelope stages before a multi-slice one, where
+        #: the envelope model's bias would pull them off (``calibrate_sources_in_envelope_stages``; set by the solver)
+        self.position_frozen_stages: frozenset[int] = frozenset()
         #: whether the gains hold their least-squares start (:meth:`set_gains`)
         self.gain_initialised = False
         #: one Adam for the whole run, built by the first :meth:`set_trainable`
@@ -130,12 +133,14 @@ class Calibration:
         """Switch each parameter's gradient on or off for stage ``stage_index``; build the optimiser on first use.
 
         Positions, depth offset and global scales train from ``calibration_from_stage`` on (each if its
-        ``calibrate_*`` switch is on); the gains in every stage if ``calibrate_gain``.
+        ``calibrate_*`` switch is on), the positions and the depth offset not in :attr:`position_frozen_stages`;
+        the gains in every stage if ``calibrate_gain``.
         """
         cfg = self.config
         on = stage_index >= cfg.calibration_from_stage
-        self.sources.requires_grad_(on and cfg.calibrate_sources)
-        self.depth_offset_um.requires_grad_(on and cfg.calibrate_source_depth)
+        positions = on and stage_index not in self.position_frozen_stages
+        self.sources.requires_grad_(positions and cfg.calibrate_sources)
+        self.depth_offset_um.requires_grad_(positions and cfg.calibrate_source_depth)
         self.pixel_scale.requires_grad_(on and cfg.calibrate_pixel_size)
         self.spacing_scale.requires_grad_(on and cfg.calibrate_slice_spacing)
         self.na_scale.requires_grad_(on and self.fit_pupil)
@@ -209,19 +214,29 @@ class RowAdam(torch.optim.Optimizer):
 
     A row is visited when its gradient row is non-zero; its moments and its step count advance only then
     (lazy Adam), so one visit moves it by about ``lr`` (bias-corrected Adam), wherever the visits fall.
-    ``isotropic``: the second moment is the row's mean square over its columns, so the step follows the
-    gradient's direction in µm (a weakly constrained column, e.g. the depth, moves by its share of the
-    gradient instead of a full normalised step).
+
+    ``moment`` (the second moment that scales the step):
+
+    - ``"isotropic"``: the row's mean square over its columns: the step follows the gradient's direction in µm.
+    - ``"matrix"``: the row's (C, C) mean outer product ``E[g·gᵀ]``; the step is ``lr·(V + δ·tr(V)/C·I)^(-1/2)·m``
+      (full-matrix Adam per row, δ = ``damping``). It whitens the coupled directions of a row: the depth and the
+      lateral position of a deep source off the field's axis move its image almost alike (the valley along the
+      ray to the field), where a scalar or diagonal scale steps across the valley and barely along it.
+
+    ``max_step``: a step longer than this (in the row's units) is shortened to it (None: no limit).
     """
 
     def __init__(self, params: list[torch.Tensor], lr: float, betas: tuple[float, float] = (0.9, 0.99), eps: float = 1e-8,
-                 isotropic: bool = True) -> None:
-        super().__init__(params, {"lr": lr, "betas": betas, "eps": eps, "isotropic": isotropic})
+                 moment: str = "isotropic", damping: float = 0.01, max_step: float | None = None) -> None:
+        if moment not in ("isotropic", "matrix"):
+            raise ValueError(f"moment must be 'isotropic' or 'matrix', got {moment!r}")
+        super().__init__(params, {"lr": lr, "betas": betas, "eps": eps, "moment": moment, "damping": damping, "max_step": max_step})
 
     @torch.no_grad()
     def step(self, closure=None):  # noqa: D102 (torch's signature)
         for group in self.param_groups:
             b1, b2 = group["betas"]
+            matrix = group["moment"] == "matrix"
             for p in group["params"]:
                 if p.grad is None:
                     continue
@@ -232,16 +247,28 @@ class RowAdam(torch.optim.Optimizer):
                 st = self.state[p]
                 if not st:
                     st["exp_avg"] = torch.zeros_like(g)
-                    st["exp_avg_sq"] = torch.zeros((g.shape[0], 1 if group["isotropic"] else g.shape[1]), dtype=g.dtype, device=g.device)
+                    shape = (g.shape[0], g.shape[1], g.shape[1]) if matrix else (g.shape[0], 1)
+                    st["exp_avg_sq"] = torch.zeros(shape, dtype=g.dtype, device=g.device)
                     st["visits"] = torch.zeros(g.shape[0], dtype=g.dtype, device=g.device)
                 m, v, t = st["exp_avg"], st["exp_avg_sq"], st["visits"]
                 gr = g[rows]
-                sq = gr.square().mean(dim=1, keepdim=True) if group["isotropic"] else gr.square()
+                sq = gr[:, :, None] * gr[:, None, :] if matrix else gr.square().mean(dim=1, keepdim=True)
                 m[rows] = b1 * m[rows] + (1 - b1) * gr
                 v[rows] = b2 * v[rows] + (1 - b2) * sq
                 t[rows] += 1
                 tr = t[rows, None]
-                step = group["lr"] * (m[rows] / (1 - b1 ** tr)) / ((v[rows] / (1 - b2 ** tr)).sqrt() + group["eps"])
+                m_hat = m[rows] / (1 - b1 ** tr)
+                if matrix:
+                    v_hat = (v[rows] / (1 - b2 ** tr)[:, :, None]).double()
+                    lam, q = torch.linalg.eigh(v_hat)
+                    lam = lam.clamp_min(0) + group["damping"] * lam.clamp_min(0).mean(dim=1, keepdim=True) + group["eps"] ** 2
+                    inv_sqrt = (q * lam.rsqrt()[:, None, :]) @ q.transpose(1, 2)
+                    step = group["lr"] * (inv_sqrt @ m_hat.double()[:, :, None])[:, :, 0].to(g.dtype)
+                else:
+                    step = group["lr"] * m_hat / ((v[rows] / (1 - b2 ** tr)).sqrt() + group["eps"])
+                if group["max_step"] is not None:
+                    norm = step.norm(dim=1, keepdim=True)
+                    step = step * (group["max_step"] / norm.clamp_min(group["max_step"])).clamp(max=1.0)
                 p.view(p.shape[0], -1)[rows] -= step
         return None
 
@@ -263,13 +290,15 @@ class CalibrationOptimiser:
             groups = [{"params": [sources], "lr": config.lr_sources_um}, *groups]
             self.rows: RowAdam | None = None
         else:
-            self.rows = RowAdam([sources], lr=config.lr_sources_um, betas=(0.9, 0.99))
+            self.rows = RowAdam([sources], lr=config.lr_sources_um, betas=(0.9, 0.99),
+                                moment="matrix" if config.source_step == "whitened" else "isotropic")
         self.adam = torch.optim.Adam(groups, betas=(0.9, 0.99))
 
     def set_visit_interval(self, interval: float, max_step_um: float) -> None:
         """Set the rows' step per visit from the iterations between two visits (``N / B``, at least 1), at most ``max_step_um``."""
         if self.rows is not None:
             self.rows.param_groups[0]["lr"] = min(self.config.lr_sources_um * max(1.0, float(interval)), max_step_um)
+            self.rows.param_groups[0]["max_step"] = max_step_um
 
     @property
     def state(self) -> dict:

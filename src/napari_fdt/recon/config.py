@@ -47,7 +47,7 @@ Switch = typing.Annotated[Literal["auto", "true", "false"], BeforeValidator(_boo
 #: "stop" also ends the stage once it has risen for ``early_stopping_patience`` snapshots, "off" ignores it.
 EarlyStopping = Literal["best", "stop", "off"]
 #: How the per-source positions step (:class:`~napari_fdt.recon.calibration.CalibrationOptimiser`).
-SourceStep = Literal["per_visit", "dense"]
+SourceStep = Literal["per_visit", "whitened", "dense"]
 #: A regularisation weight: a number ≥ 0, or ``"auto"``: chosen from the data by the validation error
 #: (:mod:`napari_fdt.recon.regularisation`, ``docs/solver.md``).
 AutoWeight = typing.Union[typing.Annotated[float, Field(ge=0, strict=True)], Literal["auto"]]
@@ -167,6 +167,10 @@ class SolverConfig:
         "`lr_sources_um` per iteration on average whatever N; `\"dense\"` (default until measured on every "
         "scene, docs/solver.md): plain Adam on all rows (a row then moves about "
         "`lr_sources_um·√(N/B)` per visit, too little when N/B is large)", fix="choose per_visit or dense")
+    calibrate_sources_in_envelope_stages: bool = setting(
+        False, description="also fit the source positions and the depth offset in the coarse envelope stages (off: they train "
+        "from the first multi-slice stage on; with the volume held at the truth the envelope model pulls them off, "
+        "docs/solver.md)")
     lr_depth_offset_um: float = setting(0.02, gt=0, description="Adam step of the common depth offset of the sources, µm per iteration")
     # camera and objective (docs/physics.md §3; issue 13)
     pixel_integration: PixelIntegration = setting(
