@@ -40,7 +40,7 @@ def _line(r: dict) -> str:
 
 def fixed_volume_fit(folder: Path, factor: int, model: str, start: str = "initial", iterations: int = 200,
                      batch_size: int = 16, volume: str = "truth", every: int = 20, seed: int = 0,
-                     overrides: dict | None = None, verbose: bool = False) -> list[dict]:
+                     overrides: dict | None = None, verbose: bool = False, freeze_depth: bool = False) -> list[dict]:
     """Train the calibration only, the volume fixed; returns the error rows (one per ``every`` iterations)."""
     from napari_fdt import read_acquisition, read_volume_tiff
     from napari_fdt.recon.config import SolverConfig
@@ -76,6 +76,8 @@ def fixed_volume_fit(folder: Path, factor: int, model: str, start: str = "initia
     rec._init_gains(stage, mask)
     cal = rec.calibration
     cal.set_trainable(0)
+    if freeze_depth:  # each source's own depth stays at its start (the common offset follows calibrate_source_depth)
+        cal.sources.register_hook(lambda g: g * torch.tensor([1.0, 1.0, 0.0], dtype=g.dtype))
     opt = cal.optimiser
     data_range = float(stage.images.max())
     rows = [{"iteration": 0, **errors(cal.sources_um(), truth_src), "depth_offset_um": 0.0}]
@@ -109,11 +111,13 @@ def main(argv: list[str] | None = None) -> None:
     f.add_argument("--batch-size", type=int, default=16)
     f.add_argument("--every", type=int, default=20)
     f.add_argument("--set", default="{}", help="JSON object of other settings (e.g. '{\"source_step\": \"per_visit\"}')")
+    f.add_argument("--freeze-depth", action="store_true", help="keep each source's own depth at its start")
     f.add_argument("--out", type=Path, help="append the rows, one JSON object per line, to this file")
     args = p.parse_args(argv)
     overrides = json.loads(args.set)
     rows = fixed_volume_fit(args.scene, args.factor, args.model, args.start, args.iterations, args.batch_size,
-                            args.volume, args.every, overrides=overrides, verbose=True)
+                            args.volume, args.every, overrides=overrides, verbose=True,
+                            freeze_depth=args.freeze_depth)
     if args.out:
         with args.out.open("a") as fh:
             fh.write(json.dumps({"scene": str(args.scene), "factor": args.factor, "model": args.model, "start": args.start,
