@@ -178,3 +178,23 @@ def test_fixed_volume_fit_returns_to_the_true_positions(deep16) -> None:
     lateral = float(np.sqrt((err[:, :2] ** 2).sum(1).mean()))
     depth = float(np.sqrt((err[:, 2] ** 2).mean()))
     assert lateral < 0.1 and depth < 0.2, (lateral, depth)
+
+
+@pytest.mark.parametrize("source_step", ["dense", "whitened"])
+def test_an_older_checkpoints_single_adam_state_loads(source_step) -> None:
+    """Checkpoints written before the rows' optimiser hold torch's Adam state with the positions as the first group:
+    the other groups' moments carry over; the positions' too when they step with that same Adam ("dense")."""
+    cfg = SolverConfig(source_step=source_step)
+    cal = Calibration(np.zeros((4, 3)), cfg, OPTICS, device=torch.device("cpu"), dtype=torch.float32)
+    cal.set_trainable(1)
+    params = [cal.sources, cal.log_gain, cal.pixel_scale, cal.spacing_scale, cal.depth_offset_um, cal.na_scale,
+              cal.pupil_edge, cal.zernike]
+    old = torch.optim.Adam([{"params": [cal.sources]}, {"params": [cal.log_gain]}, {"params": [cal.pixel_scale, cal.spacing_scale]},
+                            {"params": [cal.depth_offset_um]}, {"params": [cal.na_scale, cal.pupil_edge]}, {"params": [cal.zernike]}], lr=0.02)
+    for p in params:
+        p.grad = torch.ones_like(p)
+    old.step()
+    cal.optimiser.load_state_dict(old.state_dict())
+    state = cal.optimiser.state
+    assert torch.equal(state[cal.log_gain]["exp_avg"], old.state[cal.log_gain]["exp_avg"])
+    assert (cal.sources in state and torch.equal(state[cal.sources]["exp_avg"], old.state[cal.sources]["exp_avg"])) == (source_step == "dense")

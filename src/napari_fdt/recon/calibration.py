@@ -323,7 +323,17 @@ class CalibrationOptimiser:
         return {"adam": self.adam.state_dict(), "rows": None if self.rows is None else self.rows.state_dict()}
 
     def load_state_dict(self, state: dict) -> None:
-        """Restore :meth:`state_dict` (a checkpoint of the same ``source_step``)."""
+        """Restore :meth:`state_dict` (a checkpoint of the same ``source_step``).
+
+        A checkpoint written before the rows had their own optimiser holds one Adam whose first group is the
+        positions: with ``"dense"`` it loads as it is; otherwise the positions' moments start afresh."""
+        if "adam" not in state:  # torch's Adam state dict of the older checkpoints
+            if self.rows is None:
+                self.adam.load_state_dict(state)
+                return
+            first = set(state["param_groups"][0]["params"])
+            state = {"adam": {"state": {k: v for k, v in state["state"].items() if k not in first},
+                              "param_groups": state["param_groups"][1:]}, "rows": None}
         self.adam.load_state_dict(state["adam"])
         if self.rows is not None and state.get("rows") is not None:
             self.rows.load_state_dict(state["rows"])
