@@ -94,7 +94,8 @@ def test_cancel_keeps_the_last_complete_stage(tiny) -> None:
     assert np.allclose(rec.sources_um(), stage1.sources_um)
 
 
-@pytest.mark.parametrize("extra", [{}, {"source_step": "per_visit", "calibration_from_stage": 0}])  # per-visit rows' state too
+@pytest.mark.parametrize("extra", [{}, {"source_step": "per_visit", "calibration_from_stage": 0},
+                                   {"source_step": "dense", "calibrate_sources_in_envelope_stages": True}])  # every optimiser state
 def test_resume_from_checkpoint_gives_the_same_result(tiny, tmp_path: Path, extra: dict) -> None:
     full = Reconstructor(tiny.acquisition, _tiny_config(**extra), device="cpu")
     for _ in full.run():

@@ -118,8 +118,9 @@ class SolverConfig:
     calibrate_slice_spacing: bool = setting(False, description="fit a global scale of the slice spacing")
     calibration_from_stage: int = setting(1, ge=0, description="first stage (0-based) with position/optics calibration (gains from the start)",
                                           fix="0 calibrates from the start")
-    lr_sources_um: float = setting(0.02, gt=0, description="Adam step of the source positions, µm (per iteration; with `source_step` `\"per_visit\"` the mean "
-                                   "step per iteration, 0.01 there matching 0.02 dense on the sample)")
+    lr_sources_um: float = setting(0.02, gt=0, description="step of the source positions, µm per iteration: with `source_step` "
+                                   "`\"whitened\"` or `\"per_visit\"` the mean step per iteration (a visit every N/B iterations steps "
+                                   "`lr_sources_um × N/B`, at most λ/(4·NA)); with `\"dense\"` Adam's step")
     lr_log_gain: float = setting(0.01, gt=0, description="Adam step of the log-gains")
     lr_global: float = setting(1e-3, gt=0, description="Adam step of the pixel-size and slice-spacing scales (relative)")
     source_depth_um: Optional[_POSITIVE_DEPTH] = setting(None, strict=False, description="depth guess when the acquisition has no `sources_um`, µm")
@@ -160,13 +161,14 @@ class SolverConfig:
     early_stopping_tolerance: float = setting(
         0.02, ge=0.0, description="relative rise of the validation error over its best that counts as worse (below it: noise of the "
         "optimisation, the later iterate is kept)")
-    # source-position steps (issue 12, item 4; docs/solver.md "Source positions on many images")
+    # source-position steps (issue 12, item 4; docs/solver.md "Source positions on deep, wide scenes")
     source_step: SourceStep = setting(
-        "dense", strict=False, description="`\"per_visit\"`: each source's position takes one Adam step of `lr_sources_um × N/B` "
-        "when its image is in the batch (N images, B per batch), with one step scale for its x, y and depth, at most λ/(4·NA) per visit, so it moves "
-        "`lr_sources_um` per iteration on average whatever N; `\"dense\"` (default until measured on every "
-        "scene, docs/solver.md): plain Adam on all rows (a row then moves about "
-        "`lr_sources_um·√(N/B)` per visit, too little when N/B is large)", fix="choose per_visit or dense")
+        "whitened", strict=False, description="how each source's position steps: `\"whitened\"`: one step per visit (when its image is in "
+        "the batch) of `lr_sources_um × N/B` (N images, B per batch), scaled by the inverse square root of the 3×3 mean outer "
+        "product of its gradients (full-matrix Adam per source: it follows the valley where depth and lateral position move "
+        "the image alike); `\"per_visit\"`: the same step with one scalar scale per source; `\"dense\"`: plain Adam on every "
+        "row (it moves a row about `lr_sources_um·√(N/B)` per visit). No per-visit step is longer than λ/(4·NA)",
+        fix="choose whitened, per_visit or dense")
     calibrate_sources_in_envelope_stages: bool = setting(
         False, description="also fit the source positions and the depth offset in the coarse envelope stages (off: they train "
         "from the first multi-slice stage on; with the volume held at the truth the envelope model pulls them off, "
