@@ -61,8 +61,8 @@ class Calibration:
         #: solver's choice of model parts (:mod:`napari_fdt.recon.model_parts`) switches them on
         self.fit_pupil = config.calibrate_pupil in (True, "true")
         self.fit_aberrations = config.calibrate_aberrations in (True, "true")
-        #: stages (indices) whose positions and depth offset stay fixed: the envelope stages before a multi-slice one, where
-        #: the envelope model's bias would pull them off (``calibrate_sources_in_envelope_stages``; set by the solver)
+        #: stages (indices) whose positions and depth offset stay fixed: with ``calibrate_sources_in_envelope_stages`` off,
+        #: the envelope stages before a multi-slice one (set by the solver)
         self.position_frozen_stages: frozenset[int] = frozenset()
         #: whether the gains hold their least-squares start (:meth:`set_gains`)
         self.gain_initialised = False

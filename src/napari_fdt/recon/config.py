@@ -170,9 +170,9 @@ class SolverConfig:
         "row (it moves a row about `lr_sources_um·√(N/B)` per visit). No per-visit step is longer than λ/(4·NA)",
         fix="choose whitened, per_visit or dense")
     calibrate_sources_in_envelope_stages: bool = setting(
-        False, description="also fit the source positions and the depth offset in the coarse envelope stages (off: they train "
-        "from the first multi-slice stage on; with the volume held at the truth the envelope model pulls them off, "
-        "docs/solver.md)")
+        True, description="fit the source positions and the depth offset in the coarse envelope stages too (from "
+        "`calibration_from_stage`); false: they train from the first multi-slice stage on (the envelope model alone biases "
+        "them, docs/solver.md; measured worse on cells and the 128² scene with the default schedule)")
     lr_depth_offset_um: float = setting(0.02, gt=0, description="Adam step of the common depth offset of the sources, µm per iteration")
     # camera and objective (docs/physics.md §3; issue 13)
     pixel_integration: PixelIntegration = setting(
