@@ -131,6 +131,7 @@ def main() -> None:
     p.add_argument("--demo-iterations", default="150,150,700")
     p.add_argument("--demo-config", type=Path, default=None, help="JSON configuration for the demo and big scenes")
     p.add_argument("--big-iterations", default="150,150,300")
+    p.add_argument("--coarse-model", default=None, help="override coarse_model in every scene's configuration (issue 16)")
     p.add_argument("--out", type=Path, default=None)
     args = p.parse_args()
     device = resolve_device(args.device)
@@ -154,6 +155,9 @@ def main() -> None:
             acq, truth, cfg = scene_big(device, tuple(int(v) for v in args.big_iterations.split(",")), demo_cfg)
         else:
             raise SystemExit(f"unknown scene {name}")
+        if args.coarse_model is not None:
+            from napari_fdt.recon.config import SolverConfig
+            cfg = SolverConfig.from_dict(dict(cfg.to_dict(), coarse_model=args.coarse_model))
         print(f"{name}: data ready in {time.perf_counter() - t:.1f} s ({acq.n_images} images {acq.image_shape}, {acq.optics.n_slices} slices)", flush=True)
         res = run_scene(name, acq, truth, cfg, device, args.eval_every)
         res.pop("_delta_n", None)

@@ -83,3 +83,83 @@ def test_envelope_step_is_the_angular_spectrum_kernel() -> None:
     ref = propagation_kernel(f2p / (h0 * h0)[:, None, None], ((h1 - h0) * h0 / h1)[:, None, None], 1.33, 0.6)
     assert torch.allclose(k, ref, rtol=1e-12, atol=1e-14)
     assert k[0, 0, -1] == 0 and torch.allclose(k.abs()[..., :10], torch.ones(2, 1, 10, dtype=torch.float64))  # evanescent beyond n_b/λ, unit modulus below
+
+
+def _scene_for_loop(dtype):
+    o = Optics(wavelength_um=0.635, n_background=1.33, na=0.8, pixel_size_um=0.33, n_slices=5, slice_spacing_um=2.0)
+    env = EnvelopeModel(o, (12, 12), 4, (0.5, -0.3), dtype=dtype)
+    gen = torch.Generator().manual_seed(0)
+    dn = (0.02 * torch.rand(5, 12, 12, generator=gen, dtype=torch.float64)).to(dtype).requires_grad_()
+    src = torch.tensor([[1.0, 2.0, 30.0], [-3.0, 4.0, 28.0], [5.0, -6.0, 32.0]], dtype=dtype, requires_grad=True)
+    dz = torch.tensor(2.05, dtype=dtype, requires_grad=True)
+    gain = torch.tensor([1.0, 1.2, 0.9], dtype=dtype, requires_grad=True)
+    return env, (dn, src, gain, dz)
+
+
+def test_batched_path_equals_the_per_slice_loop_with_its_gradients() -> None:
+    """All sources and slices in one batch (hand-written adjoint) = the one-slice-at-a-time loop under plain autograd."""
+    env, (dn, src, gain, dz) = _scene_for_loop(torch.float64)
+    a = env.images_batched(dn, src, gain, slice_spacing_um=dz)
+    b = env.images_per_slice(dn, src, gain, slice_spacing_um=dz)
+    assert float((a - b).norm() / b.norm()) < 1e-12
+    w = torch.rand_like(a)
+    ga = torch.autograd.grad((a * w).sum(), (dn, src, gain, dz))
+    gb = torch.autograd.grad((b * w).sum(), (dn, src, gain, dz))
+    for x, y in zip(ga, gb):
+        assert float((x - y).norm() / y.norm()) < 1e-10
+
+
+def test_envelope_loop_adjoint_against_gradcheck() -> None:
+    """The hand-written adjoint of the loop, for complex screens and kernels (PyTorch's complex convention)."""
+    from napari_fdt.model.envelope_loop import envelope_loop
+
+    gen = torch.Generator().manual_seed(2)
+    phase = torch.rand(3, 2, 6, 5, generator=gen, dtype=torch.float64).requires_grad_()
+    kernels = (torch.randn(3, 2, 6, 5, generator=gen, dtype=torch.complex128) / 30).requires_grad_()
+    assert torch.autograd.gradcheck(lambda p, k: envelope_loop(p, k).abs().square().sum(), (phase, kernels), eps=1e-6, atol=1e-7)
+    kfixed = kernels.detach()
+    assert torch.autograd.gradcheck(lambda p: envelope_loop(p, kfixed).real.sum(), (phase,), eps=1e-6, atol=1e-7)
+    pfixed = phase.detach()
+    assert torch.autograd.gradcheck(lambda k: envelope_loop(pfixed, k).imag.sum(), (kernels,), eps=1e-6, atol=1e-7)
+
+
+def test_batched_path_float32_against_float64_reference() -> None:
+    env32, args32 = _scene_for_loop(torch.float32)
+    env64, args64 = _scene_for_loop(torch.float64)
+    a = env32.images_batched(args32[0], args32[1], args32[2], slice_spacing_um=args32[3])
+    b = env64.images_per_slice(args64[0], args64[1], args64[2], slice_spacing_um=args64[3])
+    assert float((a.double() - b).norm() / b.norm()) < 1e-5
+
+
+def test_step_kernels_match_the_autograd_kernels_with_gradients() -> None:
+    """The hand-written backward of all step kernels = autograd through EnvelopeModel._kernels (float64)."""
+    from napari_fdt.model.envelope_loop import step_kernels
+
+    gen = torch.Generator().manual_seed(3)
+    f2p = (3000.0 * torch.rand(1, 2, 6, 5, generator=gen, dtype=torch.float64)).requires_grad_()
+    h0 = (20.0 + torch.rand(3, 2, generator=gen, dtype=torch.float64)).requires_grad_()
+    h1 = (h0.detach() + 2.0).requires_grad_()
+    wr = torch.randn(3, 2, 6, 5, generator=gen, dtype=torch.complex128)
+    got = step_kernels(f2p, h0, h1, 1.33, 0.635, 0.5)
+    ref = EnvelopeModel._kernels(f2p, h0, h1, 1.33, 0.635) * 0.5
+    assert ((f2p / h0[:, :, None, None] ** 2) >= (1.33 / 0.635) ** 2).any()  # some evanescent entries are covered
+    assert torch.allclose(got, ref, atol=1e-13)
+    g_got = torch.autograd.grad((got * wr).real.sum(), (f2p, h0, h1))
+    g_ref = torch.autograd.grad((ref * wr).real.sum(), (f2p, h0, h1))
+    for a, b in zip(g_got, g_ref):
+        assert torch.allclose(a, b, rtol=1e-9, atol=1e-12)
+
+
+def test_batched_auto_follows_the_device_and_graphs_need_cuda() -> None:
+    from napari_fdt.model.graphed import can_graph, graphed_model
+
+    o = Optics(wavelength_um=0.6, n_background=1.33, na=0.6, pixel_size_um=0.8, n_slices=2, slice_spacing_um=1.0)
+    assert EnvelopeModel(o, (8, 8), 2, (0.0, 0.0)).batched is False  # CPU: one slice at a time
+    assert EnvelopeModel(o, (8, 8), 2, (0.0, 0.0), device="cuda").batched is True  # nothing is allocated here
+    assert EnvelopeModel(o, (8, 8), 2, (0.0, 0.0), batched=True).batched is True
+    with pytest.raises(ValueError, match="batched"):
+        EnvelopeModel(o, (8, 8), 2, (0.0, 0.0), batched="yes")
+    cpu = EnvelopeModel(o, (8, 8), 2, (0.0, 0.0))
+    assert can_graph("cpu") is False
+    with pytest.raises(ValueError, match="CUDA"):
+        graphed_model(cpu, torch.zeros(2, 8, 8), torch.zeros(1, 3), torch.ones(1))

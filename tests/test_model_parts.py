@@ -10,7 +10,7 @@ import torch
 from napari_fdt.cli import build_parser
 from napari_fdt.errors import FDTInputError
 from napari_fdt.recon.config import SolverConfig, StageConfig
-from napari_fdt.recon.model_parts import PARTS, PartsChoice, decide, requested_parts, switch
+from napari_fdt.recon.model_parts import PARTS, PartsChoice, decide, requested_parts, standard_errors, switch
 from napari_fdt.recon.solver import Reconstructor
 
 
@@ -31,17 +31,25 @@ def test_settings_accept_auto_true_false() -> None:
 
 def test_decide_is_a_paired_test_against_noise() -> None:
     ref = np.array([0.10, 0.20, 0.30, 0.40, 0.25])
-    # every image better by 0.01 ± 0.001: far beyond 2 standard errors and 1 % of the reference
+    # every image better by 0.01 ± 0.001: far beyond t(0.975, 4) = 2.78 standard errors and 1 % of the reference
     better = ref - np.array([0.010, 0.011, 0.009, 0.010, 0.010])
     v = decide(ref, better)
     assert v["on"] and v["improvement"] == pytest.approx(0.01) and v["standard_error"] == pytest.approx(0.000316, rel=0.01)
-    # the same mean improvement, but as noisy as it is large: mean 0.01, standard error 0.0077 (< 2 SE)
+    # the same mean improvement, but as noisy as it is large: mean 0.01, standard error 0.0089 (1.1 SE)
     noisy = ref - np.array([0.03, -0.01, 0.03, -0.01, 0.01])
     assert not decide(ref, noisy)["on"]
     # significant but below 1 % of the reference error (0.25): not worth a part
     tiny = ref - 0.002
     assert not decide(ref, tiny)["on"] and decide(ref, tiny, min_improvement=0.0)["on"]
     assert not decide(ref, ref + 0.01)["on"]  # worse
+    # 2.5 standard errors: significant over 30 images (t = 2.05), not over 3 (t = 4.30, the SE itself is uncertain)
+    for n, on in ((3, False), (30, True)):
+        r = np.full(n, 0.3)
+        d = 0.01 + 0.01 * np.resize([-1.0, 1.0, 0.0], n)  # mean 0.01 (+ rounding), known spread
+        d = d - d.mean() + 2.5 * d.std(ddof=1) / np.sqrt(n)  # mean exactly 2.5 SE
+        v = decide(r, r - d)
+        assert v["improvement"] / v["standard_error"] == pytest.approx(2.5) and v["on"] is on
+    assert standard_errors(3) == pytest.approx(4.303) and standard_errors(1000) == pytest.approx(1.96)
     assert not decide([0.2], [0.1])["on"]  # one image: no noise estimate, nothing switched on
     with pytest.raises(ValueError):
         decide(ref, ref[:3])
@@ -121,7 +129,7 @@ def test_auto_switches_the_aberrations_on_only_where_the_data_has_them(scenes) -
     # the stage ran again with the part on: its held-out error is below the reference the choice started from
     assert rec.stages[-1].validation_error < choice.reference_error
     trial = next(t for t in choice.trials if t["part"] == "aberrations")
-    assert trial["improvement"] > 2 * trial["standard_error"]
+    assert trial["improvement"] > trial["threshold"] * trial["standard_error"]
     rec0 = _run(clean, _config())
     assert not any(rec0.parts_choice.parts.values()), rec0.parts_choice.trials
     assert rec0.parts == {p: False for p in PARTS}

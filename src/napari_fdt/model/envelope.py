@@ -29,6 +29,7 @@ import math
 import torch
 import torch.nn.functional as F
 
+from napari_fdt.model.envelope_loop import envelope_loop, step_kernels
 from napari_fdt.physics.optics import Optics
 from napari_fdt.physics.propagation import axial_frequency_offset, pupil
 
@@ -47,10 +48,15 @@ class EnvelopeModel:
     shift_um: (x, y) position of the stage grid's block-centre origin relative to the convention
         (see :mod:`napari_fdt.recon.stages`).
     pupil_taper: soft edge of the angular aperture, as the pupil's.
+    batched: ``True``: all sources and slices in one batch (:meth:`images_batched`: few, large operations, for a GPU);
+        ``False``: one slice at a time (:meth:`images_per_slice`: many small operations on cache-sized arrays);
+        ``"auto"`` (default): batched on CUDA only, where it launches ~3× fewer kernels. Same images and gradients
+        (to rounding); on the CPU the two were within the run-to-run spread of each other (``docs/benchmarks.md``).
     """
 
     def __init__(self, optics: Optics, grid_shape: tuple[int, int], factor: int, shift_um: tuple[float, float],
-                 *, pupil_taper: float = 0.03, device: torch.device | str = "cpu", dtype: torch.dtype = torch.float32) -> None:
+                 *, pupil_taper: float = 0.03, device: torch.device | str = "cpu", dtype: torch.dtype = torch.float32,
+                 batched: bool | str = "auto") -> None:
         self.optics = optics
         self.grid_shape = tuple(int(s) for s in grid_shape)
         self.factor = int(factor)
@@ -59,6 +65,9 @@ class EnvelopeModel:
         self.pupil_taper = pupil_taper
         self.device = torch.device(device)
         self.dtype = dtype
+        if batched not in (True, False, "auto"):
+            raise ValueError(f"batched must be True, False or 'auto', got {batched!r}")
+        self.batched = self.device.type == "cuda" if batched == "auto" else bool(batched)
         h, w = self.grid_shape
         lam_medium = optics.wavelength_um / optics.n_background
         # Envelope diffraction spreads by at most λ'/(2·pixel) over the thickness plus the exit distance.
@@ -122,9 +131,98 @@ class EnvelopeModel:
         offset, prop = axial_frequency_offset(f2, n_background, wavelength_um)
         return torch.polar(prop.to(f2.dtype), 2 * math.pi * dz_eff * offset)
 
+    def _heights(self, depth: torch.Tensor, dz, h_cam: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(n, B) heights of the screens above each source, and (n, B) the height each step ends at (next screen; camera)."""
+        n = self.optics.n_slices
+        k = torch.arange(n, device=self.device, dtype=self.dtype) + 0.5
+        heights = depth[None, :] + k[:, None] * dz
+        ends = torch.cat([heights[1:], h_cam[None, :]], dim=0)
+        return heights, ends
+
+    def _screens(self, dn: torch.Tensor, src: torch.Tensor, px: torch.Tensor, py: torch.Tensor,
+                 heights: torch.Tensor, k0dz) -> torch.Tensor:
+        """Phases (radians) of the screens of every slice and source, (n, B, hp, wp) real, in one bilinear sampling.
+
+        The p-grid of source b at height h sits at ``x = x_b + p·h``; each (slice, source) pair is one item of a
+        single ``grid_sample`` call over the volume repeated per source (an (n·B, 1, h, w) copy of the stage grid).
+        """
+        n, b = heights.shape
+        h, w = self.grid_shape
+        hp, wp = self.padded
+        xs = src[None, :, 0:1] + px[None, :, :] * heights[:, :, None]  # (n, B, wp)
+        ys = src[None, :, 1:2] + py[None, :, :] * heights[:, :, None]  # (n, B, hp)
+        u = (2 * ((xs - self.shift_um[0]) / self.pixel_um + w // 2) + 1) / w - 1
+        v = (2 * ((ys - self.shift_um[1]) / self.pixel_um + h // 2) + 1) / h - 1
+        grid = torch.stack(torch.broadcast_tensors(u[:, :, None, :], v[:, :, :, None]), dim=-1)  # (n, B, hp, wp, 2)
+        vol = dn[:, None].expand(-1, b, -1, -1).reshape(n * b, 1, h, w)
+        sample = F.grid_sample(vol, grid.reshape(n * b, hp, wp, 2), mode="bilinear", padding_mode="zeros",
+                               align_corners=False).reshape(n, b, hp, wp)
+        return k0dz * sample
+
     def __call__(self, delta_n: torch.Tensor, sources_um: torch.Tensor, gain: torch.Tensor | None = None,
                  *, slice_spacing_um=None, wavelength_um=None) -> torch.Tensor:
-        """Images (B, h, w) on the stage grid for Δn (n_slices, h, w) on the stage grid; sources (B, 3) µm."""
+        """Images (B, h, w) on the stage grid for Δn (n_slices, h, w) on the stage grid; sources (B, 3) µm, gain (B,)."""
+        run = self.images_batched if self.batched else self.images_per_slice
+        return run(delta_n, sources_um, gain, slice_spacing_um=slice_spacing_um, wavelength_um=wavelength_um)
+
+    def images_batched(self, delta_n: torch.Tensor, sources_um: torch.Tensor, gain: torch.Tensor | None = None,
+                       *, slice_spacing_um=None, wavelength_um=None) -> torch.Tensor:
+        """The images of :meth:`__call__`, every source and slice in one batch.
+
+        Every source and slice is handled by the same few batched operations: one ``grid_sample`` for all screens,
+        one kernel computation for all steps, then :func:`~napari_fdt.model.envelope_loop.envelope_loop` (4 operations
+        per slice forward, 6 backward, with a hand-written adjoint) instead of ~30 per slice under plain autograd: on a
+        GPU the coarse stage is less bound by kernel launches (counts: ``benchmarks/coarse_stage_speed.py``).
+        """
+        o = self.optics
+        dz = o.slice_spacing_um if slice_spacing_um is None else slice_spacing_um
+        lam = o.wavelength_um if wavelength_um is None else wavelength_um
+        src = sources_um.to(self.device, self.dtype)
+        dn = delta_n.to(self.device, self.dtype)
+        hp, wp = self.padded
+        h_cam, dp, py, px = self._p_axes(src)
+        depth = src[:, 2]
+        heights, ends = self._heights(depth, dz, h_cam)
+        phases = self._screens(dn, src, px, py, heights, 2 * math.pi / lam * dz)
+        # frequencies conjugate to p, per source: (1, B, hp, 1), (1, B, 1, wp); kernels of all steps: (n, B, hp, wp)
+        fy = torch.fft.fftfreq(hp, device=self.device, dtype=self.dtype)[None, None, :, None] / dp[None, :, None, None]
+        fx = torch.fft.fftfreq(wp, device=self.device, dtype=self.dtype)[None, None, None, :] / dp[None, :, None, None]
+        f2p = fy * fy + fx * fx
+        if isinstance(lam, torch.Tensor) and lam.requires_grad:  # differentiable wavelength: plain autograd
+            kernels = self._kernels(f2p, heights, ends, o.n_background, lam) / (hp * wp)
+        else:
+            kernels = step_kernels(f2p, heights, ends, o.n_background, float(lam), 1.0 / (hp * wp))
+        a = envelope_loop(phases, kernels)
+        return self._camera(a, depth, h_cam, py, px, lam, gain)
+
+    @staticmethod
+    def _kernels(f2p: torch.Tensor, h0: torch.Tensor, h1: torch.Tensor, n_background: float,
+                 wavelength_um: float | torch.Tensor) -> torch.Tensor:
+        """:meth:`_kernel` for all steps at once (plain autograd): ``f2p`` (1, B, hp, wp), ``h0``, ``h1`` (n, B) → (n, B, hp, wp)."""
+        f2 = f2p / (h0 * h0)[:, :, None, None]
+        dz_eff = ((h1 - h0) * h0 / h1)[:, :, None, None]
+        offset, prop = axial_frequency_offset(f2, n_background, wavelength_um)
+        return torch.polar(prop.to(f2.dtype), 2 * math.pi * dz_eff * offset)
+
+    def _camera(self, a: torch.Tensor, depth: torch.Tensor, h_cam: torch.Tensor, py: torch.Tensor, px: torch.Tensor,
+                lam, gain: torch.Tensor | None) -> torch.Tensor:
+        """Camera images (B, h, w) from the envelopes (B, hp, wp) at the focal plane."""
+        o = self.optics
+        p2 = py[:, :, None] ** 2 + px[:, None, :] ** 2
+        sin2 = p2 / (1 + p2)
+        aperture = pupil(sin2 * (o.n_background / lam) ** 2, o.na, lam, self.pupil_taper)
+        intensity = (depth**2 / h_cam**2)[:, None, None] / (1 + p2) * aperture**2 * (a.real.square() + a.imag.square())
+        out = self._crop(intensity)
+        if gain is not None:
+            out = out * gain.to(self.device, self.dtype).reshape(-1, 1, 1)
+        return out
+
+    def images_per_slice(self, delta_n: torch.Tensor, sources_um: torch.Tensor, gain: torch.Tensor | None = None,
+                         *, slice_spacing_um=None, wavelength_um=None) -> torch.Tensor:
+        """The images of :meth:`__call__`, one slice at a time (~30 operations per slice, on (B, h, w) arrays).
+
+        The first implementation, and the reference :meth:`images_batched` is tested against (``tests/test_envelope.py``).
+        """
         o = self.optics
         dz = o.slice_spacing_um if slice_spacing_um is None else slice_spacing_um
         lam = o.wavelength_um if wavelength_um is None else wavelength_um
@@ -135,7 +233,6 @@ class EnvelopeModel:
         hp, wp = self.padded
         h_cam, dp, py, px = self._p_axes(src)
         depth = src[:, 2]
-        # frequencies conjugate to p, per source: (B, hp, 1), (B, 1, wp)
         fy = torch.fft.fftfreq(hp, device=self.device, dtype=self.dtype)[None, :, None] / dp[:, None, None]
         fx = torch.fft.fftfreq(wp, device=self.device, dtype=self.dtype)[None, None, :] / dp[:, None, None]
         f2 = fy * fy + fx * fx
@@ -144,7 +241,6 @@ class EnvelopeModel:
         heights = [depth + (k + 0.5) * dz for k in range(o.n_slices)]
         vol = dn[None].expand(b, -1, -1, -1)  # (B, n, h, w), no copy
         for k, hk in enumerate(heights):
-            # physical sample positions of the p-grid at this height, as grid_sample coordinates
             xs = src[:, 0:1] + px * hk[:, None]  # (B, wp)
             ys = src[:, 1:2] + py * hk[:, None]  # (B, hp)
             u = (2 * ((xs - self.shift_um[0]) / self.pixel_um + w // 2) + 1) / w - 1
@@ -157,11 +253,4 @@ class EnvelopeModel:
             else:
                 a = torch.fft.ifft2(torch.fft.fft2(a) * self._kernel(f2, heights[k - 1], hk, o.n_background, lam)) * screen
         a = torch.fft.ifft2(torch.fft.fft2(a) * self._kernel(f2, heights[-1], h_cam, o.n_background, lam))
-        p2 = py[:, :, None] ** 2 + px[:, None, :] ** 2
-        sin2 = p2 / (1 + p2)
-        aperture = pupil(sin2 * (o.n_background / lam) ** 2, o.na, lam, self.pupil_taper)
-        intensity = (depth**2 / h_cam**2)[:, None, None] / (1 + p2) * aperture**2 * (a.real.square() + a.imag.square())
-        out = self._crop(intensity)
-        if gain is not None:
-            out = out * gain.to(self.device, self.dtype).reshape(-1, 1, 1)
-        return out
+        return self._camera(a, depth, h_cam, py, px, lam, gain)

@@ -27,6 +27,7 @@ from napari_fdt.physics.aberrations import RADIAL_MODES, ZERNIKE_MODES, coeffici
 from napari_fdt.physics.camera import fine_field, pixel_average_from_fine
 from napari_fdt.physics.free_field import (
     DEFAULT_RHO_STEP_UM,
+    MAX_HARMONIC,
     angular_harmonics,
     bessel_j0,
     bessel_orders,
@@ -73,6 +74,11 @@ class Kernels:
     pupil_edge: Scalar = 0.0
     zernike: torch.Tensor | None = None
     free_kernel: torch.Tensor | None = None
+
+
+def _value(x: Scalar) -> float:
+    """A number or a (possibly trained) scalar tensor as a float, outside autograd."""
+    return float(x.detach()) if isinstance(x, torch.Tensor) else float(x)
 
 
 def _has_nonradial(coeffs: torch.Tensor | None) -> bool:
@@ -327,7 +333,7 @@ class MultiSliceModel:
         step = DEFAULT_RHO_STEP_UM
         rho_max = float(rho.detach().max()) + 2 * step
         n_rho = int(math.ceil(rho_max / step)) + 2
-        f_max = float(edges[-1])
+        f_max = _value(edges[-1])
         s_max = min(0.999, f_max * float(lam) / o.n_background)
         tan_max = s_max / math.sqrt(1.0 - s_max * s_max)
         per_unit = 1.25 * (float(h.detach().max()) * tan_max + rho_max) + 4.0
@@ -339,13 +345,12 @@ class MultiSliceModel:
         if not _has_nonradial(k.zernike):
             key = None
             if not f.requires_grad:
-                key = (tuple(round(float(e), 12) for e in edges), per_unit, n_rho)
+                key = (tuple(round(_value(e), 12) for e in edges), per_unit, n_rho)
             bessel = self._bessel_cache.get(key) if key is not None else None
             if bessel is None:
                 bessel = bessel_j0(2.0 * math.pi * f[:, None] * radii[None, :])
                 if key is not None:
-                    self._bessel_cache.clear()
-                    self._bessel_cache[key] = bessel
+                    self._cache_bessel(key, bessel)
             if k.zernike is not None:
                 keep = [ZERNIKE_MODES.index(m) for m in RADIAL_MODES]
                 w_r = zernike_phase(torch.zeros_like(f), f, o.na, o.wavelength_um, torch.stack([k.zernike[i] for i in keep]), RADIAL_MODES)
@@ -362,11 +367,17 @@ class MultiSliceModel:
         unit = unit.expand(src.shape[0], -1, -1) if unit.shape[0] != src.shape[0] else unit
         # The J_m tables do not follow the nodes' motion with the NA and edge: those two gradients are approximate here
         # (4 % in d/dNA on a test case); the coefficients' gradients are exact.
-        z = 2.0 * math.pi * f.detach()[:, None] * radii[None, :]
+        key = ("harmonics", tuple(round(_value(e), 12) for e in edges), per_unit, n_rho)
+        tables = self._bessel_cache.get(key)
+        if tables is None or len(tables) <= order:
+            # J_0 … J_M on (nodes × radii): the same while the pupil's edges stay (cached like J_0's); a few orders
+            # beyond the one needed, so that a trained phase whose order grows by one does not rebuild them
+            z = 2.0 * math.pi * f.detach()[:, None] * radii[None, :]
+            tables = [(m, jm.to(self.dtype)) for m, jm in bessel_orders(z, min(order + 2, MAX_HARMONIC))]
+            self._cache_bessel(key, tables)
         out = None
         power = torch.ones_like(unit)
-        for m, jm in bessel_orders(z, order):
-            jm = jm.to(self.dtype)
+        for m, jm in tables[: order + 1]:
             for sign in ((1,) if m == 0 else (1, -1)):
                 c_m = coeffs[order + sign * m]
                 bes = jm if (sign > 0 or m % 2 == 0) else -jm  # J_{-m} = (−1)^m·J_m
@@ -377,6 +388,13 @@ class MultiSliceModel:
                 out = term if out is None else out + term
             power = power * unit
         return out
+
+    def _cache_bessel(self, key: tuple, tables) -> None:
+        """Keep Bessel tables for ``key``, with at most one other entry (the J₀ table and the harmonics' tables of one
+        pupil both stay: training and validation may use either)."""
+        while len(self._bessel_cache) >= 2:
+            self._bessel_cache.pop(next(iter(self._bessel_cache)))
+        self._bessel_cache[key] = tables
 
     def camera_field(
         self,

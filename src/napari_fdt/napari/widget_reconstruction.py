@@ -64,6 +64,7 @@ from napari_fdt.napari.widget_common import (
 from napari_fdt.napari.widget_curve import ErrorCurveWidget
 from napari_fdt.recon.command import format_command, reconstruct_command
 from napari_fdt.recon.config import SolverConfig, load_config
+from napari_fdt.recon.report import describe_parts
 
 if TYPE_CHECKING:  # pragma: no cover
     import napari
@@ -93,7 +94,8 @@ UPDATE_INTERVAL_S = 0.5
 _FIELDS = ("stages", "coarse_model", "batch_size", "l1_l2_total", "ssim_weight", "tv_xy_weight", "tv_z_weight",
            "calibrate_sources", "calibrate_gain", "calibrate_source_depth", "calibrate_pixel_size",
            "calibrate_slice_spacing", "calibration_from_stage", "coherence", "mask_threshold", "seed", "snapshot_every",
-           "validation_fraction", "early_stopping")
+           "validation_fraction", "early_stopping", "pixel_integration", "obliquity_correction", "calibrate_pupil",
+           "calibrate_aberrations")
 #: Settings the widget numbers from 1 (as the status line does) while the configuration counts from 0.
 _ONE_BASED = ("calibration_from_stage",)
 
@@ -133,6 +135,12 @@ class ReconstructionWidget(Container):
             name="calibration_from_stage", label="calibrate from stage", value=d.calibration_from_stage + 1, min=1,
             max=99, tooltip="first stage (1 = the first, as the status line counts) with position/optics calibration; "
                             "gains are calibrated from the start")
+        self.pixel_integration = f("pixel_integration", "pixel integration")
+        self.obliquity_correction = f("obliquity_correction", "obliquity correction")
+        self.calibrate_pupil = f("calibrate_pupil", "fit pupil (NA, edge)")
+        self.calibrate_aberrations = f("calibrate_aberrations", "fit aberrations")
+        #: which optional parts the last run needed, and why (RI.json's model_parts)
+        self.parts_info = Label(value="")
         self.coherence = f("coherence", "coherence")
         self.mask_threshold = f("mask_threshold", "mask threshold", step=0.05)
         self.masks_button = PushButton(text="Preview masks")
@@ -164,6 +172,8 @@ class ReconstructionWidget(Container):
         calibration = Container(widgets=[self.calibrate_sources, self.calibrate_gain, self.calibrate_source_depth,
                                          self.calibrate_pixel_size, self.calibrate_slice_spacing, self.calibration_from_stage])
         coherence = Container(widgets=[self.coherence, self.mask_threshold, self.masks_button])
+        parts = Container(widgets=[self.pixel_integration, self.obliquity_correction, self.calibrate_pupil,
+                                   self.calibrate_aberrations, self.parts_info])
         run = Container(widgets=[
             self.device, self.seed, self.snapshot_every, self.validation_fraction, self.early_stopping,
             Container(widgets=[self.save_settings_button, self.load_settings_button], layout="horizontal", labels=False)])
@@ -176,12 +186,13 @@ class ReconstructionWidget(Container):
             Container(widgets=[self.save_button, self.command_button], layout="horizontal", labels=False),
             self.feedback.label,
         ])
-        for w in (self.status, self.losses, self.curve_caption):
+        for w in (self.status, self.losses, self.curve_caption, self.parts_info):
             w.native.setWordWrap(True)
         # the error curve sits under its caption (a plain Qt widget in the container's layout)
         self.details.native.layout().addWidget(self.curve)
         self.sections = sections_panel([
-            ("Solver", solver, True), ("Self-calibration", calibration, False), ("Coherence", coherence, False),
+            ("Solver", solver, True), ("Self-calibration", calibration, False),
+            ("Model parts (auto: chosen by the held-out images)", parts, False), ("Coherence", coherence, False),
             ("Run settings", run, True), ("Run details (losses, error curve)", self.details, True),
             ("Results", results, False)], height_px=420)
         tighten(self, (4, 2, 4, 2))
@@ -470,6 +481,8 @@ class ReconstructionWidget(Container):
             self.status.value = f"run #{self._runs} cancelled before the first stage ended: nothing kept"
             return
         self._report = result.report
+        parts = (result.report or {}).get("model_parts")
+        self.parts_info.value = describe_parts(parts) if parts else ""
         self._show_ri(result.ri)
         self._ri_layer.metadata[META_REPORT] = result.report
         set_sources(self._viewer, self._acq_layer, result.sources_um, kind="calibrated", name=self._calibrated_name())

@@ -166,12 +166,12 @@ def bessel_orders(z: torch.Tensor, max_order: int):
         if m > 1:
             j_prev, j_cur = j_cur, (2.0 * (m - 1) / safe) * j_cur - j_prev
         small = z64 < m + 2.0
-        if bool(small.any()):
-            zs = torch.where(small, half, torch.zeros_like(half))
+        if bool(small.any()):  # the series on those entries only (few: small radius × frequency)
+            zs = half[small]
             term = zs**m / float(math.factorial(m))
             series = term.clone()
             for k in range(1, 40):
                 term = -term * zs * zs / (k * (k + m))
                 series = series + term
-            j_cur = torch.where(small, series, j_cur)
+            j_cur = j_cur.masked_scatter(small, series)
         yield m, j_cur

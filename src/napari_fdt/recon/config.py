@@ -90,8 +90,9 @@ class SolverConfig:
         description="coarse-to-fine stages; each factor must divide the previous one; a stage may carry its own `\"batch_size\"`",
         fix='e.g. [{"factor": 2, "iterations": 50}, {"factor": 1, "iterations": 100}]')
     coarse_model: CoarseModel = setting(
-        "auto", strict=False, description="model of stages with factor > 1: `\"envelope\"` (cheap on CPU), `\"multislice\"` (exact; faster than the "
-        "envelope on a GPU), `\"auto\"`: envelope on CPU, multi-slice on CUDA ([benchmarks.md](benchmarks.md))")
+        "auto", strict=False, description="model of stages with factor > 1: `\"envelope\"` (cheap on CPU; on CUDA all sources and slices "
+        "in one batch), `\"multislice\"` (exact, the cost of the fine stage when the camera samples the pupil near Nyquist), `\"auto\"`: "
+        "envelope on CPU, multi-slice on CUDA, where it was the more accurate on the demo ([benchmarks.md](benchmarks.md))")
     batch_size: int = setting(16, ge=1, description="images per iteration")
     # RI grid
     delta_n_max: float = setting(0.1, gt=0, description="bound of Δn (absolute RI units)")

@@ -19,8 +19,8 @@ held-out images' error is mostly the coarse volume's and hides what the model la
    the only thing recomputed), then the held-out images are predicted with the fitted values. Two kept parts are
    refitted together.
 4. A part is kept when it explains the held-out images better by more than noise would: the paired improvement
-   ``d_i = e_i(reference) − e_i(part)`` has a mean above :data:`STANDARD_ERRORS` standard errors of that mean and
-   above :data:`MIN_IMPROVEMENT` of the reference error (:func:`decide`). The kept part becomes the reference of the
+   ``d_i = e_i(reference) − e_i(part)`` has a mean above Student's t quantile (:func:`standard_errors`) times its
+   standard error and above :data:`MIN_IMPROVEMENT` of the reference error (:func:`decide`). The kept part becomes the reference of the
    next one.
 
 The finest stage then goes on with the kept parts, from the fitted values. The volume the parts are judged with was
@@ -38,7 +38,7 @@ import numpy as np
 
 from napari_fdt.recon.config import AUTO, SolverConfig
 
-__all__ = ["PARTS", "BINARY_PARTS", "FITTED_PARTS", "SETTING_OF", "STANDARD_ERRORS", "MIN_IMPROVEMENT", "FIT_ITERATIONS",
+__all__ = ["PARTS", "BINARY_PARTS", "FITTED_PARTS", "SETTING_OF", "STANDARD_ERRORS_LEVEL", "standard_errors", "MIN_IMPROVEMENT", "FIT_ITERATIONS",
            "FIT_IMAGES", "FIT_RATES", "PARTS_SHARE", "PartsChoice", "decide", "switch", "requested_parts", "parts_stage"]
 
 #: Parts without parameters, tried first, in this order.
@@ -49,9 +49,19 @@ PARTS: tuple[str, ...] = BINARY_PARTS + FITTED_PARTS
 #: The setting of each part.
 SETTING_OF: dict[str, str] = {"pixel_integration": "pixel_integration", "obliquity": "obliquity_correction", "spectral": "coherence",
                               "pupil": "calibrate_pupil", "aberrations": "calibrate_aberrations"}
-#: Standard errors of the mean paired improvement a part must exceed (one-sided; about a 2.5 % false-positive rate
-#: per part for normally distributed differences).
-STANDARD_ERRORS = 2.0
+#: One-sided false-positive rate of the test per part: the mean paired improvement must exceed Student's t quantile
+#: ``t(1 − STANDARD_ERRORS_LEVEL, n − 1)`` standard errors of that mean (n held-out images; 1.96 for many images, 2.57
+#: for 6, 4.30 for 3: with few images the standard error itself is uncertain).
+STANDARD_ERRORS_LEVEL = 0.025
+#: t(0.975, df) for df = 1 … 30 (above: the normal quantile 1.96).
+_T975 = (12.706, 4.303, 3.182, 2.776, 2.571, 2.447, 2.365, 2.306, 2.262, 2.228, 2.201, 2.179, 2.160, 2.145, 2.131,
+         2.120, 2.110, 2.101, 2.093, 2.086, 2.080, 2.074, 2.069, 2.064, 2.060, 2.056, 2.052, 2.048, 2.045, 2.042)
+
+
+def standard_errors(n_images: int) -> float:
+    """Standard errors a mean paired improvement over ``n_images`` (≥ 2) must exceed: Student's t(0.975, n − 1)."""
+    df = n_images - 1
+    return _T975[df - 1] if df <= len(_T975) else 1.96
 #: Smallest mean improvement that counts, relative to the reference's validation error: below it a part's gain is
 #: not worth its cost whatever its significance.
 MIN_IMPROVEMENT = 0.01
@@ -91,12 +101,13 @@ def parts_stage(config: SolverConfig) -> int:
 
 
 def decide(reference: list[float] | np.ndarray, candidate: list[float] | np.ndarray, *,
-           standard_errors: float = STANDARD_ERRORS, min_improvement: float = MIN_IMPROVEMENT) -> dict[str, Any]:
+           min_improvement: float = MIN_IMPROVEMENT) -> dict[str, Any]:
     """Whether a part's per-image validation errors ``candidate`` beat ``reference`` (the same images) by more than noise.
 
-    Returns ``{"on", "improvement", "standard_error"}``: the mean of ``reference − candidate``, its standard error
-    (sample standard deviation / √n), and ``on`` = mean > ``standard_errors``·SE and mean > ``min_improvement``·mean
-    reference. With fewer than two images, no part is switched on (no noise estimate).
+    Returns ``{"on", "improvement", "standard_error", "threshold"}``: the mean of ``reference − candidate``, its
+    standard error (sample standard deviation / √n), the t quantile :func:`standard_errors` (n), and ``on`` = mean >
+    threshold·SE and mean > ``min_improvement``·mean reference (a one-sided paired t-test at
+    :data:`STANDARD_ERRORS_LEVEL`, and a floor). With fewer than two images, no part is switched on (no noise estimate).
     """
     ref = np.asarray(reference, dtype=np.float64)
     cand = np.asarray(candidate, dtype=np.float64)
@@ -106,8 +117,9 @@ def decide(reference: list[float] | np.ndarray, candidate: list[float] | np.ndar
         return {"on": False, "improvement": float(ref.mean() - cand.mean()) if ref.size else 0.0, "standard_error": float("nan")}
     d = ref - cand
     mean, se = float(d.mean()), float(d.std(ddof=1) / np.sqrt(d.size))
-    on = mean > standard_errors * se and mean > min_improvement * float(ref.mean())
-    return {"on": bool(on), "improvement": mean, "standard_error": se}
+    t = standard_errors(d.size)
+    on = mean > t * se and mean > min_improvement * float(ref.mean())
+    return {"on": bool(on), "improvement": mean, "standard_error": se, "threshold": t}
 
 
 @dataclass

@@ -303,6 +303,11 @@ class Reconstructor:
         if cfg.pixel_integration == "auto" and stated is not None:
             chosen_by["pixel_integration"] = "acquisition"
         requested["pixel_integration"] = stated
+        extra = getattr(self.acquisition, "extra", None) or {}
+        if requested["pupil"] is None and "pupil_edge" in extra and cfg.pupil_edge is None:
+            # a pupil the acquisition states (as fdt simulate writes it) is taken as stated, like its pixel integration
+            requested["pupil"] = False
+            chosen_by["pupil"] = "acquisition"
         #: the parts chosen from the data
         self._auto_parts = [p for p in PARTS if requested[p] is None]
         parts = {p: bool(requested[p]) for p in PARTS}

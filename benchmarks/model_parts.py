@@ -1,0 +1,189 @@
+"""Model parts chosen by the data (issue 13): scenes with and without real-optics effects, reconstructed with "auto".
+
+Usage (repository root)::
+
+    python benchmarks/model_parts.py make-scenes
+    python benchmarks/model_parts.py run --scenes letters_clean,letters_effects --settings auto,off
+    python benchmarks/model_parts.py table --write      # docs/solver.md's "Model parts" table
+
+Scenes (``fdt simulate``, seed 0): ``letters`` is the bundled sample's geometry (96², 8 slices, 64 sources 40 µm deep,
+NA 0.8), ``beads`` 64²×8 with 49 sources 30 µm deep. Each in three versions: ``_clean`` (point samples, the default
+3 % soft pupil edge, no aberration), ``_effects`` (pixel integration, a hard pupil and 0.5 rad of primary spherical
+aberration; acquisition.json states the pixel integration and the hard pupil, as ``fdt simulate`` writes them, but not
+the aberration) and ``_real`` (the same images with acquisition.json stripped of those statements, as a microscope's
+file would be: the solver must find all three). Settings: ``auto`` (the defaults), ``off`` (every optional part off:
+point samples, the 3 % soft edge, no pupil or aberration fit, no obliquity or spectral model). Each row: relative Δn
+error against the truth, validation error, the parts chosen and the choice's cost, wall time. Rows are appended to
+``benchmarks/results/model_parts_<device>.jsonl``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import shlex
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+SCENE_DIR = ROOT / "out" / "parts"
+RESULTS = ROOT / "benchmarks" / "results"
+DOC = ROOT / "docs" / "solver.md"
+EFFECTS = "--pixel-integration true --pupil-edge 0 --aberrations spherical=0.5"
+BASE = {"letters": "letters --seed 0", "beads": "beads --shape 64 64 --n-slices 8 --sources 7 --depth-um 30 --seed 0"}
+SETTINGS = {
+    "auto": {},
+    "off": {"pixel_integration": "false", "pupil_edge": 0.03, "obliquity_correction": "false", "coherence": "none",
+            "calibrate_pupil": "false", "calibrate_aberrations": "false"},
+}
+
+
+def scene_names() -> list[str]:
+    return [f"{b}_{v}" for b in BASE for v in ("clean", "effects", "real")]
+
+
+def make_scenes(names: list[str], device: str) -> None:
+    """Simulate the named scenes where missing (``_real`` copies ``_effects`` without the optics statements)."""
+    for name in names:
+        base, version = name.rsplit("_", 1)
+        folder = SCENE_DIR / name
+        if (folder / "acquisition.json").is_file():
+            continue
+        if version == "real":
+            make_scenes([f"{base}_effects"], device)
+            shutil.copytree(SCENE_DIR / f"{base}_effects", folder)
+            meta = json.loads((folder / "acquisition.json").read_text())
+            for key in ("pixel_integration", "pupil_edge", "simulated"):
+                meta.pop(key, None)
+            (folder / "acquisition.json").write_text(json.dumps(meta, indent=1))
+            continue
+        args = BASE[base] + (" " + EFFECTS if version == "effects" else "")
+        cmd = [sys.executable, "-m", "napari_fdt.cli", "simulate", *shlex.split(args), str(folder), "--device", device]
+        print(" ".join(cmd[2:]), flush=True)
+        subprocess.run(cmd, check=True)
+
+
+def run_one(scene: str, setting: str, device: str) -> dict:
+    """One full reconstruction with the defaults plus the setting's overrides; the results row."""
+    from napari_fdt import read_acquisition, read_volume_tiff
+    from napari_fdt.recon.config import SolverConfig
+    from napari_fdt.recon.metrics import relative_delta_n_error
+    from napari_fdt.recon.report import model_parts_summary, source_errors
+    from napari_fdt.recon.solver import Reconstructor
+
+    folder = SCENE_DIR / scene
+    acq = read_acquisition(folder)
+    truth, _ = read_volume_tiff(folder / "ground_truth_ri.tif")
+    true_dn = truth - acq.optics.n_background
+    truth_src = np.array(json.loads((folder / "ground_truth_sources_um.json").read_text())["sources_um"])
+    cfg = SolverConfig.from_dict({**SolverConfig().to_dict(), **SETTINGS[setting]})
+    t0 = time.perf_counter()
+    rec = Reconstructor(acq, cfg, device=device)
+    for _ in rec.run():
+        pass
+    wall = time.perf_counter() - t0
+    parts = model_parts_summary(rec)
+    if parts.get("chosen"):
+        parts["chosen"].pop("reference_image_errors", None)
+        for t in parts["chosen"]["trials"]:
+            t.pop("image_errors", None)
+    return {
+        "scene": scene, "setting": setting, "device": device,
+        "relative_delta_n_error": relative_delta_n_error(rec.delta_n_full(), true_dn),
+        "validation_error": rec.stages[-1].validation_error if rec.stages else None,
+        "source_lateral_rms_um": source_errors(rec.sources_um(), truth_src)["lateral_rms_um"],
+        "calibration": rec.calibration.summary(), "model_parts": parts, "wall_s": wall,
+        "stage_seconds": [r.seconds for r in rec.stages], "threads": torch.get_num_threads(),
+        "cpu": platform.processor() or platform.machine(), "torch": torch.__version__, "date": time.strftime("%Y-%m-%d"),
+    }
+
+
+def load_rows(path: Path) -> list[dict]:
+    rows: dict[tuple, dict] = {}
+    if path.is_file():
+        for line in path.read_text().splitlines():
+            if line.strip():
+                r = json.loads(line)
+                rows[(r["scene"], r["setting"])] = r
+    return list(rows.values())
+
+
+def table(rows: list[dict]) -> str:
+    out = ["| scene | setting | relative Δn error | validation error | parts on | choice (s) | wall (s) | spherical fitted (rad) |",
+           "|---|---|---|---|---|---|---|---|"]
+    for scene in scene_names():
+        for setting in SETTINGS:
+            r = next((x for x in rows if x["scene"] == scene and x["setting"] == setting), None)
+            if r is None:
+                continue
+            mp = r["model_parts"]
+            chosen = mp.get("chosen") or {}
+            sph = r["calibration"].get("aberration_spherical_rad")
+            out.append(f"| {scene} | {setting} | {r['relative_delta_n_error']:.3f} | {r['validation_error']:.4f} | "
+                       f"{', '.join(mp['needed']) or 'none'} | {chosen.get('seconds', 0.0):.1f} | {r['wall_s']:.0f} | "
+                       f"{'' if sph is None else f'{sph:.2f}'} |")
+    return "\n".join(out) + "\n"
+
+
+def write_doc(rows: list[dict]) -> None:
+    start, end = "<!-- model-parts:start -->", "<!-- model-parts:end -->"
+    text = DOC.read_text(encoding="utf-8")
+    hw = sorted({f"{r['device']} ({r['threads']} thread(s), {r['cpu']}, torch {r['torch']}, {r['date']})" for r in rows})
+    body = "\n".join([
+        start,
+        "Measured with `python benchmarks/model_parts.py run --scenes ... --settings auto,off` and `... table --write`",
+        "(rows in `benchmarks/results/model_parts_<device>.jsonl`; the scenes are described in the script's docstring:",
+        "`_effects` has pixel integration, a hard pupil and 0.5 rad of spherical aberration with the first two stated in",
+        "acquisition.json, `_real` the same images with nothing stated). `off`: every optional part off.",
+        f"Hardware: {'; '.join(hw)}; the runs shared the 2 cores with other jobs, so wall times compare only roughly.",
+        "",
+        table(rows),
+        end,
+    ])
+    text = text[: text.index(start)] + body + text[text.index(end) + len(end):]
+    DOC.write_text(text, encoding="utf-8")
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    sub = p.add_subparsers(dest="cmd", required=True)
+    m = sub.add_parser("make-scenes")
+    m.add_argument("--scenes", default=",".join(scene_names()))
+    m.add_argument("--device", default="cpu")
+    r = sub.add_parser("run")
+    r.add_argument("--scenes", default=",".join(scene_names()))
+    r.add_argument("--settings", default="auto,off")
+    r.add_argument("--device", default="cpu")
+    t = sub.add_parser("table")
+    t.add_argument("--device", default="cpu")
+    t.add_argument("--write", action="store_true")
+    args = p.parse_args(argv)
+    if args.cmd == "make-scenes":
+        make_scenes(args.scenes.split(","), args.device)
+    elif args.cmd == "run":
+        make_scenes(args.scenes.split(","), args.device)
+        out = RESULTS / f"model_parts_{args.device}.jsonl"
+        out.parent.mkdir(parents=True, exist_ok=True)
+        for scene in args.scenes.split(","):
+            for setting in args.settings.split(","):
+                row = run_one(scene, setting, args.device)
+                with out.open("a") as f:
+                    f.write(json.dumps(row) + "\n")
+                print(f"{scene:16s} {setting:5s} err {row['relative_delta_n_error']:.3f} val {row['validation_error']:.4f} "
+                      f"parts {row['model_parts']['needed']} {row['wall_s']:.0f} s", flush=True)
+    else:
+        rows = load_rows(RESULTS / f"model_parts_{args.device}.jsonl")
+        print(table(rows))
+        if args.write:
+            write_doc(rows)
+
+
+if __name__ == "__main__":
+    main()
