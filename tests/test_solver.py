@@ -94,11 +94,13 @@ def test_cancel_keeps_the_last_complete_stage(tiny) -> None:
     assert np.allclose(rec.sources_um(), stage1.sources_um)
 
 
-def test_resume_from_checkpoint_gives_the_same_result(tiny, tmp_path: Path) -> None:
-    full = Reconstructor(tiny.acquisition, _tiny_config(), device="cpu")
+@pytest.mark.parametrize("extra", [{}, {"source_step": "per_visit", "calibration_from_stage": 0},
+                                   {"source_step": "dense"}, {"calibrate_sources_in_envelope_stages": False}])  # every optimiser state
+def test_resume_from_checkpoint_gives_the_same_result(tiny, tmp_path: Path, extra: dict) -> None:
+    full = Reconstructor(tiny.acquisition, _tiny_config(**extra), device="cpu")
     for _ in full.run():
         pass
-    first = Reconstructor(tiny.acquisition, _tiny_config(), device="cpu")
+    first = Reconstructor(tiny.acquisition, _tiny_config(**extra), device="cpu")
     for snap in first.run(checkpoint_dir=tmp_path):
         if snap.stage_complete:
             break  # stop after the first stage, as a killed run would
@@ -130,7 +132,8 @@ def test_predict_is_the_evaluation_and_the_calibration_has_its_own_state(tiny) -
     cal.load_state_dict(rec.calibration.state_dict(), 1)
     assert np.array_equal(cal.sources_um(), rec.sources_um()) and np.array_equal(cal.gains() * rec.image_scale, rec.gains())
     assert cal.gain_initialised and cal.summary() == rec.calibration.summary()
-    assert cal.optimiser.state_dict()["state"].keys() == rec.calibration.optimiser.state_dict()["state"].keys()
+    ours, theirs = cal.optimiser.state_dict(), rec.calibration.optimiser.state_dict()
+    assert ours["adam"]["state"].keys() == theirs["adam"]["state"].keys() and (ours["rows"] is None) == (theirs["rows"] is None)
     cal.set_trainable(0)  # calibration_from_stage = 1: only the gains train in stage 0
     assert cal.log_gain.requires_grad and not cal.sources.requires_grad and not cal.depth_offset_um.requires_grad
     cal.set_trainable(1)

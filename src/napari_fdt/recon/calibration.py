@@ -61,10 +61,13 @@ class Calibration:
         #: solver's choice of model parts (:mod:`napari_fdt.recon.model_parts`) switches them on
         self.fit_pupil = config.calibrate_pupil in (True, "true")
         self.fit_aberrations = config.calibrate_aberrations in (True, "true")
+        #: stages (indices) whose positions and depth offset stay fixed: with ``calibrate_sources_in_envelope_stages`` off,
+        #: the envelope stages before a multi-slice one (set by the solver)
+        self.position_frozen_stages: frozenset[int] = frozenset()
         #: whether the gains hold their least-squares start (:meth:`set_gains`)
         self.gain_initialised = False
         #: one Adam for the whole run, built by the first :meth:`set_trainable`
-        self.optimiser: torch.optim.Adam | None = None
+        self.optimiser: CalibrationOptimiser | None = None
 
     # -- values --------------------------------------------------------------------------------
     def calibrated_sources(self, shared_frozen: bool = False) -> torch.Tensor:
@@ -130,12 +133,14 @@ class Calibration:
         """Switch each parameter's gradient on or off for stage ``stage_index``; build the optimiser on first use.
 
         Positions, depth offset and global scales train from ``calibration_from_stage`` on (each if its
-        ``calibrate_*`` switch is on); the gains in every stage if ``calibrate_gain``.
+        ``calibrate_*`` switch is on), the positions and the depth offset not in :attr:`position_frozen_stages`;
+        the gains in every stage if ``calibrate_gain``.
         """
         cfg = self.config
         on = stage_index >= cfg.calibration_from_stage
-        self.sources.requires_grad_(on and cfg.calibrate_sources)
-        self.depth_offset_um.requires_grad_(on and cfg.calibrate_source_depth)
+        positions = on and stage_index not in self.position_frozen_stages
+        self.sources.requires_grad_(positions and cfg.calibrate_sources)
+        self.depth_offset_um.requires_grad_(positions and cfg.calibrate_source_depth)
         self.pixel_scale.requires_grad_(on and cfg.calibrate_pixel_size)
         self.spacing_scale.requires_grad_(on and cfg.calibrate_slice_spacing)
         self.na_scale.requires_grad_(on and self.fit_pupil)
@@ -143,17 +148,20 @@ class Calibration:
         self.zernike.requires_grad_(on and self.fit_aberrations)
         self.log_gain.requires_grad_(cfg.calibrate_gain)
         if self.optimiser is None:
-            self.optimiser = torch.optim.Adam(
-                [
-                    {"params": [self.sources], "lr": cfg.lr_sources_um},
-                    {"params": [self.log_gain], "lr": cfg.lr_log_gain},
-                    {"params": [self.pixel_scale, self.spacing_scale], "lr": cfg.lr_global},
-                    {"params": [self.depth_offset_um], "lr": cfg.lr_sources_um},
-                    {"params": [self.na_scale, self.pupil_edge], "lr": cfg.lr_pupil},
-                    {"params": [self.zernike], "lr": cfg.lr_aberrations},
-                ],
-                betas=(0.9, 0.99),
-            )
+            self.optimiser = CalibrationOptimiser(self.sources, [
+                {"params": [self.log_gain], "lr": cfg.lr_log_gain},
+                {"params": [self.pixel_scale, self.spacing_scale], "lr": cfg.lr_global},
+                {"params": [self.depth_offset_um], "lr": cfg.lr_depth_offset_um},
+                {"params": [self.na_scale, self.pupil_edge], "lr": cfg.lr_pupil},
+                {"params": [self.zernike], "lr": cfg.lr_aberrations},
+            ], config=cfg)
+        self.optimiser.set_visit_interval(len(self.sources) / cfg.stage_batch(stage_index), self.max_visit_step_um())
+
+    def max_visit_step_um(self) -> float:
+        """Largest step of a source per visit, µm: ``λ / (4·NA)``, a quarter of the lateral resolution. A shift by
+        half the resolution turns a fringe of the source's image from bright to dark, so the loss of one image
+        is smooth in its position only over about this distance and a longer step overshoots."""
+        return self.optics.wavelength_um / (4.0 * self.optics.na)
 
     def shared_parameters(self) -> list[torch.Tensor]:
         """The parameters every image's gradient reaches (summed over ranks in a distributed run)."""
@@ -169,7 +177,7 @@ class Calibration:
         if optimiser_state and self.optimiser is not None:
             for p in self.per_source_parameters():
                 state = self.optimiser.state.get(p, {})
-                tensors += [state.get("exp_avg"), state.get("exp_avg_sq")]
+                tensors += [state.get(k) for k in ("exp_avg", "exp_avg_sq", "visits")]
         return tensors
 
     # -- state ---------------------------------------------------------------------------------
@@ -199,3 +207,133 @@ class Calibration:
         if state["cal_opt"] is not None:
             self.set_trainable(stage_index)
             self.optimiser.load_state_dict(state["cal_opt"])
+
+
+class RowAdam(torch.optim.Optimizer):
+    """Adam for per-image rows (first axis = image) that steps a row only when its image was in the batch.
+
+    A row is visited when its gradient row is non-zero; its moments and its step count advance only then
+    (lazy Adam), so one visit moves it by about ``lr`` (bias-corrected Adam), wherever the visits fall.
+
+    ``moment`` (the second moment that scales the step):
+
+    - ``"isotropic"``: the row's mean square over its columns: the step follows the gradient's direction in µm.
+    - ``"matrix"``: the row's (C, C) mean outer product ``E[g·gᵀ]``; the step is ``lr·(V + δ·tr(V)/C·I)^(-1/2)·m``
+      (full-matrix Adam per row, δ = ``damping``). It whitens the coupled directions of a row: the depth and the
+      lateral position of a deep source off the field's axis move its image almost alike (the valley along the
+      ray to the field), where a scalar or diagonal scale steps across the valley and barely along it.
+
+    ``max_step``: a step longer than this (in the row's units) is shortened to it (None: no limit).
+    """
+
+    def __init__(self, params: list[torch.Tensor], lr: float, betas: tuple[float, float] = (0.9, 0.99), eps: float = 1e-8,
+                 moment: str = "isotropic", damping: float = 0.01, max_step: float | None = None) -> None:
+        if moment not in ("isotropic", "matrix"):
+            raise ValueError(f"moment must be 'isotropic' or 'matrix', got {moment!r}")
+        super().__init__(params, {"lr": lr, "betas": betas, "eps": eps, "moment": moment, "damping": damping, "max_step": max_step})
+
+    @torch.no_grad()
+    def step(self, closure=None):  # noqa: D102 (torch's signature)
+        for group in self.param_groups:
+            b1, b2 = group["betas"]
+            matrix = group["moment"] == "matrix"
+            for p in group["params"]:
+                if p.grad is None:
+                    continue
+                g = p.grad.reshape(p.shape[0], -1)
+                rows = (g != 0).any(dim=1)
+                if not bool(rows.any()):
+                    continue
+                st = self.state[p]
+                if not st:
+                    st["exp_avg"] = torch.zeros_like(g)
+                    shape = (g.shape[0], g.shape[1], g.shape[1]) if matrix else (g.shape[0], 1)
+                    st["exp_avg_sq"] = torch.zeros(shape, dtype=g.dtype, device=g.device)
+                    st["visits"] = torch.zeros(g.shape[0], dtype=g.dtype, device=g.device)
+                m, v, t = st["exp_avg"], st["exp_avg_sq"], st["visits"]
+                gr = g[rows]
+                sq = gr[:, :, None] * gr[:, None, :] if matrix else gr.square().mean(dim=1, keepdim=True)
+                m[rows] = b1 * m[rows] + (1 - b1) * gr
+                v[rows] = b2 * v[rows] + (1 - b2) * sq
+                t[rows] += 1
+                tr = t[rows, None]
+                m_hat = m[rows] / (1 - b1 ** tr)
+                if matrix:
+                    v_hat = (v[rows] / (1 - b2 ** tr)[:, :, None]).double()
+                    lam, q = torch.linalg.eigh(v_hat)
+                    lam = lam.clamp_min(0) + group["damping"] * lam.clamp_min(0).mean(dim=1, keepdim=True) + group["eps"] ** 2
+                    inv_sqrt = (q * lam.rsqrt()[:, None, :]) @ q.transpose(1, 2)
+                    step = group["lr"] * (inv_sqrt @ m_hat.double()[:, :, None])[:, :, 0].to(g.dtype)
+                else:
+                    step = group["lr"] * m_hat / ((v[rows] / (1 - b2 ** tr)).sqrt() + group["eps"])
+                if group["max_step"] is not None:
+                    norm = step.norm(dim=1, keepdim=True)
+                    step = step * (group["max_step"] / norm.clamp_min(group["max_step"])).clamp(max=1.0)
+                p.view(p.shape[0], -1)[rows] -= step
+        return None
+
+
+class CalibrationOptimiser:
+    """The calibration's optimiser: torch's Adam for the gains, global scales and depth offset, and for the
+    source positions either :class:`RowAdam` (``source_step`` ``"per_visit"``) or the same Adam (``"dense"``).
+
+    ``"per_visit"``: a row's step per visit is ``min(lr_sources_um × N / B, λ / (4·NA))`` (:meth:`set_visit_interval`):
+    a row is in one batch of every ``N / B``, so it moves on average ``lr_sources_um`` per iteration, as a dense
+    parameter would, whatever the number of images, up to the step that one image's loss still resolves
+    (:meth:`Calibration.max_visit_step_um`). Dense Adam on rows that see a gradient once per ``K`` iterations moves
+    them about ``lr·√K`` per visit, ``lr/√K`` per iteration: slower the more images there are.
+    """
+
+    def __init__(self, sources: torch.Tensor, groups: list[dict], config: SolverConfig) -> None:
+        self.config = config
+        if config.source_step == "dense":
+            groups = [{"params": [sources], "lr": config.lr_sources_um}, *groups]
+            self.rows: RowAdam | None = None
+        else:
+            self.rows = RowAdam([sources], lr=config.lr_sources_um, betas=(0.9, 0.99),
+                                moment="matrix" if config.source_step == "whitened" else "isotropic")
+        self.adam = torch.optim.Adam(groups, betas=(0.9, 0.99))
+
+    def set_visit_interval(self, interval: float, max_step_um: float) -> None:
+        """Set the rows' step per visit from the iterations between two visits (``N / B``, at least 1), at most ``max_step_um``."""
+        if self.rows is not None:
+            self.rows.param_groups[0]["lr"] = min(self.config.lr_sources_um * max(1.0, float(interval)), max_step_um)
+            self.rows.param_groups[0]["max_step"] = max_step_um
+
+    @property
+    def state(self) -> dict:
+        """Per-parameter optimiser state (moments; ``visits`` for the rows), keyed by tensor."""
+        st = dict(self.adam.state)
+        if self.rows is not None:
+            st.update(self.rows.state)
+        return st
+
+    def zero_grad(self, set_to_none: bool = True) -> None:
+        self.adam.zero_grad(set_to_none=set_to_none)
+        if self.rows is not None:
+            self.rows.zero_grad(set_to_none=set_to_none)
+
+    def step(self) -> None:
+        self.adam.step()
+        if self.rows is not None:
+            self.rows.step()
+
+    def state_dict(self) -> dict:
+        """``{"adam": …, "rows": … or None}``."""
+        return {"adam": self.adam.state_dict(), "rows": None if self.rows is None else self.rows.state_dict()}
+
+    def load_state_dict(self, state: dict) -> None:
+        """Restore :meth:`state_dict` (a checkpoint of the same ``source_step``).
+
+        A checkpoint written before the rows had their own optimiser holds one Adam whose first group is the
+        positions: with ``"dense"`` it loads as it is; otherwise the positions' moments start afresh."""
+        if "adam" not in state:  # torch's Adam state dict of the older checkpoints
+            if self.rows is None:
+                self.adam.load_state_dict(state)
+                return
+            first = set(state["param_groups"][0]["params"])
+            state = {"adam": {"state": {k: v for k, v in state["state"].items() if k not in first},
+                              "param_groups": state["param_groups"][1:]}, "rows": None}
+        self.adam.load_state_dict(state["adam"])
+        if self.rows is not None and state.get("rows") is not None:
+            self.rows.load_state_dict(state["rows"])

@@ -46,6 +46,8 @@ Switch = typing.Annotated[Literal["auto", "true", "false"], BeforeValidator(_boo
 #: What the held-out images' error does to a stage: "best" returns to the stage's iterate of lowest validation error,
 #: "stop" also ends the stage once it has risen for ``early_stopping_patience`` snapshots, "off" ignores it.
 EarlyStopping = Literal["best", "stop", "off"]
+#: How the per-source positions step (:class:`~napari_fdt.recon.calibration.CalibrationOptimiser`).
+SourceStep = Literal["per_visit", "whitened", "dense"]
 #: A regularisation weight: a number ≥ 0, or ``"auto"``: chosen from the data by the validation error
 #: (:mod:`napari_fdt.recon.regularisation`, ``docs/solver.md``).
 AutoWeight = typing.Union[typing.Annotated[float, Field(ge=0, strict=True)], Literal["auto"]]
@@ -117,7 +119,9 @@ class SolverConfig:
     calibrate_slice_spacing: bool = setting(False, description="fit a global scale of the slice spacing")
     calibration_from_stage: int = setting(1, ge=0, description="first stage (0-based) with position/optics calibration (gains from the start)",
                                           fix="0 calibrates from the start")
-    lr_sources_um: float = setting(0.02, gt=0, description="Adam step of positions and depth offset, µm")
+    lr_sources_um: float = setting(0.02, gt=0, description="step of the source positions, µm per iteration: with `source_step` "
+                                   "`\"whitened\"` or `\"per_visit\"` the mean step per iteration (a visit every N/B iterations steps "
+                                   "`lr_sources_um × N/B`, at most λ/(4·NA)); with `\"dense\"` Adam's step")
     lr_log_gain: float = setting(0.01, gt=0, description="Adam step of the log-gains")
     lr_global: float = setting(1e-3, gt=0, description="Adam step of the pixel-size and slice-spacing scales (relative)")
     source_depth_um: Optional[_POSITIVE_DEPTH] = setting(None, strict=False, description="depth guess when the acquisition has no `sources_um`, µm")
@@ -158,6 +162,19 @@ class SolverConfig:
     early_stopping_tolerance: float = setting(
         0.02, ge=0.0, description="relative rise of the validation error over its best that counts as worse (below it: noise of the "
         "optimisation, the later iterate is kept)")
+    # source-position steps (issue 12, item 4; docs/solver.md "Source positions on deep, wide scenes")
+    source_step: SourceStep = setting(
+        "whitened", strict=False, description="how each source's position steps: `\"whitened\"`: one step per visit (when its image is in "
+        "the batch) of `lr_sources_um × N/B` (N images, B per batch), scaled by the inverse square root of the 3×3 mean outer "
+        "product of its gradients (full-matrix Adam per source: it follows the valley where depth and lateral position move "
+        "the image alike); `\"per_visit\"`: the same step with one scalar scale per source; `\"dense\"`: plain Adam on every "
+        "row (it moves a row about `lr_sources_um·√(N/B)` per visit). No per-visit step is longer than λ/(4·NA)",
+        fix="choose whitened, per_visit or dense")
+    calibrate_sources_in_envelope_stages: bool = setting(
+        True, description="fit the source positions and the depth offset in the coarse envelope stages too (from "
+        "`calibration_from_stage`); false: they train from the first multi-slice stage on (the envelope model alone biases "
+        "them, docs/solver.md; measured worse on cells and the 128² scene with the default schedule)")
+    lr_depth_offset_um: float = setting(0.02, gt=0, description="Adam step of the common depth offset of the sources, µm per iteration")
     # camera and objective (docs/physics.md §3; issue 13)
     pixel_integration: PixelIntegration = setting(
         "auto", strict=False, description="record each pixel's mean intensity over its area instead of the value at its centre: "

@@ -289,6 +289,7 @@ class Reconstructor:
                           pupil_edge=camera_model_options(self.config, self.acquisition)["pupil_edge"])
         if getattr(self, "parts", None):
             cal.fit_pupil, cal.fit_aberrations = self.parts["pupil"], self.parts["aberrations"]
+        cal.position_frozen_stages = position_frozen_stages(self.config, self.coarse_model)
         return cal
 
     # -- optional model parts ---------------------------------------------------------------------
@@ -938,6 +939,16 @@ class Reconstructor:
                   group=group)
         restore_checkpoint(rec, state)
         return rec
+
+
+def position_frozen_stages(config: SolverConfig, coarse_model: str) -> frozenset[int]:
+    """Stages whose source positions and depth offset stay fixed: with ``calibrate_sources_in_envelope_stages`` off, the
+    envelope stages (factor > 1, ``coarse_model`` ``"envelope"``) that a multi-slice stage follows. Fitted with the volume
+    at the truth, the envelope model pulls the positions off (``docs/solver.md``, "Source positions")."""
+    if config.calibrate_sources_in_envelope_stages or coarse_model != "envelope":
+        return frozenset()
+    envelope = [s.factor > 1 for s in config.stages]
+    return frozenset(i for i, e in enumerate(envelope) if e and not all(envelope[i:]))
 
 
 def reconstruct(acquisition: Acquisition, config: SolverConfig | None = None, *, device: str = "auto", **kwargs) -> Iterator[Snapshot]:
