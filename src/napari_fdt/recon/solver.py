@@ -314,18 +314,15 @@ class Reconstructor:
         if not self._auto_parts:
             self.apply_parts_choice(PartsChoice(parts, chosen_by))
         elif not len(self.validation_indices):
-            o = self.acquisition.optics
-            from napari_fdt.physics.camera import needs_pixel_integration
-
             for p in self._auto_parts:
                 chosen_by[p] = "no validation split"
-                if p == "pixel_integration":  # the physical rule stands in for the data
-                    parts[p] = needs_pixel_integration(o.na, o.wavelength_um, o.pixel_size_um)
+                if p == "pixel_integration":  # the physical rule stands in for the data (camera_model_options applies it)
+                    parts[p] = camera_model_options(cfg, self.acquisition)["pixel_integration"]
                     chosen_by[p] = "no validation split: physical rule"
             self.apply_parts_choice(PartsChoice(parts, chosen_by))
         else:
             self._set_parts(parts)
-            self._parts_chosen_by = chosen_by
+        self._parts_chosen_by = chosen_by
 
     def _set_parts(self, parts: dict[str, bool]) -> None:
         """Switch the parts: the spectral model's wavelengths and the calibration's pupil and aberration fits (the stage
@@ -495,8 +492,7 @@ class Reconstructor:
                     img = model.intensity_from_exit(exit_spec, spec0, src, wavelength_um=lam, **over) * w
                     pred = img if pred is None else pred + img
                 measured = stage.images[idx]
-                m = None
-                g = least_squares_gain(pred, measured, m)
+                g = least_squares_gain(pred, measured)
                 resid = (g.reshape(-1, 1, 1) * pred - measured).square().sum(dim=(-2, -1))
                 loss = (resid / measured.square().sum(dim=(-2, -1)).clamp_min(1e-30)).sum()
                 loss.backward()
