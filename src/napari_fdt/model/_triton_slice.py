@@ -4,7 +4,8 @@ In plain torch the adjoint of ``u = P·v`` costs five passes over the batch of f
 its imaginary part, the batch sum, ``g·conj(P)``, ``u·conj(P)``); this kernel reads ``g`` and ``u``
 once, computes ``P = exp(i·φ)`` in registers, and writes ``g·conj(P)``, optionally ``u·conj(P)``, and
 ``Σ_b Im(g·conj(u))``. complex64 only, CUDA only; :func:`available` says whether it can run.
-Checked against the torch version in ``benchmarks/gpu_checks.py`` (no GPU in CI).
+Checked against the torch version in ``benchmarks/gpu_checks.py`` on a GPU and, through Triton's interpreter,
+in ``tests/test_fused_loop.py``. The kernel itself is in :mod:`napari_fdt.model._triton_fused`.
 """
 
 from __future__ import annotations
@@ -29,40 +30,19 @@ def available() -> bool:
     return _kernel() is not None
 
 
-@functools.lru_cache(maxsize=1)
-def _kernel():
-    import triton
-    import triton.language as tl
+@functools.lru_cache(maxsize=2)
+def _kernel(interpret: bool = False):
+    from napari_fdt.model import _triton_fused
 
-    @triton.jit
-    def adjoint_screen_kernel(g_ptr, u_ptr, phi_ptr, v_ptr, gphi_ptr, n_batch, n_pix,
-                              WRITE_V: tl.constexpr, BLOCK: tl.constexpr):
-        pid = tl.program_id(0)
-        offs = pid * BLOCK + tl.arange(0, BLOCK)
-        mask = offs < n_pix
-        phi = tl.load(phi_ptr + offs, mask=mask, other=0.0)
-        c = tl.cos(phi)
-        s = tl.sin(phi)  # conj(P) = c − i·s
-        acc = tl.zeros((BLOCK,), dtype=tl.float32)
-        for b in range(n_batch):
-            base = (b * n_pix + offs).to(tl.int64) * 2
-            gr = tl.load(g_ptr + base, mask=mask, other=0.0)
-            gi = tl.load(g_ptr + base + 1, mask=mask, other=0.0)
-            ur = tl.load(u_ptr + base, mask=mask, other=0.0)
-            ui = tl.load(u_ptr + base + 1, mask=mask, other=0.0)
-            acc += gi * ur - gr * ui
-            tl.store(g_ptr + base, gr * c + gi * s, mask=mask)
-            tl.store(g_ptr + base + 1, gi * c - gr * s, mask=mask)
-            if WRITE_V:
-                tl.store(v_ptr + base, ur * c + ui * s, mask=mask)
-                tl.store(v_ptr + base + 1, ui * c - ur * s, mask=mask)
-        tl.store(gphi_ptr + offs, acc, mask=mask)
-
-    return adjoint_screen_kernel
+    return _triton_fused.build_adjoint_screen(interpret)
 
 
-def adjoint_screen(g: torch.Tensor, u: torch.Tensor, phi_k: torch.Tensor, v_out: torch.Tensor | None) -> torch.Tensor:
-    """Same contract as ``slice_loop._adjoint_screen``: returns Σ_b Im(g·conj(u)); g ← g·conj(P); v_out ← u·conj(P)."""
+def adjoint_screen(g: torch.Tensor, u: torch.Tensor, phi_k: torch.Tensor, v_out: torch.Tensor | None,
+                   *, interpret: bool = False) -> torch.Tensor:
+    """Same contract as ``slice_loop._adjoint_screen``: returns Σ_b Im(g·conj(u)); g ← g·conj(P); v_out ← u·conj(P).
+
+    ``interpret``: run CPU tensors through Triton's interpreter (tests).
+    """
     import triton
 
     if not (g.is_contiguous() and u.is_contiguous()):
@@ -76,5 +56,5 @@ def adjoint_screen(g: torch.Tensor, u: torch.Tensor, phi_k: torch.Tensor, v_out:
     vr = torch.view_as_real(v_out) if v_out is not None else gr
     block = 1024
     grid = (triton.cdiv(n_pix, block),)
-    _kernel()[grid](gr, ur, phi, vr, grad_phi, b, n_pix, WRITE_V=v_out is not None, BLOCK=block, num_warps=8)
+    _kernel(interpret)[grid](gr, ur, phi, vr, grad_phi, b, n_pix, WRITE_V=v_out is not None, BLOCK=block, num_warps=8)
     return grad_phi

@@ -28,7 +28,7 @@ CoherenceModel = Literal["auto", "none", "mask", "spectral", "mask+spectral"]
 #: multi-slice on a GPU (where the envelope model's many small kernels made it slower; docs/benchmarks.md).
 CoarseModel = Literal["auto", "envelope", "multislice"]
 #: How the multi-slice model forms gradients (:mod:`napari_fdt.model.slice_loop`); "autograd" is the plain reference.
-BackwardMode = Literal["auto", "stored", "reversible", "checkpoint", "autograd"]
+BackwardMode = Literal["auto", "stored", "reversible", "checkpoint", "autograd", "fused"]
 Activation = Literal["paper", "signed"]
 
 
@@ -140,7 +140,8 @@ class SolverConfig:
     backward_mode: BackwardMode = setting(
         "auto", strict=False, description="how the multi-slice model forms gradients (`napari_fdt.model.slice_loop`): `\"stored\"` (one field per slice and "
         "image, fastest), `\"reversible\"` (re-propagates the field backwards: memory independent of the number of slices; grids without "
-        "evanescent frequencies only), `\"checkpoint\"` (≈2√N fields), `\"autograd\"` (plain autograd, the reference); `\"auto\"`: stored "
+        "evanescent frequencies only), `\"checkpoint\"` (≈2√N fields), `\"autograd\"` (plain autograd, the reference), `\"fused\"` (the stored mode's memory, two "
+        "fused Triton kernels per slice: CUDA with Triton, power-of-two windows, `napari_fdt.model.fused_loop`); `\"auto\"`: stored "
         "when it fits in 80 % of the free memory, else the leanest valid mode", fix="auto picks the fastest that fits in memory")
     obliquity_correction: Switch = setting(
         "auto", strict=False, description="scale each source's phase screens by 1/cos θ of its ray (the thin screen's obliquity error, "

@@ -54,7 +54,7 @@ from napari_fdt.recon.model_parts import (
     parts_stage,
     requested_parts,
 )
-from napari_fdt.recon.preflight import check_memory, warn_about_images, warn_about_sampling
+from napari_fdt.recon.preflight import check_backward_mode, check_memory, warn_about_images, warn_about_sampling
 from napari_fdt.recon.regularisation import PROBE_SHARE, TV_PATH, TVChoice, candidate_weights, pick, selection_stages, tv_is_auto
 from napari_fdt.recon.stages import Stage, build_stage, camera_model_options, stated_pixel_integration
 from napari_fdt.recon.validation import BestIterate, holdout_indices, per_image_errors, relative_image_error
@@ -237,6 +237,7 @@ class Reconstructor:
                           "images out (validation_fraction 0, or too few images): TV is off. Give validation_fraction > 0 "
                           "or fixed weights", FDTWarning, stacklevel=2)
             self.tv_choice = TVChoice(*candidate_weights(cfg, 0.0), stage=0, probe_iterations=0, reason="no validation split")
+        check_backward_mode(acquisition, cfg, src, self.device)
         check_memory(acquisition, cfg, src, self.device, len(self.wavelengths) if self.wavelengths else 1)
 
     # -- the algorithm --------------------------------------------------------------------------
