@@ -42,6 +42,11 @@ SETTINGS = {
     "auto": {},
     "off": {"pixel_integration": "false", "pupil_edge": 0.03, "obliquity_correction": "false", "coherence": "none",
             "calibrate_pupil": "false", "calibrate_aberrations": "false"},
+    # diagnostics of the rerun (not defaults): the parts the choice keeps on _real scenes, on from the first stage,
+    # with multi-slice (``_ms``) or envelope (``_env``) coarse stages
+    "parts_ms": {"pixel_integration": "true", "calibrate_aberrations": "true", "coarse_model": "multislice"},
+    "parts_env": {"pixel_integration": "true", "calibrate_aberrations": "true", "coarse_model": "envelope"},
+    "auto_ms": {"coarse_model": "multislice"},
 }
 
 

@@ -50,7 +50,7 @@ def _outer(x_ptr, field_ptr, u_ptr, phi_ptr, gphi_ptr, H, W,
     mask = ma[:, None, None] & md[None, :, None] & ((e0 + ie) < N2W)[None, None, :]
     pix = ((N2H * ia[:, None, None] + c) * W + N2W * id_[None, :, None] + e0 + ie[None, None, :])
     pix = tl.where(mask, pix, 0)
-    base = (b * H * W + pix).to(tl.int64) * 2
+    base = (b.to(tl.int64) * H * W + pix) * 2  # int64 first: B·H·W·2 may pass 2**31
     xr = tl.load(x_ptr + base, mask=mask, other=0.0)
     xi = tl.load(x_ptr + base + 1, mask=mask, other=0.0)
     # small DFT matrices F[j, k] = exp(−2πi·jk/N) (symmetric; the inverse uses conj(F)), zero on the tile's padding
@@ -123,7 +123,7 @@ def _inner(x_ptr, k_ptr, H, W,
     me = ie < N2W
     mask = mc[:, None] & me[None, :]
     pix = tl.where(mask, (N2H * p + ic[:, None]) * W + N2W * q + ie[None, :], 0)
-    base = (b * H * W + pix).to(tl.int64) * 2
+    base = (b.to(tl.int64) * H * W + pix) * 2  # int64 first: B·H·W·2 may pass 2**31
     ar = tl.load(x_ptr + base, mask=mask, other=0.0)
     ai = tl.load(x_ptr + base + 1, mask=mask, other=0.0)
     mh = mc[:, None] & mc[None, :]
