@@ -95,7 +95,8 @@ def test_cancel_keeps_the_last_complete_stage(tiny) -> None:
 
 
 @pytest.mark.parametrize("extra", [{}, {"source_step": "per_visit", "calibration_from_stage": 0},
-                                   {"source_step": "dense"}, {"calibrate_sources_in_envelope_stages": False}])  # every optimiser state
+                                   {"source_step": "dense"}, {"calibrate_sources_in_envelope_stages": False},
+                                   {"calibrate_source_depth_in_envelope_stages": False, "calibration_from_stage": 0}])  # every optimiser state
 def test_resume_from_checkpoint_gives_the_same_result(tiny, tmp_path: Path, extra: dict) -> None:
     full = Reconstructor(tiny.acquisition, _tiny_config(**extra), device="cpu")
     for _ in full.run():

@@ -51,9 +51,14 @@ def test_step_per_visit_is_lr_times_visit_interval_capped_at_a_quarter_resolutio
     cfg = SolverConfig(stages=[StageConfig(2, 1), StageConfig(1, 1, batch_size=batch)], batch_size=4, lr_sources_um=lr,
                        source_step="per_visit")
     cal = Calibration(np.zeros((n_sources, 3)), cfg, OPTICS, device=torch.device("cpu"), dtype=torch.float32)
-    cal.set_trainable(1)
+    cal.envelope_stages = frozenset({0})
+    cal.set_trainable(1)  # a multi-slice stage: ``multislice_source_step_scale`` (2) times the step and its cap
     step = cal.optimiser.rows.param_groups[0]["lr"]
-    assert step == pytest.approx(min(lr * max(1.0, n_sources / batch), 0.6 / (4 * 0.65)))
+    assert step == pytest.approx(2.0 * min(lr * max(1.0, n_sources / batch), 0.6 / (4 * 0.65)))
+    assert cal.optimiser.rows.param_groups[0]["max_step"] == pytest.approx(2.0 * 0.6 / (4 * 0.65))
+    cal.set_trainable(0)  # the envelope stage: scale 1, its own batch size (4)
+    assert cal.optimiser.rows.param_groups[0]["lr"] == pytest.approx(min(lr * max(1.0, n_sources / 4), 0.6 / (4 * 0.65)))
+    assert cal.optimiser.rows.param_groups[0]["max_step"] == pytest.approx(0.6 / (4 * 0.65))
     assert cal.optimiser.adam.param_groups[-1]["lr"] == cfg.lr_depth_offset_um  # the common offset: its own dense step
 
 
@@ -198,3 +203,63 @@ def test_an_older_checkpoints_single_adam_state_loads(source_step) -> None:
     state = cal.optimiser.state
     assert torch.equal(state[cal.log_gain]["exp_avg"], old.state[cal.log_gain]["exp_avg"])
     assert (cal.sources in state and torch.equal(state[cal.sources]["exp_avg"], old.state[cal.sources]["exp_avg"])) == (source_step == "dense")
+
+
+def _step_once(cal: Calibration, grad_rows: torch.Tensor) -> None:
+    """One optimiser step with ``grad_rows`` (N, 3) as the positions' gradient and 1 as the depth offset's."""
+    cal.optimiser.zero_grad(set_to_none=True)
+    cal.sources.grad = grad_rows.clone().to(cal.sources.dtype)
+    cal.depth_offset_um.grad = torch.ones_like(cal.depth_offset_um)
+    cal.optimiser.step()
+
+
+@pytest.mark.parametrize("restart", [True, False])
+def test_a_new_stage_restarts_the_moments_of_the_positions_and_depth_offset(restart) -> None:
+    """``restart_source_moments``: at a new stage the rows' moments, visit counts and the offset's Adam state are gone,
+    so the next visit is a first Adam step again (length ``lr`` along the new gradient, whatever the old stage's
+    gradients were); set_trainable again within the same stage (a restart of the stage) keeps them."""
+    cfg = SolverConfig(stages=[StageConfig(2, 1), StageConfig(1, 1)], calibration_from_stage=0, batch_size=4,
+                       source_step="whitened", restart_source_moments=restart)
+    cal = Calibration(np.zeros((4, 3)), cfg, OPTICS, device=torch.device("cpu"), dtype=torch.float64)
+    cal.set_trainable(0)
+    for _ in range(5):  # an earlier stage's gradient, large and along x
+        _step_once(cal, torch.tensor([[100.0, 0.0, 0.0]] * 4))
+    cal.set_trainable(0)
+    assert cal.optimiser.state[cal.sources]["visits"].tolist() == [5.0] * 4
+    cal.set_trainable(1)
+    assert (cal.sources not in cal.optimiser.state and cal.depth_offset_um not in cal.optimiser.state) == restart
+    before = cal.sources.detach().clone()
+    g = torch.tensor([[0.0, 1e-3, 0.0]] * 4)
+    _step_once(cal, g)
+    moved = cal.sources.detach() - before
+    lr = cal.optimiser.rows.param_groups[0]["lr"]
+    if restart:  # a first step: lr along -g (matrix moment: lr·ĝ/√(1 + δ/3))
+        assert torch.allclose(moved, -lr * torch.tensor([[0.0, 1.0, 0.0]] * 4, dtype=torch.float64) / (1 + 0.01 / 3) ** 0.5, atol=1e-9)
+    else:  # the old stage's momentum along x still steers it, the old gradient scale shrinks the y step
+        assert float(moved[:, 0].abs().min()) > 0.5 * lr and float(moved[:, 1].abs().max()) < 0.01 * lr
+
+
+@pytest.mark.parametrize("factors, coarse, depth_in_envelope, frozen", [
+    ((4, 2, 1), "envelope", False, {0, 1}),
+    ((4, 2, 1), "envelope", True, set()),
+    ((4, 2, 1), "multislice", False, set()),
+    ((4, 2), "envelope", False, set()),
+])
+def test_depths_stay_fixed_in_envelope_stages_while_xy_train(factors, coarse, depth_in_envelope, frozen) -> None:
+    """``calibrate_source_depth_in_envelope_stages`` off: in the envelope stages before a multi-slice stage the gradient
+    reaches x and y of every source but neither its own depth nor the common offset."""
+    from napari_fdt.recon.solver import depth_frozen_stages
+
+    cfg = SolverConfig(stages=[StageConfig(f, 1) for f in factors], calibration_from_stage=0,
+                       calibrate_source_depth_in_envelope_stages=depth_in_envelope)
+    assert depth_frozen_stages(cfg, coarse) == frozen
+    cal = Calibration(np.zeros((4, 3)), cfg, OPTICS, device=torch.device("cpu"), dtype=torch.float64)
+    cal.depth_frozen_stages = frozenset(frozen)
+    weights = torch.tensor([1.0, 2.0, 3.0], dtype=torch.float64)
+    for i in range(len(factors)):
+        cal.set_trainable(i)
+        cal.sources.grad = None
+        (cal.calibrated_sources() * weights).sum().backward()
+        assert torch.equal(cal.sources.grad[:, :2], torch.tensor([[1.0, 2.0]] * 4, dtype=torch.float64))
+        assert float(cal.sources.grad[:, 2].abs().sum()) == (0.0 if i in frozen else 12.0)
+        assert cal.depth_offset_um.requires_grad == (i not in frozen)

@@ -64,6 +64,15 @@ class Calibration:
         #: stages (indices) whose positions and depth offset stay fixed: with ``calibrate_sources_in_envelope_stages`` off,
         #: the envelope stages before a multi-slice one (set by the solver)
         self.position_frozen_stages: frozenset[int] = frozenset()
+        #: stages (indices) whose source depths (each source's own and the common offset) stay fixed while x, y train:
+        #: with ``calibrate_source_depth_in_envelope_stages`` off, the envelope stages before a multi-slice one (set by the solver)
+        self.depth_frozen_stages: frozenset[int] = frozenset()
+        #: stages (indices) that run the envelope model: their position steps keep scale 1, the other stages'
+        #: are ``multislice_source_step_scale`` times longer (set by the solver)
+        self.envelope_stages: frozenset[int] = frozenset()
+        self._depth_frozen = False
+        #: the stage the optimiser's moments belong to (:meth:`set_trainable`; ``restart_source_moments``)
+        self._moments_stage: int | None = None
         #: whether the gains hold their least-squares start (:meth:`set_gains`)
         self.gain_initialised = False
         #: one Adam for the whole run, built by the first :meth:`set_trainable`
@@ -75,9 +84,12 @@ class Calibration:
 
         ``shared_frozen``: the offset enters as a constant (held-out images' gradients reach their own rows only).
         """
-        d = self.depth_offset_um.detach() if shared_frozen else self.depth_offset_um
+        d = self.depth_offset_um.detach() if shared_frozen or self._depth_frozen else self.depth_offset_um
         offset = torch.stack([torch.zeros_like(d), torch.zeros_like(d), d])
-        return self.sources + offset
+        sources = self.sources
+        if self._depth_frozen and sources.requires_grad:  # x, y train; each source's own depth is a constant
+            sources = torch.cat([sources[:, :2], sources[:, 2:].detach()], dim=1)
+        return sources + offset
 
     def sources_um(self) -> np.ndarray:
         """(N, 3) calibrated positions as float64 numpy (µm, acquisition coordinates)."""
@@ -139,8 +151,9 @@ class Calibration:
         cfg = self.config
         on = stage_index >= cfg.calibration_from_stage
         positions = on and stage_index not in self.position_frozen_stages
+        self._depth_frozen = stage_index in self.depth_frozen_stages
         self.sources.requires_grad_(positions and cfg.calibrate_sources)
-        self.depth_offset_um.requires_grad_(positions and cfg.calibrate_source_depth)
+        self.depth_offset_um.requires_grad_(positions and cfg.calibrate_source_depth and not self._depth_frozen)
         self.pixel_scale.requires_grad_(on and cfg.calibrate_pixel_size)
         self.spacing_scale.requires_grad_(on and cfg.calibrate_slice_spacing)
         self.na_scale.requires_grad_(on and self.fit_pupil)
@@ -155,7 +168,11 @@ class Calibration:
                 {"params": [self.na_scale, self.pupil_edge], "lr": cfg.lr_pupil},
                 {"params": [self.zernike], "lr": cfg.lr_aberrations},
             ], config=cfg)
-        self.optimiser.set_visit_interval(len(self.sources) / cfg.stage_batch(stage_index), self.max_visit_step_um())
+        if cfg.restart_source_moments and self._moments_stage is not None and stage_index != self._moments_stage:
+            self.optimiser.restart_positions(self.sources, self.depth_offset_um)
+        self._moments_stage = stage_index
+        scale = 1.0 if stage_index in self.envelope_stages else cfg.multislice_source_step_scale
+        self.optimiser.set_visit_interval(len(self.sources) / cfg.stage_batch(stage_index), self.max_visit_step_um(), scale)
 
     def max_visit_step_um(self) -> float:
         """Largest step of a source per visit, µm: ``λ / (4·NA)``, a quarter of the lateral resolution. A shift by
@@ -294,11 +311,20 @@ class CalibrationOptimiser:
                                 moment="matrix" if config.source_step == "whitened" else "isotropic")
         self.adam = torch.optim.Adam(groups, betas=(0.9, 0.99))
 
-    def set_visit_interval(self, interval: float, max_step_um: float) -> None:
-        """Set the rows' step per visit from the iterations between two visits (``N / B``, at least 1), at most ``max_step_um``."""
+    def set_visit_interval(self, interval: float, max_step_um: float, scale: float = 1.0) -> None:
+        """Set the rows' step per visit from the iterations between two visits (``N / B``, at least 1), at most
+        ``max_step_um``; ``scale`` multiplies both (``multislice_source_step_scale`` in multi-slice stages)."""
         if self.rows is not None:
-            self.rows.param_groups[0]["lr"] = min(self.config.lr_sources_um * max(1.0, float(interval)), max_step_um)
-            self.rows.param_groups[0]["max_step"] = max_step_um
+            self.rows.param_groups[0]["lr"] = scale * min(self.config.lr_sources_um * max(1.0, float(interval)), max_step_um)
+            self.rows.param_groups[0]["max_step"] = scale * max_step_um
+
+    def restart_positions(self, sources: torch.Tensor, depth_offset: torch.Tensor) -> None:
+        """Forget the moments (and the rows' visit counts) of the positions and the depth offset: their next step is a
+        first Adam step again, of the full per-visit length, along the new stage's gradient only."""
+        for opt in (self.adam, self.rows):
+            if opt is not None:
+                opt.state.pop(sources, None)
+                opt.state.pop(depth_offset, None)  # torch's Adam keeps its step count in the state: popped too
 
     @property
     def state(self) -> dict:

@@ -121,7 +121,7 @@ class SolverConfig:
                                           fix="0 calibrates from the start")
     lr_sources_um: float = setting(0.02, gt=0, description="step of the source positions, µm per iteration: with `source_step` "
                                    "`\"whitened\"` or `\"per_visit\"` the mean step per iteration (a visit every N/B iterations steps "
-                                   "`lr_sources_um × N/B`, at most λ/(4·NA)); with `\"dense\"` Adam's step")
+                                   "`lr_sources_um × N/B`, at most λ/(4·NA); both × `multislice_source_step_scale` in multi-slice stages); with `\"dense\"` Adam's step")
     lr_log_gain: float = setting(0.01, gt=0, description="Adam step of the log-gains")
     lr_global: float = setting(1e-3, gt=0, description="Adam step of the pixel-size and slice-spacing scales (relative)")
     source_depth_um: Optional[_POSITIVE_DEPTH] = setting(None, strict=False, description="depth guess when the acquisition has no `sources_um`, µm")
@@ -175,6 +175,19 @@ class SolverConfig:
         True, description="fit the source positions and the depth offset in the coarse envelope stages too (from "
         "`calibration_from_stage`); false: they train from the first multi-slice stage on (the envelope model alone biases "
         "them, docs/solver.md; measured worse on cells and the 128² scene with the default schedule)")
+    calibrate_source_depth_in_envelope_stages: bool = setting(
+        True, description="with the positions calibrated in envelope stages, fit their depths (each source's own and the common "
+        "offset) there too; false: only x, y move there, the depths from the first multi-slice stage on (the envelope model "
+        "pulls the common depth offset off, docs/solver.md)")
+    restart_source_moments: bool = setting(
+        True, description="restart the optimiser moments of the source positions and of the depth offset at the start of "
+        "every stage: the gradients of the previous stage's model and grid (an envelope stage's, biased and of another "
+        "scale) no longer steer or scale the steps (docs/solver.md, \"Source positions on deep, wide scenes\")")
+    multislice_source_step_scale: float = setting(
+        2.0, gt=0, description="scale of the per-visit step of the source positions and of its cap (λ/(4·NA)) in multi-slice "
+        "stages (`source_step` `\"whitened\"` or `\"per_visit\"`; envelope stages keep 1): seen from 50 µm below a volume "
+        "15 µm thick, a source's shift moves the volume's shadow on the camera by a fraction of itself, so its image's loss "
+        "stays smooth over more than a quarter of the resolution (docs/solver.md, \"Source positions on deep, wide scenes\")")
     lr_depth_offset_um: float = setting(0.02, gt=0, description="Adam step of the common depth offset of the sources, µm per iteration")
     # camera and objective (docs/physics.md §3; issue 13)
     pixel_integration: PixelIntegration = setting(

@@ -291,6 +291,9 @@ class Reconstructor:
         if getattr(self, "parts", None):
             cal.fit_pupil, cal.fit_aberrations = self.parts["pupil"], self.parts["aberrations"]
         cal.position_frozen_stages = position_frozen_stages(self.config, self.coarse_model)
+        cal.depth_frozen_stages = depth_frozen_stages(self.config, self.coarse_model)
+        cal.envelope_stages = frozenset(i for i, s in enumerate(self.config.stages) if s.factor > 1) \
+            if self.coarse_model == "envelope" else frozenset()
         return cal
 
     # -- optional model parts ---------------------------------------------------------------------
@@ -943,6 +946,15 @@ def position_frozen_stages(config: SolverConfig, coarse_model: str) -> frozenset
     envelope stages (factor > 1, ``coarse_model`` ``"envelope"``) that a multi-slice stage follows. Fitted with the volume
     at the truth, the envelope model pulls the positions off (``docs/solver.md``, "Source positions")."""
     if config.calibrate_sources_in_envelope_stages or coarse_model != "envelope":
+        return frozenset()
+    envelope = [s.factor > 1 for s in config.stages]
+    return frozenset(i for i, e in enumerate(envelope) if e and not all(envelope[i:]))
+
+
+def depth_frozen_stages(config: SolverConfig, coarse_model: str) -> frozenset[int]:
+    """Stages whose source depths (each source's own and the common offset) stay fixed while x, y train: with
+    ``calibrate_source_depth_in_envelope_stages`` off, the envelope stages that a multi-slice stage follows."""
+    if config.calibrate_source_depth_in_envelope_stages or coarse_model != "envelope":
         return frozenset()
     envelope = [s.factor > 1 for s in config.stages]
     return frozenset(i for i, e in enumerate(envelope) if e and not all(envelope[i:]))
