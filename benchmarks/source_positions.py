@@ -4,6 +4,7 @@ Usage (repository root)::
 
     python benchmarks/source_positions.py fixed --scene out/scenes/letters128 --factor 2 --model envelope
     python benchmarks/source_positions.py fixed --scene out/scenes/letters128 --factor 1 --model multislice --start truth
+    python benchmarks/source_positions.py run --scene letters128 --setting 0 --set '{"multislice_source_step_scale": 1}'
 
 ``fixed`` builds one solver stage (``factor``, ``model``), sets the RI to the scene's ground truth (block-averaged
 to the stage grid) or to zero (``--volume zero``), and trains only the calibration (positions, per-source depths,
@@ -12,6 +13,10 @@ the calibrated positions' error against ``ground_truth_sources_um.json`` along t
 common mean shift, the per-source depth RMS about the mean and the mean depth error (µm). With the volume at the
 truth, what remains is the model's bias (where the fit converges) and the step's speed (how fast it gets there).
 ``--start``: ``initial`` (the acquisition's positions), ``truth``, or ``truth_depth`` (true depths, initial x, y).
+
+``run`` is a full default reconstruction of a scene of ``benchmarks/regularisation.py``'s suite (TV ``--setting``, other
+settings ``--set``), the source errors traced every 40 iterations of each stage; the row, with its ``trace``, goes to
+``results/source_positions_runs_cpu.jsonl``.
 """
 
 from __future__ import annotations
@@ -98,6 +103,49 @@ def fixed_volume_fit(folder: Path, factor: int, model: str, start: str = "initia
     return rows
 
 
+def traced_run(scene: str, setting: str, overrides: dict | None = None, every: int = 40, verbose: bool = False) -> dict:
+    """One full default reconstruction of a suite scene (``benchmarks/regularisation.py``'s ``run_one`` row) with the
+    source errors traced every ``every`` iterations of each stage and at each stage's end (``trace``)."""
+    import platform
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    import regularisation as suite
+    from napari_fdt import read_acquisition, read_volume_tiff
+    from napari_fdt.recon.metrics import relative_delta_n_error
+    from napari_fdt.recon.report import evaluate_images, source_errors
+    from napari_fdt.recon.solver import Reconstructor
+
+    folder, _ = suite.SCENES[scene]
+    acq = read_acquisition(folder)
+    truth, _ = read_volume_tiff(folder / "ground_truth_ri.tif")
+    true_dn = truth - acq.optics.n_background
+    truth_src = np.array(json.loads((folder / "ground_truth_sources_um.json").read_text())["sources_um"])
+    cfg = suite.config_for(setting, overrides)
+    t0 = time.perf_counter()
+    rec = Reconstructor(acq, cfg, device="cpu")
+    stages, trace = [], []
+    for snap in rec.run():
+        if snap.iteration % every == 0 or snap.stage_complete:
+            trace.append({"stage": snap.stage, "iteration": snap.iteration, **errors(rec.sources_um(), truth_src),
+                          "depth_offset_um": float(rec.calibration.depth_offset_um.detach()), "seconds": time.perf_counter() - t0})
+            if verbose:
+                print(f"stage {snap.stage} " + _line(trace[-1]), flush=True)
+        if snap.stage_complete:
+            stages.append({"stage": snap.stage, "factor": snap.factor, "validation_error": snap.validation_error,
+                           "relative_delta_n_error": relative_delta_n_error(snap.delta_n_full(), true_dn)})
+    wall = time.perf_counter() - t0
+    _, fit = evaluate_images(rec)
+    src = source_errors(rec.sources_um(), truth_src)
+    return {"scene": scene, "setting": setting, "device": "cpu", "config_overrides": overrides or {},
+            "relative_delta_n_error": relative_delta_n_error(rec.delta_n_full(), true_dn),
+            "validation_error": rec.stages[-1].validation_error if rec.stages else None, "stages": stages,
+            "tv": None if rec.tv_choice is None else rec.tv_choice.to_dict(), "image_relative_error": fit["image_relative_error"],
+            "source_lateral_rms_um": src["lateral_rms_um"], "source_depth_rms_um": src["depth_rms_um"], "wall_s": wall,
+            "iterations": cfg.total_iterations, "threads": torch.get_num_threads(), "cpu": platform.processor() or platform.machine(),
+            "torch": torch.__version__, "date": time.strftime("%Y-%m-%d"), "trace": trace}
+
+
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     sub = p.add_subparsers(dest="cmd", required=True)
@@ -113,8 +161,20 @@ def main(argv: list[str] | None = None) -> None:
     f.add_argument("--set", default="{}", help="JSON object of other settings (e.g. '{\"source_step\": \"per_visit\"}')")
     f.add_argument("--freeze-depth", action="store_true", help="keep each source's own depth at its start")
     f.add_argument("--out", type=Path, help="append the rows, one JSON object per line, to this file")
+    r = sub.add_parser("run", help="a full reconstruction of a suite scene, the source errors traced along the way")
+    r.add_argument("--scene", required=True, help="a scene of benchmarks/regularisation.py (sample, letters128, beads, cells, deep)")
+    r.add_argument("--setting", default="auto", help='TV setting as in regularisation.py: "auto" or a weight τ_xy')
+    r.add_argument("--set", default="{}", help="JSON object of other settings")
+    r.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "source_positions_runs_cpu.jsonl")
     args = p.parse_args(argv)
     overrides = json.loads(args.set)
+    if args.cmd == "run":
+        row = traced_run(args.scene, args.setting, overrides, verbose=True)
+        with args.out.open("a") as fh:
+            fh.write(json.dumps(row) + "\n")
+        print(f"{args.scene} {args.setting} {overrides}: Δn error {row['relative_delta_n_error']:.3f}, sources lateral "
+              f"{row['source_lateral_rms_um']:.3f} µm, depth {row['source_depth_rms_um']:.3f} µm, {row['wall_s']:.0f} s", flush=True)
+        return
     rows = fixed_volume_fit(args.scene, args.factor, args.model, args.start, args.iterations, args.batch_size,
                             args.volume, args.every, overrides=overrides, verbose=True,
                             freeze_depth=args.freeze_depth)

@@ -297,7 +297,8 @@ class CalibrationOptimiser:
     ``"per_visit"``: a row's step per visit is ``min(lr_sources_um × N / B, λ / (4·NA))`` (:meth:`set_visit_interval`):
     a row is in one batch of every ``N / B``, so it moves on average ``lr_sources_um`` per iteration, as a dense
     parameter would, whatever the number of images, up to the step that one image's loss still resolves
-    (:meth:`Calibration.max_visit_step_um`). Dense Adam on rows that see a gradient once per ``K`` iterations moves
+    (:meth:`Calibration.max_visit_step_um`); multi-slice stages multiply both by ``multislice_source_step_scale``.
+    Dense Adam on rows that see a gradient once per ``K`` iterations moves
     them about ``lr·√K`` per visit, ``lr/√K`` per iteration: slower the more images there are.
     """
 

@@ -169,7 +169,8 @@ class SolverConfig:
         "the batch) of `lr_sources_um × N/B` (N images, B per batch), scaled by the inverse square root of the 3×3 mean outer "
         "product of its gradients (full-matrix Adam per source: it follows the valley where depth and lateral position move "
         "the image alike); `\"per_visit\"`: the same step with one scalar scale per source; `\"dense\"`: plain Adam on every "
-        "row (it moves a row about `lr_sources_um·√(N/B)` per visit). No per-visit step is longer than λ/(4·NA)",
+        "row (it moves a row about `lr_sources_um·√(N/B)` per visit). No per-visit step is longer than λ/(4·NA) "
+        "(× `multislice_source_step_scale` in multi-slice stages)",
         fix="choose whitened, per_visit or dense")
     calibrate_sources_in_envelope_stages: bool = setting(
         True, description="fit the source positions and the depth offset in the coarse envelope stages too (from "
