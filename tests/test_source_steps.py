@@ -263,3 +263,26 @@ def test_depths_stay_fixed_in_envelope_stages_while_xy_train(factors, coarse, de
         assert torch.equal(cal.sources.grad[:, :2], torch.tensor([[1.0, 2.0]] * 4, dtype=torch.float64))
         assert float(cal.sources.grad[:, 2].abs().sum()) == (0.0 if i in frozen else 12.0)
         assert cal.depth_offset_um.requires_grad == (i not in frozen)
+
+
+def test_cosine_schedule_shortens_each_visit_as_half_one_plus_cos() -> None:
+    """``source_step_schedule = "cosine"``: with a constant gradient (Adam's step then ``lr`` at every visit) the v-th
+    visit of the stage (from 0) moves ``lr·½(1 + cos(π·v/V))``, V = iterations·B/N, and nothing from the V-th on."""
+    cfg = SolverConfig(stages=[StageConfig(2, 8), StageConfig(1, 8)], calibration_from_stage=0, batch_size=2,
+                       source_step="per_visit", source_step_schedule="cosine", restart_source_moments=False,
+                       lr_sources_um=0.001)
+    cal = Calibration(np.zeros((4, 3)), cfg, OPTICS, device=torch.device("cpu"), dtype=torch.float64)
+    cal.envelope_stages = frozenset({0})
+    g = torch.tensor([[1.0, 1.0, 1.0]] * 4)
+    cal.set_trainable(0)  # the envelope stage: constant steps
+    for _ in range(3):
+        _step_once(cal, g)
+    cal.set_trainable(1)  # V = 8 iterations · 2 / 4 images = 4 visits, counted from this stage's start
+    lr = cal.optimiser.rows.param_groups[0]["lr"]
+    moves = []
+    for _ in range(6):
+        before = cal.sources.detach().clone()
+        _step_once(cal, g)
+        moves.append(float((before - cal.sources.detach())[0, 0]))
+    expected = [lr * 0.5 * (1 + np.cos(np.pi * min(v / 4, 1.0))) for v in range(6)]
+    assert np.allclose(moves, expected, rtol=1e-6, atol=1e-12)

@@ -171,8 +171,15 @@ class Calibration:
         if cfg.restart_source_moments and self._moments_stage is not None and stage_index != self._moments_stage:
             self.optimiser.restart_positions(self.sources, self.depth_offset_um)
         self._moments_stage = stage_index
-        scale = 1.0 if stage_index in self.envelope_stages else cfg.multislice_source_step_scale
-        self.optimiser.set_visit_interval(len(self.sources) / cfg.stage_batch(stage_index), self.max_visit_step_um(), scale)
+        envelope = stage_index in self.envelope_stages
+        interval = len(self.sources) / cfg.stage_batch(stage_index)
+        self.optimiser.set_visit_interval(interval, self.max_visit_step_um(), 1.0 if envelope else cfg.multislice_source_step_scale)
+        if self.optimiser.rows is not None:
+            cosine = cfg.source_step_schedule == "cosine" and not envelope
+            group = self.optimiser.rows.param_groups[0]
+            group["cosine_visits"] = max(1.0, cfg.stages[stage_index].iterations / max(1.0, interval)) if cosine else None
+            visits = self.optimiser.rows.state.get(self.sources, {}).get("visits")  # none after a restart
+            group["cosine_from"] = visits[:, None].clone() if cosine and visits is not None else 0.0
 
     def max_visit_step_um(self) -> float:
         """Largest step of a source per visit, µm: ``λ / (4·NA)``, a quarter of the lateral resolution. A shift by
@@ -247,7 +254,8 @@ class RowAdam(torch.optim.Optimizer):
                  moment: str = "isotropic", damping: float = 0.01, max_step: float | None = None) -> None:
         if moment not in ("isotropic", "matrix"):
             raise ValueError(f"moment must be 'isotropic' or 'matrix', got {moment!r}")
-        super().__init__(params, {"lr": lr, "betas": betas, "eps": eps, "moment": moment, "damping": damping, "max_step": max_step})
+        super().__init__(params, {"lr": lr, "betas": betas, "eps": eps, "moment": moment, "damping": damping, "max_step": max_step,
+                                  "cosine_visits": None, "cosine_from": 0.0})
 
     @torch.no_grad()
     def step(self, closure=None):  # noqa: D102 (torch's signature)
@@ -286,6 +294,11 @@ class RowAdam(torch.optim.Optimizer):
                 if group["max_step"] is not None:
                     norm = step.norm(dim=1, keepdim=True)
                     step = step * (group["max_step"] / norm.clamp_min(group["max_step"])).clamp(max=1.0)
+                if group.get("cosine_visits"):  # ½(1 + cos(π·v/V)), v = the row's visits in this stage before this one
+                    start = group.get("cosine_from", 0.0)
+                    start = start[rows] if torch.is_tensor(start) else start
+                    u = ((tr - 1 - start) / group["cosine_visits"]).clamp(0.0, 1.0)
+                    step = step * (0.5 * (1.0 + torch.cos(torch.pi * u))).to(step.dtype)
                 p.view(p.shape[0], -1)[rows] -= step
         return None
 

@@ -48,6 +48,7 @@ Switch = typing.Annotated[Literal["auto", "true", "false"], BeforeValidator(_boo
 EarlyStopping = Literal["best", "stop", "off"]
 #: How the per-source positions step (:class:`~napari_fdt.recon.calibration.CalibrationOptimiser`).
 SourceStep = Literal["per_visit", "whitened", "dense"]
+SourceStepSchedule = Literal["constant", "cosine"]
 #: A regularisation weight: a number ≥ 0, or ``"auto"``: chosen from the data by the validation error
 #: (:mod:`napari_fdt.recon.regularisation`, ``docs/solver.md``).
 AutoWeight = typing.Union[typing.Annotated[float, Field(ge=0, strict=True)], Literal["auto"]]
@@ -189,6 +190,11 @@ class SolverConfig:
         "stages (`source_step` `\"whitened\"` or `\"per_visit\"`; envelope stages keep 1): seen from 50 µm below a volume "
         "15 µm thick, a source's shift moves the volume's shadow on the camera by a fraction of itself, so its image's loss "
         "stays smooth over more than a quarter of the resolution (docs/solver.md, \"Source positions on deep, wide scenes\")")
+    source_step_schedule: SourceStepSchedule = setting(
+        "constant", strict=False, description="per-visit step of the source positions along a multi-slice stage (`\"whitened\"`, "
+        "`\"per_visit\"`): `\"constant\"`; `\"cosine\"`: each source's step falls as ½(1 + cos(π·v/V)) from its first to its "
+        "V-th visit (V = iterations·B/N, the visits the stage gives it), long early steps and short late ones",
+        fix="choose constant or cosine")
     lr_depth_offset_um: float = setting(0.02, gt=0, description="Adam step of the common depth offset of the sources, µm per iteration")
     # camera and objective (docs/physics.md §3; issue 13)
     pixel_integration: PixelIntegration = setting(
