@@ -229,6 +229,10 @@ def test_error_curve_maps_iterations_and_log_errors_to_pixels() -> None:
     x, y = lines["validation"][0]
     assert x == 100.0 and y == pytest.approx(100 * (1 - np.log10(0.02 / 0.001) / 2))
     assert curve.caption() == "train 0.001, validation 0.04 (best 0.02 at 50)"
+    # a stage run again from its start (iteration 60 after 100): its points replace those from 60 on
+    for it in (60, 80):
+        curve.add(SimpleNamespace(global_iteration=it, train_error=0.05, validation_error=0.03))
+    assert [i for i, _ in curve.train] == [10, 50, 60, 80] and [i for i, _ in curve.validation] == [50, 60, 80]
     narrow = ErrorCurve()
     narrow.add(SimpleNamespace(global_iteration=1, train_error=0.5, validation_error=0.6))
     lo, hi = narrow.error_range()

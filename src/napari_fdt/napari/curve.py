@@ -30,9 +30,15 @@ class ErrorCurve:
         self.validation.clear()
 
     def add(self, snapshot: Any) -> None:
-        """Record a :class:`~napari_fdt.recon.solver.Snapshot`'s errors (those that are None or not finite are skipped)."""
+        """Record a :class:`~napari_fdt.recon.solver.Snapshot`'s errors (those that are None or not finite are skipped).
+
+        A snapshot before the last point's iteration means the run went back (a stage run again from its start,
+        e.g. with model parts the validation error chose): the points from there on are replaced, not doubled."""
         it = int(snapshot.global_iteration)
         for series, value in ((self.train, snapshot.train_error), (self.validation, snapshot.validation_error)):
+            if series and series[-1][0] > it:
+                while series and series[-1][0] >= it:
+                    series.pop()
             if value is not None and math.isfinite(value) and value > 0:
                 series.append((it, float(value)))
 
