@@ -40,6 +40,8 @@ EFFECTS = "--pixel-integration true --pupil-edge 0 --aberrations spherical=0.5"
 BASE = {"letters": "letters --seed 0", "beads": "beads --shape 64 64 --n-slices 8 --sources 7 --depth-um 30 --seed 0"}
 SETTINGS = {
     "auto": {},
+    # the rule before parts_rerun "stages": only the finest stage runs again with the kept parts
+    "auto_finest": {"parts_rerun": "finest"},
     "off": {"pixel_integration": "false", "pupil_edge": 0.03, "obliquity_correction": "false", "coherence": "none",
             "calibrate_pupil": "false", "calibrate_aberrations": "false"},
     # diagnostics of the rerun (not defaults): the parts the choice keeps on _real scenes, on from the first stage,
@@ -47,6 +49,8 @@ SETTINGS = {
     "parts_ms": {"pixel_integration": "true", "calibrate_aberrations": "true", "coarse_model": "multislice"},
     "parts_env": {"pixel_integration": "true", "calibrate_aberrations": "true", "coarse_model": "envelope"},
     "auto_ms": {"coarse_model": "multislice"},
+    # diagnostic (not a default): "auto" told the pupil is hard (what _effects states), so only its detection is missing
+    "auto_hard": {"pupil_edge": 0.0, "calibrate_pupil": "false"},
 }
 
 
