@@ -58,7 +58,7 @@ def test_decide_is_a_paired_test_against_noise() -> None:
 def test_parts_choice_round_trips() -> None:
     c = PartsChoice({p: p == "aberrations" for p in PARTS}, {p: "validation" for p in PARTS}, stage=2, iteration=10,
                     reference_error=0.1, reference_image_errors=[0.1, 0.1], trials=[{"part": "aberrations", "on": True}],
-                    fitted={"zernike_rad": {"spherical": 0.4}}, seconds=1.5)
+                    fitted={"zernike_rad": {"spherical": 0.4}}, seconds=1.5, rerun="stages", pending=["pupil"])
     d = c.to_dict()
     assert d["needed"] == ["aberrations"]
     assert PartsChoice.from_dict(d).to_dict() == d
@@ -117,10 +117,11 @@ def _run(acq, cfg) -> Reconstructor:
 
 def test_auto_switches_the_aberrations_on_only_where_the_data_has_them(scenes) -> None:
     clean, aberrated = scenes
-    rec = _run(aberrated, _config())
+    rec = _run(aberrated, _config(obliquity_correction="auto"))
     choice = rec.parts_choice
-    assert choice is not None and choice.parts["aberrations"], choice.trials
-    assert choice.chosen_by["aberrations"] == "validation" and choice.chosen_by["obliquity"] == "setting"
+    assert choice is not None and choice.parts["aberrations"] and not choice.parts["obliquity"], choice.trials
+    assert choice.chosen_by["aberrations"] == "validation" and choice.chosen_by["pixel_integration"] == "setting"
+    assert choice.chosen_by["obliquity"] == "validation" and choice.chosen_by["pupil"] == "acquisition"
     # the right mode with the right sign: the fit with the volume held fixed finds part of it (the volume trained without
     # the part holds the rest), the stage trained again with the part on most of it (true 1.2 rad; defocus and the
     # sources' common depth offset share some of it)
@@ -130,9 +131,45 @@ def test_auto_switches_the_aberrations_on_only_where_the_data_has_them(scenes) -
     assert rec.stages[-1].validation_error < choice.reference_error
     trial = next(t for t in choice.trials if t["part"] == "aberrations")
     assert trial["improvement"] > trial["threshold"] * trial["standard_error"]
-    rec0 = _run(clean, _config())
+    # parts_rerun "stages" (the default): the kept part made every stage run again, the coarse one multi-slice (the
+    # envelope model holds no aberration), and the finest stage chose the parts not kept again (pass 2)
+    assert choice.rerun == "stages" and choice.pending == []
+    assert rec.coarse_model == "multislice" and all(not s_.envelope for s_ in [rec._build_stage(0)])
+    assert {t["pass"] for t in choice.trials} == {1, 2}
+    assert {t["part"] for t in choice.trials if t["pass"] == 2} == {"obliquity"}  # the part not kept, tried again
+    # ... through a volume trained with the aberrations: the held-out images are explained better than in pass 1
+    first, second = (next(t for t in choice.trials if t["part"] == "obliquity" and t["pass"] == k) for k in (1, 2))
+    assert second["validation_error"] < first["validation_error"]
+    assert len(rec.stages) == len(rec.config.stages)  # the records are the second pass's
+    rec0 = _run(clean, _config(obliquity_correction="auto"))
     assert not any(rec0.parts_choice.parts.values()), rec0.parts_choice.trials
+    assert rec0.parts_choice.rerun is None and rec0.coarse_model == "envelope"  # nothing kept: nothing runs again
     assert rec0.parts == {p: False for p in PARTS}
+
+
+def test_parts_rerun_finest_runs_only_the_finest_stage_again(scenes) -> None:
+    """The rule before ``parts_rerun`` "stages": the coarse stages run once, with the envelope model (CPU), and the finest
+    stage again from its start with the kept part."""
+    _, aberrated = scenes
+    rec = _run(aberrated, _config(parts_rerun="finest"))
+    choice = rec.parts_choice
+    assert choice.parts["aberrations"] and choice.rerun is None and rec.coarse_model == "envelope"
+    assert all("pass" not in t for t in choice.trials)
+    assert rec.stages[-1].validation_error < choice.reference_error
+
+
+def test_a_checkpoint_between_the_passes_resumes_the_second(scenes) -> None:
+    """A choice read back mid-way through the second pass (a checkpoint of its coarse stages) restores what that pass
+    runs with: the kept parts on, multi-slice coarse stages, the parts left to choose in the finest stage."""
+    clean, _ = scenes
+    rec = Reconstructor(clean, _config(), device="cpu")
+    assert rec.coarse_model == "envelope"
+    parts = {p: p == "aberrations" for p in PARTS}
+    chosen_by = {p: ("validation" if p in ("aberrations", "pupil") else "setting") for p in PARTS}
+    rec.apply_parts_choice(PartsChoice.from_dict(PartsChoice(parts, chosen_by, rerun="stages", pending=["pupil"]).to_dict()))
+    assert rec.coarse_model == "multislice" and rec._choose_again == ["pupil"] and rec._auto_parts == ["pupil"]
+    assert rec.calibration.fit_aberrations and not rec.calibration.fit_pupil
+    assert rec.calibration.position_frozen_stages == frozenset()  # positions train in multi-slice coarse stages
 
 
 def test_no_choice_without_a_split_or_with_fixed_settings(scenes) -> None:
