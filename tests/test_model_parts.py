@@ -179,3 +179,14 @@ def test_no_choice_without_a_split_or_with_fixed_settings(scenes) -> None:
     assert not rec.parts["aberrations"] and not rec.parts["pupil"]
     fixed = Reconstructor(clean, _config(calibrate_pupil="false", calibrate_aberrations="true"), device="cpu")
     assert fixed.parts_choice is not None and fixed.parts["aberrations"] and fixed.calibration.fit_aberrations
+
+
+def test_describe_parts_names_the_second_pass() -> None:
+    from napari_fdt.recon.report import describe_parts
+
+    chosen = {"reference_error": 0.2, "stage": 2, "seconds": 3.0, "trials": [
+        {"part": "aberrations", "on": True, "improvement": 0.02, "pass": 1},
+        {"part": "pupil", "on": True, "improvement": 0.004, "pass": 2}]}
+    line = describe_parts({"needed": ["pupil", "aberrations"], "chosen": chosen})
+    # improvements relative to the first reference: 0.02 / 0.2 = 10 %, 0.004 / 0.2 = 2 %
+    assert "aberrations on (-10.0 %)" in line and "pupil (again, all stages rerun) on (-2.0 %)" in line
