@@ -42,6 +42,8 @@ SETTINGS = {
     "auto": {},
     # the rule before parts_rerun "stages": only the finest stage runs again with the kept parts
     "auto_finest": {"parts_rerun": "finest"},
+    # the parts' test also on the training images not used in their fit (not a default)
+    "auto_train": {"parts_test_images": "held_out+training"},
     "off": {"pixel_integration": "false", "pupil_edge": 0.03, "obliquity_correction": "false", "coherence": "none",
             "calibrate_pupil": "false", "calibrate_aberrations": "false"},
     # diagnostics of the rerun (not defaults): the parts the choice keeps on _real scenes, on from the first stage,

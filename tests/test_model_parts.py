@@ -190,3 +190,25 @@ def test_describe_parts_names_the_second_pass() -> None:
     line = describe_parts({"needed": ["pupil", "aberrations"], "chosen": chosen})
     # improvements relative to the first reference: 0.02 / 0.2 = 10 %, 0.004 / 0.2 = 2 %
     assert "aberrations on (-10.0 %)" in line and "pupil (again, all stages rerun) on (-2.0 %)" in line
+
+
+def test_parts_test_images_adds_the_training_images_not_fitted(scenes) -> None:
+    """``held_out+training``: the paired test's images are the held-out ones, then every training image outside the
+    pupil fit's subset, each with its relative error ‖g·p − m‖/‖m‖ at the least-squares gain g = ⟨p, m⟩/⟨p, p⟩."""
+    import dataclasses
+
+    clean, _ = scenes
+    rec = _run(clean, _config(calibrate_pupil="false", calibrate_aberrations="false"))
+    stage = rec._build_stage(len(rec.config.stages) - 1)
+    mask = rec._loss_mask(stage)
+    err, held = rec._choice_errors(stage, mask)
+    assert err == rec.validation_error(stage, mask) and len(held) == len(rec.validation_indices)
+    rec.config = dataclasses.replace(rec.config, parts_test_images="held_out+training")
+    err2, both = rec._choice_errors(stage, mask)
+    train = np.setdiff1d(np.setdiff1d(np.arange(clean.n_images), rec.validation_indices), rec._fit_images().numpy())
+    assert err2 == err and both[: len(held)] == held and len(both) == len(held) + len(train) and len(train) > len(held)
+    pred = rec.predict(train, stage).astype(np.float64)
+    meas = (stage.images[torch.as_tensor(train)].numpy() * rec.image_scale).astype(np.float64)
+    g = (pred * meas).sum(axis=(1, 2)) / (pred * pred).sum(axis=(1, 2))
+    ref = np.sqrt(((g[:, None, None] * pred - meas) ** 2).sum(axis=(1, 2)) / (meas**2).sum(axis=(1, 2)))
+    np.testing.assert_allclose(both[len(held):], ref, rtol=1e-4)

@@ -389,7 +389,7 @@ class Reconstructor:
         cal = self.calibration
         provisional = dict(self.parts)
         start_values = cal.copy_values()
-        ref_err, ref_each = self._validation(stage, mask, per_image=True)
+        ref_err, ref_each = self._choice_errors(stage, mask, per_image=True)
         reference = (ref_err, list(ref_each))
         trials: list[dict[str, Any]] = []
 
@@ -405,7 +405,7 @@ class Reconstructor:
             self._set_parts({**self.parts, part: True})
             variant = stage if part == "spectral" else self._build_stage(stage.index)
             vmask = self._loss_mask(variant)
-            err, each = self._validation(variant, vmask, per_image=True)
+            err, each = self._choice_errors(variant, vmask, per_image=True)
             verdict = decide(ref_each, each)
             trials.append({"part": part, "validation_error": err, "image_errors": each, **verdict,
                            "seconds": time.perf_counter() - t1})
@@ -426,7 +426,7 @@ class Reconstructor:
                     cancel()
                     return None
                 self._set_parts({**self.parts, part: True})
-                err, each = self._validation(stage, mask, per_image=True)
+                err, each = self._choice_errors(stage, mask, per_image=True)
                 verdict = decide(ref_each, each)
                 trials.append({"part": part, "validation_error": err, "image_errors": each, **verdict,
                                "fitted": self._pupil_values([part]), "seconds": time.perf_counter() - t1 + cache_s})
@@ -443,7 +443,7 @@ class Reconstructor:
                 if not self._fit_pupil_parts(stage, cache, kept, should_stop):
                     cancel()
                     return None
-                err, each = self._validation(stage, mask, per_image=True)
+                err, each = self._choice_errors(stage, mask, per_image=True)
                 joint = float(np.mean(each)) <= float(np.mean(ref_each))
                 trials.append({"part": "+".join(kept), "validation_error": err, "image_errors": each, "on": joint,
                                "fitted": self._pupil_values(kept), "seconds": time.perf_counter() - t1})
@@ -465,6 +465,24 @@ class Reconstructor:
             self._choose_again = []
         self.apply_parts_choice(choice)
         return stage
+
+    def _choice_errors(self, stage: Stage, mask: torch.Tensor | None) -> tuple[float, list[float]]:
+        """(validation error, per-image errors the parts' paired test compares): the held-out images', and with
+        ``parts_test_images`` ``"held_out+training"`` also those of the training images the parts' parameters are not
+        fitted to (more images, a stronger test; biased against a part, since the volume and their positions were
+        trained without it)."""
+        err, each = self._validation(stage, mask, per_image=True)
+        if self.config.parts_test_images != "held_out+training":
+            return err, each
+        train = np.setdiff1d(np.setdiff1d(np.arange(self.acquisition.n_images), self.validation_indices),
+                             self._fit_images().cpu().numpy())
+        with torch.no_grad():
+            dn = self.volume.delta_n()
+            preds = [self._predict_normalised(stage, dn, torch.as_tensor(train[sl], device=self.device))
+                     for sl in iter_batches(len(train), self.config.batch_size)]
+        idx = torch.as_tensor(train, device=self.device)
+        more = per_image_errors(torch.cat(preds), stage.images[idx], None if mask is None else mask[idx], fit_gain=True)
+        return err, list(each) + list(more)
 
     def _pupil_values(self, parts: list[str]) -> dict[str, Any]:
         """The calibration's current pupil values of ``parts``: NA and edge, Zernike coefficients by mode (rad)."""
