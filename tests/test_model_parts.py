@@ -212,3 +212,16 @@ def test_parts_test_images_adds_the_training_images_not_fitted(scenes) -> None:
     g = (pred * meas).sum(axis=(1, 2)) / (pred * pred).sum(axis=(1, 2))
     ref = np.sqrt(((g[:, None, None] * pred - meas) ** 2).sum(axis=(1, 2)) / (meas**2).sum(axis=(1, 2)))
     np.testing.assert_allclose(both[len(held):], ref, rtol=1e-4)
+
+
+def test_the_choice_on_more_images_still_keeps_only_what_the_data_has(scenes) -> None:
+    """With ``held_out+training`` the whole choice runs on the larger test set: the aberration is kept where the data has
+    it, nothing on the clean scene (the paired test's false positives do not grow with the images)."""
+    clean, aberrated = scenes
+    cfg = _config(obliquity_correction="auto", parts_test_images="held_out+training")
+    rec = _run(aberrated, cfg)
+    assert rec.parts_choice.parts["aberrations"] and not rec.parts_choice.parts["obliquity"], rec.parts_choice.trials
+    n_test = len(rec.parts_choice.trials[0]["image_errors"])
+    assert n_test > len(rec.validation_indices)
+    rec0 = _run(clean, cfg)
+    assert not any(rec0.parts_choice.parts.values()), rec0.parts_choice.trials

@@ -389,7 +389,7 @@ class Reconstructor:
         cal = self.calibration
         provisional = dict(self.parts)
         start_values = cal.copy_values()
-        ref_err, ref_each = self._choice_errors(stage, mask, per_image=True)
+        ref_err, ref_each = self._choice_errors(stage, mask)
         reference = (ref_err, list(ref_each))
         trials: list[dict[str, Any]] = []
 
@@ -405,7 +405,7 @@ class Reconstructor:
             self._set_parts({**self.parts, part: True})
             variant = stage if part == "spectral" else self._build_stage(stage.index)
             vmask = self._loss_mask(variant)
-            err, each = self._choice_errors(variant, vmask, per_image=True)
+            err, each = self._choice_errors(variant, vmask)
             verdict = decide(ref_each, each)
             trials.append({"part": part, "validation_error": err, "image_errors": each, **verdict,
                            "seconds": time.perf_counter() - t1})
@@ -426,7 +426,7 @@ class Reconstructor:
                     cancel()
                     return None
                 self._set_parts({**self.parts, part: True})
-                err, each = self._choice_errors(stage, mask, per_image=True)
+                err, each = self._choice_errors(stage, mask)
                 verdict = decide(ref_each, each)
                 trials.append({"part": part, "validation_error": err, "image_errors": each, **verdict,
                                "fitted": self._pupil_values([part]), "seconds": time.perf_counter() - t1 + cache_s})
@@ -443,7 +443,7 @@ class Reconstructor:
                 if not self._fit_pupil_parts(stage, cache, kept, should_stop):
                     cancel()
                     return None
-                err, each = self._choice_errors(stage, mask, per_image=True)
+                err, each = self._choice_errors(stage, mask)
                 joint = float(np.mean(each)) <= float(np.mean(ref_each))
                 trials.append({"part": "+".join(kept), "validation_error": err, "image_errors": each, "on": joint,
                                "fitted": self._pupil_values(kept), "seconds": time.perf_counter() - t1})
