@@ -58,7 +58,7 @@ def test_decide_is_a_paired_test_against_noise() -> None:
 def test_parts_choice_round_trips() -> None:
     c = PartsChoice({p: p == "aberrations" for p in PARTS}, {p: "validation" for p in PARTS}, stage=2, iteration=10,
                     reference_error=0.1, reference_image_errors=[0.1, 0.1], trials=[{"part": "aberrations", "on": True}],
-                    fitted={"zernike_rad": {"spherical": 0.4}}, seconds=1.5)
+                    fitted={"zernike_rad": {"spherical": 0.4}}, seconds=1.5, rerun="stages", pending=["pupil"])
     d = c.to_dict()
     assert d["needed"] == ["aberrations"]
     assert PartsChoice.from_dict(d).to_dict() == d
@@ -117,10 +117,11 @@ def _run(acq, cfg) -> Reconstructor:
 
 def test_auto_switches_the_aberrations_on_only_where_the_data_has_them(scenes) -> None:
     clean, aberrated = scenes
-    rec = _run(aberrated, _config())
+    rec = _run(aberrated, _config(obliquity_correction="auto"))
     choice = rec.parts_choice
-    assert choice is not None and choice.parts["aberrations"], choice.trials
-    assert choice.chosen_by["aberrations"] == "validation" and choice.chosen_by["obliquity"] == "setting"
+    assert choice is not None and choice.parts["aberrations"] and not choice.parts["obliquity"], choice.trials
+    assert choice.chosen_by["aberrations"] == "validation" and choice.chosen_by["pixel_integration"] == "setting"
+    assert choice.chosen_by["obliquity"] == "validation" and choice.chosen_by["pupil"] == "acquisition"
     # the right mode with the right sign: the fit with the volume held fixed finds part of it (the volume trained without
     # the part holds the rest), the stage trained again with the part on most of it (true 1.2 rad; defocus and the
     # sources' common depth offset share some of it)
@@ -130,9 +131,45 @@ def test_auto_switches_the_aberrations_on_only_where_the_data_has_them(scenes) -
     assert rec.stages[-1].validation_error < choice.reference_error
     trial = next(t for t in choice.trials if t["part"] == "aberrations")
     assert trial["improvement"] > trial["threshold"] * trial["standard_error"]
-    rec0 = _run(clean, _config())
+    # parts_rerun "stages" (the default): the kept part made every stage run again, the coarse one multi-slice (the
+    # envelope model holds no aberration), and the finest stage chose the parts not kept again (pass 2)
+    assert choice.rerun == "stages" and choice.pending == []
+    assert rec.coarse_model == "multislice" and all(not s_.envelope for s_ in [rec._build_stage(0)])
+    assert {t["pass"] for t in choice.trials} == {1, 2}
+    assert {t["part"] for t in choice.trials if t["pass"] == 2} == {"obliquity"}  # the part not kept, tried again
+    # ... through a volume trained with the aberrations: the held-out images are explained better than in pass 1
+    first, second = (next(t for t in choice.trials if t["part"] == "obliquity" and t["pass"] == k) for k in (1, 2))
+    assert second["validation_error"] < first["validation_error"]
+    assert len(rec.stages) == len(rec.config.stages)  # the records are the second pass's
+    rec0 = _run(clean, _config(obliquity_correction="auto"))
     assert not any(rec0.parts_choice.parts.values()), rec0.parts_choice.trials
+    assert rec0.parts_choice.rerun is None and rec0.coarse_model == "envelope"  # nothing kept: nothing runs again
     assert rec0.parts == {p: False for p in PARTS}
+
+
+def test_parts_rerun_finest_runs_only_the_finest_stage_again(scenes) -> None:
+    """The rule before ``parts_rerun`` "stages": the coarse stages run once, with the envelope model (CPU), and the finest
+    stage again from its start with the kept part."""
+    _, aberrated = scenes
+    rec = _run(aberrated, _config(parts_rerun="finest"))
+    choice = rec.parts_choice
+    assert choice.parts["aberrations"] and choice.rerun is None and rec.coarse_model == "envelope"
+    assert all("pass" not in t for t in choice.trials)
+    assert rec.stages[-1].validation_error < choice.reference_error
+
+
+def test_a_checkpoint_between_the_passes_resumes_the_second(scenes) -> None:
+    """A choice read back mid-way through the second pass (a checkpoint of its coarse stages) restores what that pass
+    runs with: the kept parts on, multi-slice coarse stages, the parts left to choose in the finest stage."""
+    clean, _ = scenes
+    rec = Reconstructor(clean, _config(), device="cpu")
+    assert rec.coarse_model == "envelope"
+    parts = {p: p == "aberrations" for p in PARTS}
+    chosen_by = {p: ("validation" if p in ("aberrations", "pupil") else "setting") for p in PARTS}
+    rec.apply_parts_choice(PartsChoice.from_dict(PartsChoice(parts, chosen_by, rerun="stages", pending=["pupil"]).to_dict()))
+    assert rec.coarse_model == "multislice" and rec._choose_again == ["pupil"] and rec._auto_parts == ["pupil"]
+    assert rec.calibration.fit_aberrations and not rec.calibration.fit_pupil
+    assert rec.calibration.position_frozen_stages == frozenset()  # positions train in multi-slice coarse stages
 
 
 def test_no_choice_without_a_split_or_with_fixed_settings(scenes) -> None:
@@ -142,3 +179,49 @@ def test_no_choice_without_a_split_or_with_fixed_settings(scenes) -> None:
     assert not rec.parts["aberrations"] and not rec.parts["pupil"]
     fixed = Reconstructor(clean, _config(calibrate_pupil="false", calibrate_aberrations="true"), device="cpu")
     assert fixed.parts_choice is not None and fixed.parts["aberrations"] and fixed.calibration.fit_aberrations
+
+
+def test_describe_parts_names_the_second_pass() -> None:
+    from napari_fdt.recon.report import describe_parts
+
+    chosen = {"reference_error": 0.2, "stage": 2, "seconds": 3.0, "trials": [
+        {"part": "aberrations", "on": True, "improvement": 0.02, "pass": 1},
+        {"part": "pupil", "on": True, "improvement": 0.004, "pass": 2}]}
+    line = describe_parts({"needed": ["pupil", "aberrations"], "chosen": chosen})
+    # improvements relative to the first reference: 0.02 / 0.2 = 10 %, 0.004 / 0.2 = 2 %
+    assert "aberrations on (-10.0 %)" in line and "pupil (again, all stages rerun) on (-2.0 %)" in line
+
+
+def test_parts_test_images_adds_the_training_images_not_fitted(scenes) -> None:
+    """``held_out+training``: the paired test's images are the held-out ones, then every training image outside the
+    pupil fit's subset, each with its relative error ‖g·p − m‖/‖m‖ at the least-squares gain g = ⟨p, m⟩/⟨p, p⟩."""
+    import dataclasses
+
+    clean, _ = scenes
+    rec = _run(clean, _config(calibrate_pupil="false", calibrate_aberrations="false"))
+    stage = rec._build_stage(len(rec.config.stages) - 1)
+    mask = rec._loss_mask(stage)
+    err, held = rec._choice_errors(stage, mask)
+    assert err == rec.validation_error(stage, mask) and len(held) == len(rec.validation_indices)
+    rec.config = dataclasses.replace(rec.config, parts_test_images="held_out+training")
+    err2, both = rec._choice_errors(stage, mask)
+    train = np.setdiff1d(np.setdiff1d(np.arange(clean.n_images), rec.validation_indices), rec._fit_images().numpy())
+    assert err2 == err and both[: len(held)] == held and len(both) == len(held) + len(train) and len(train) > len(held)
+    pred = rec.predict(train, stage).astype(np.float64)
+    meas = (stage.images[torch.as_tensor(train)].numpy() * rec.image_scale).astype(np.float64)
+    g = (pred * meas).sum(axis=(1, 2)) / (pred * pred).sum(axis=(1, 2))
+    ref = np.sqrt(((g[:, None, None] * pred - meas) ** 2).sum(axis=(1, 2)) / (meas**2).sum(axis=(1, 2)))
+    np.testing.assert_allclose(both[len(held):], ref, rtol=1e-4)
+
+
+def test_the_choice_on_more_images_still_keeps_only_what_the_data_has(scenes) -> None:
+    """With ``held_out+training`` the whole choice runs on the larger test set: the aberration is kept where the data has
+    it, nothing on the clean scene (the paired test's false positives do not grow with the images)."""
+    clean, aberrated = scenes
+    cfg = _config(obliquity_correction="auto", parts_test_images="held_out+training")
+    rec = _run(aberrated, cfg)
+    assert rec.parts_choice.parts["aberrations"] and not rec.parts_choice.parts["obliquity"], rec.parts_choice.trials
+    n_test = len(rec.parts_choice.trials[0]["image_errors"])
+    assert n_test > len(rec.validation_indices)
+    rec0 = _run(clean, cfg)
+    assert not any(rec0.parts_choice.parts.values()), rec0.parts_choice.trials

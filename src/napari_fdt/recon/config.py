@@ -30,6 +30,10 @@ CoarseModel = Literal["auto", "envelope", "multislice"]
 #: How the multi-slice model forms gradients (:mod:`napari_fdt.model.slice_loop`); "autograd" is the plain reference.
 BackwardMode = Literal["auto", "stored", "reversible", "checkpoint", "autograd", "fused"]
 Activation = Literal["paper", "signed"]
+#: What runs again when the choice of model parts keeps a part (:mod:`napari_fdt.recon.model_parts`).
+PartsRerun = Literal["stages", "finest"]
+#: The images the choice of model parts tests on.
+PartsTestImages = Literal["held_out", "held_out+training"]
 
 
 def _bool_to_text(value: Any) -> Any:
@@ -214,6 +218,17 @@ class SolverConfig:
         "auto", strict=False, description="fit a pupil phase of Zernike modes: defocus, astigmatism, coma, primary spherical (radians, Noll; "
         "multi-slice stages): `true`, `false`, or `\"auto\"`: where the fit lowers the validation error by more than noise "
         "(docs/solver.md, \"Model parts\")", fix="use \"auto\", true or false")
+    parts_rerun: PartsRerun = setting(
+        "stages", strict=False, description="when the \"auto\" choice of model parts keeps a part: `\"stages\"` runs every stage again from "
+        "the first with the kept parts on (coarse stages multi-slice when `coarse_model` is `\"auto\"`, since the envelope "
+        "model holds none of the parts) and chooses the other auto parts again in the finest stage; `\"finest\"` runs only "
+        "the finest stage again (cheaper; the coarse volume keeps what it absorbed of the parts; docs/solver.md, \"Model parts\")",
+        fix="use \"stages\" or \"finest\"")
+    parts_test_images: PartsTestImages = setting(
+        "held_out", strict=False, description="images the paired test of the \"auto\" model parts runs on: `\"held_out\"` "
+        "(the validation split) or `\"held_out+training\"` (also the training images a part's parameters are not fitted to: "
+        "more images, more power; biased against a part, since the volume was trained without it; docs/solver.md, \"Model parts\")",
+        fix="use \"held_out\" or \"held_out+training\"")
     lr_pupil: float = setting(1e-3, gt=0, description="Adam step of the NA scale (relative) and the pupil edge width")
     lr_aberrations: float = setting(0.02, gt=0, description="Adam step of the Zernike coefficients, radians")
 

@@ -130,7 +130,8 @@ class PartsChoice:
     ``acquisition.json``), ``"validation"`` (tried) or ``"no validation split"``; ``trials``: per tried part its
     validation error, per-image errors, improvement and standard error, fitted values and seconds; ``fitted``: the
     values the finest stage starts from (``zernike_rad`` per mode, ``na``, ``pupil_edge``); ``seconds``: the cost of
-    the choice; ``stage``, ``iteration``: where it was made (after that many iterations of the stage).
+    the choice; ``stage``, ``iteration``: where it was made (after that many iterations of the stage); ``rerun`` and
+    ``pending``: see the fields (a choice that ran every stage again holds both passes' trials, each with its ``pass``).
     """
 
     parts: dict[str, bool]
@@ -142,6 +143,10 @@ class PartsChoice:
     trials: list[dict[str, Any]] = field(default_factory=list)
     fitted: dict[str, Any] = field(default_factory=dict)
     seconds: float = 0.0
+    #: ``"stages"`` when the choice kept a part and every stage ran again with it (``parts_rerun``), else None
+    rerun: str | None = None
+    #: the auto parts the finest stage of that second pass chooses again (empty once chosen)
+    pending: list[str] = field(default_factory=list)
 
     @property
     def needed(self) -> list[str]:
@@ -151,10 +156,11 @@ class PartsChoice:
     def to_dict(self) -> dict[str, Any]:
         return {"parts": dict(self.parts), "chosen_by": dict(self.chosen_by), "stage": self.stage, "iteration": self.iteration, "reference_error": self.reference_error,
                 "reference_image_errors": list(self.reference_image_errors), "trials": list(self.trials), "fitted": dict(self.fitted),
-                "seconds": self.seconds, "needed": self.needed}
+                "seconds": self.seconds, "needed": self.needed, "rerun": self.rerun, "pending": list(self.pending)}
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "PartsChoice":
         return cls(parts=dict(d["parts"]), chosen_by=dict(d["chosen_by"]), stage=int(d.get("stage", -1)), iteration=int(d.get("iteration", 0)),
                    reference_error=d.get("reference_error"), reference_image_errors=list(d.get("reference_image_errors", [])),
-                   trials=list(d.get("trials", [])), fitted=dict(d.get("fitted", {})), seconds=float(d.get("seconds", 0.0)))
+                   trials=list(d.get("trials", [])), fitted=dict(d.get("fitted", {})), seconds=float(d.get("seconds", 0.0)),
+                   rerun=d.get("rerun"), pending=list(d.get("pending", [])))

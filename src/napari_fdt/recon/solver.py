@@ -227,6 +227,10 @@ class Reconstructor:
         #: what the choice of the "auto" parts tried and chose (None until made)
         self.parts_choice: PartsChoice | None = None
         self.wavelengths, self.weights = None, None
+        #: auto parts the finest stage chooses again after every stage ran again with the kept ones (``parts_rerun``)
+        self._choose_again: list[str] = []
+        #: whether :meth:`run` must run the stages again from the first (set by the first choice that keeps a part)
+        self._restart_pending = False
         self._init_parts()
         self.loss_weights = LossWeights.from_config(cfg)
         #: the TV weights chosen from the data ("auto"; :mod:`napari_fdt.recon.regularisation`), None until chosen
@@ -256,6 +260,9 @@ class Reconstructor:
             if not self._pilot(should_stop):
                 return
         yield from self._run_stages(should_stop, checkpoint_dir)
+        if self._restart_pending:  # the choice kept a part: every stage again with it (parts_rerun "stages")
+            self._restart_pending = False
+            yield from self._run_stages(should_stop, checkpoint_dir)
 
     def _pilot(self, should_stop: Callable[[], bool] | None) -> bool:
         """Choose the "auto" TV weights: run the stages before the selection stage as the run would (TV off), try the
@@ -343,9 +350,40 @@ class Reconstructor:
 
     def apply_parts_choice(self, choice: PartsChoice) -> None:
         """Take a choice of parts (made here, or read from a checkpoint): switches, and the fitted pupil values when the
-        calibration has not moved them yet."""
+        calibration has not moved them yet. A choice whose stages run again (``rerun`` ``"stages"``) also sets the coarse
+        model they run with and the parts still to choose in the finest stage."""
         self.parts_choice = choice
         self._set_parts(choice.parts)
+        if choice.rerun == "stages":
+            self._use_rerun_coarse_model()
+            self._choose_again = list(choice.pending)
+            if choice.pending:
+                self._auto_parts = list(choice.pending)
+            self._parts_chosen_by = dict(choice.chosen_by)
+
+    def _use_rerun_coarse_model(self) -> None:
+        """The coarse stages of a run that holds the kept parts: multi-slice when ``coarse_model`` is ``"auto"`` (the
+        envelope model holds none of the parts; a coarse model given by name is kept)."""
+        if self.config.coarse_model == "auto":
+            self.coarse_model = "multislice"
+            self.calibration.position_frozen_stages = position_frozen_stages(self.config, self.coarse_model)
+
+    def _restart_with_parts(self) -> None:
+        """After a first choice that kept parts (``parts_rerun`` ``"stages"``): back to the state before any stage, with
+        the kept parts on from the first stage (their parameters start from the fitted values and train from
+        ``calibration_from_stage`` on) and the coarse stages multi-slice; the finest stage chooses the other auto parts
+        again (now on top of the kept ones, through a volume trained with them)."""
+        choice = self.parts_choice
+        kept = [p for p in self._auto_parts if self.parts[p]]
+        for t in choice.trials:
+            t.setdefault("pass", 1)
+        choice.rerun = "stages"
+        choice.pending = [p for p in self._auto_parts if p not in kept]
+        self.apply_parts_choice(choice)
+        fitted = {name: getattr(self.calibration, name).detach().clone() for name in ("na_scale", "pupil_edge", "zernike")}
+        self._restart()
+        self.calibration.restore_values(fitted)  # the kept parts start from their fitted values
+        self._restart_pending = True
 
     def _choose_parts(self, stage: Stage, mask: torch.Tensor | None, should_stop: Callable[[], bool] | None) -> Stage | None:
         """Choose the "auto" parts at the start of ``stage`` (:mod:`napari_fdt.recon.model_parts`) and return the stage
@@ -354,7 +392,7 @@ class Reconstructor:
         cal = self.calibration
         provisional = dict(self.parts)
         start_values = cal.copy_values()
-        ref_err, ref_each = self._validation(stage, mask, per_image=True)
+        ref_err, ref_each = self._choice_errors(stage, mask)
         reference = (ref_err, list(ref_each))
         trials: list[dict[str, Any]] = []
 
@@ -370,7 +408,7 @@ class Reconstructor:
             self._set_parts({**self.parts, part: True})
             variant = stage if part == "spectral" else self._build_stage(stage.index)
             vmask = self._loss_mask(variant)
-            err, each = self._validation(variant, vmask, per_image=True)
+            err, each = self._choice_errors(variant, vmask)
             verdict = decide(ref_each, each)
             trials.append({"part": part, "validation_error": err, "image_errors": each, **verdict,
                            "seconds": time.perf_counter() - t1})
@@ -391,7 +429,7 @@ class Reconstructor:
                     cancel()
                     return None
                 self._set_parts({**self.parts, part: True})
-                err, each = self._validation(stage, mask, per_image=True)
+                err, each = self._choice_errors(stage, mask)
                 verdict = decide(ref_each, each)
                 trials.append({"part": part, "validation_error": err, "image_errors": each, **verdict,
                                "fitted": self._pupil_values([part]), "seconds": time.perf_counter() - t1 + cache_s})
@@ -408,7 +446,7 @@ class Reconstructor:
                 if not self._fit_pupil_parts(stage, cache, kept, should_stop):
                     cancel()
                     return None
-                err, each = self._validation(stage, mask, per_image=True)
+                err, each = self._choice_errors(stage, mask)
                 joint = float(np.mean(each)) <= float(np.mean(ref_each))
                 trials.append({"part": "+".join(kept), "validation_error": err, "image_errors": each, "on": joint,
                                "fitted": self._pupil_values(kept), "seconds": time.perf_counter() - t1})
@@ -421,8 +459,33 @@ class Reconstructor:
                              reference_image_errors=reference[1], trials=trials,
                              fitted=self._pupil_values([p for p in FITTED_PARTS if self.parts[p]]),
                              seconds=time.perf_counter() - t0)
+        first = self.parts_choice
+        if first is not None and first.rerun == "stages":  # the second pass's choice: both passes' trials, the first's reference
+            choice.trials = first.trials + [{**t, "pass": 2} for t in trials]
+            choice.reference_error, choice.reference_image_errors = first.reference_error, first.reference_image_errors
+            choice.seconds += first.seconds
+            choice.rerun = "stages"
+            self._choose_again = []
         self.apply_parts_choice(choice)
         return stage
+
+    def _choice_errors(self, stage: Stage, mask: torch.Tensor | None) -> tuple[float, list[float]]:
+        """(validation error, per-image errors the parts' paired test compares): the held-out images', and with
+        ``parts_test_images`` ``"held_out+training"`` also those of the training images the parts' parameters are not
+        fitted to (more images, a stronger test; biased against a part, since the volume and their positions were
+        trained without it)."""
+        err, each = self._validation(stage, mask, per_image=True)
+        if self.config.parts_test_images != "held_out+training":
+            return err, each
+        train = np.setdiff1d(np.setdiff1d(np.arange(self.acquisition.n_images), self.validation_indices),
+                             self._fit_images().cpu().numpy())
+        with torch.no_grad():
+            dn = self.volume.delta_n()
+            preds = [self._predict_normalised(stage, dn, torch.as_tensor(train[sl], device=self.device))
+                     for sl in iter_batches(len(train), self.config.batch_size)]
+        idx = torch.as_tensor(train, device=self.device)
+        more = per_image_errors(torch.cat(preds), stage.images[idx], None if mask is None else mask[idx], fit_gain=True)
+        return err, list(each) + list(more)
 
     def _pupil_values(self, parts: list[str]) -> dict[str, Any]:
         """The calibration's current pupil values of ``parts``: NA and edge, Zernike coefficients by mode (rad)."""
@@ -530,7 +593,7 @@ class Reconstructor:
                 self._choose_tv(stage, mask, batch_size, data_range, global_it, should_stop)
                 return  # the pilot (run) ends here and starts the run again with the choice
             choose = False  # whether the "auto" parts are chosen at the end of this stage
-            if self.parts_choice is None and si == parts_stage(cfg):
+            if (self.parts_choice is None or self._choose_again) and si == parts_stage(cfg):
                 if stage.envelope:  # the parts belong to the multi-slice model: nothing to choose on this run's stages
                     self.apply_parts_choice(PartsChoice(dict(self.parts), {p: "not chosen: no multi-slice stage" if p in self._auto_parts
                                                                         else self._parts_chosen_by[p] for p in PARTS}))
@@ -577,6 +640,11 @@ class Reconstructor:
                 self.parts_choice.iteration = it
                 if not any(self.parts[p] for p in self._auto_parts):
                     break
+                if cfg.parts_rerun == "stages" and self.parts_choice.rerun is None:
+                    # Parts the data needs: every stage again from the first with them on (run() goes on).
+                    self.elapsed_s += time.perf_counter() - t0
+                    self._restart_with_parts()
+                    return
                 # Parts the data needs: the stage again from its start, with them on from the fitted values.
                 fitted = {name: getattr(self.calibration, name).detach().clone() for name in ("na_scale", "pupil_edge", "zernike")}
                 self._restore_branch(stage_start[0])
