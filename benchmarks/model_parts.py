@@ -40,19 +40,21 @@ EFFECTS = "--pixel-integration true --pupil-edge 0 --aberrations spherical=0.5"
 BASE = {"letters": "letters --seed 0", "beads": "beads --shape 64 64 --n-slices 8 --sources 7 --depth-um 30 --seed 0"}
 SETTINGS = {
     "auto": {},
-    # the rule before parts_rerun "stages": only the finest stage runs again with the kept parts
-    "auto_finest": {"parts_rerun": "finest"},
-    # the parts' test also on the training images not used in their fit (not a default)
-    "auto_train": {"parts_test_images": "held_out+training"},
+    # the rule before parts_rerun "stages": only the finest stage runs again with the kept parts (and the held-out test)
+    "auto_finest": {"parts_rerun": "finest", "parts_test_images": "held_out"},
+    # the parts' test on the held-out images alone (the default before held_out+training)
+    "auto_heldout": {"parts_test_images": "held_out"},
     "off": {"pixel_integration": "false", "pupil_edge": 0.03, "obliquity_correction": "false", "coherence": "none",
             "calibrate_pupil": "false", "calibrate_aberrations": "false"},
     # diagnostics of the rerun (not defaults): the parts the choice keeps on _real scenes, on from the first stage,
     # with multi-slice (``_ms``) or envelope (``_env``) coarse stages
-    "parts_ms": {"pixel_integration": "true", "calibrate_aberrations": "true", "coarse_model": "multislice"},
-    "parts_env": {"pixel_integration": "true", "calibrate_aberrations": "true", "coarse_model": "envelope"},
+    "parts_ms": {"pixel_integration": "true", "calibrate_aberrations": "true", "coarse_model": "multislice",
+                 "parts_test_images": "held_out"},
+    "parts_env": {"pixel_integration": "true", "calibrate_aberrations": "true", "coarse_model": "envelope",
+                  "parts_test_images": "held_out"},
     "auto_ms": {"coarse_model": "multislice"},
     # diagnostic (not a default): "auto" told the pupil is hard (what _effects states), so only its detection is missing
-    "auto_hard": {"pupil_edge": 0.0, "calibrate_pupil": "false"},
+    "auto_hard": {"pupil_edge": 0.0, "calibrate_pupil": "false", "parts_test_images": "held_out"},
 }
 
 
@@ -155,11 +157,12 @@ def write_doc(rows: list[dict]) -> None:
         "acquisition.json, `_real` the same images with nothing stated). `off`: every optional part off.",
         f"Hardware: {'; '.join(hw)}; the runs shared the 2 cores with other jobs, so wall times compare only roughly",
         "(the choice's own seconds against the run's are the fair ratio; runs made side by side compare better).",
-        "The `auto`, `auto_finest` and `auto_hard` rows of the `_real` scenes were made with `parts_rerun` (every stage",
-        "again when a part is kept; `auto_finest` is the rule before it); the other rows before `source_step` became",
-        "`\"whitened\"` (dense source steps) and before `parts_rerun`, where nothing changes for a scene whose choice keeps",
-        "nothing. For the clean beads scene (the same images as `out/scenes/beads`) the same defaults gave 0.383",
-        "(docs/ablation.md, regularisation table).",
+        "`auto` is today's defaults (`parts_rerun = \"stages\"`, `parts_test_images = \"held_out+training\"`); `auto_heldout`",
+        "tests the parts on the held-out images alone (the default before), `auto_finest` also reruns only the finest stage",
+        "(the rule before `parts_rerun`). The `letters_effects` row and the `off` rows were made before `source_step` became",
+        "`\"whitened\"`; `parts_ms`/`parts_env` (parts on from the first stage, multi-slice or envelope coarse stages) before",
+        "`parts_rerun` existed. The source-step defaults of `docs/solver.md` (restarted moments, longer multi-slice steps)",
+        "came after every row here.",
         "",
         table(rows),
         end,

@@ -225,9 +225,10 @@ class SolverConfig:
         "the finest stage again (cheaper; the coarse volume keeps what it absorbed of the parts; docs/solver.md, \"Model parts\")",
         fix="use \"stages\" or \"finest\"")
     parts_test_images: PartsTestImages = setting(
-        "held_out", strict=False, description="images the paired test of the \"auto\" model parts runs on: `\"held_out\"` "
+        "held_out+training", strict=False, description="images the paired test of the \"auto\" model parts runs on: `\"held_out\"` "
         "(the validation split) or `\"held_out+training\"` (also the training images a part's parameters are not fitted to: "
-        "more images, more power; biased against a part, since the volume was trained without it; docs/solver.md, \"Model parts\")",
+        "more images, more power; biased against a part, since the volume was trained without it; the default: with the held-out images alone "
+        "beads_real missed its aberration and beads_clean kept a spectral model it does not have; docs/solver.md, \"Model parts\")",
         fix="use \"held_out\" or \"held_out+training\"")
     lr_pupil: float = setting(1e-3, gt=0, description="Adam step of the NA scale (relative) and the pupil edge width")
     lr_aberrations: float = setting(0.02, gt=0, description="Adam step of the Zernike coefficients, radians")
