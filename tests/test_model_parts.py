@@ -198,7 +198,7 @@ def test_parts_test_images_adds_the_training_images_not_fitted(scenes) -> None:
     import dataclasses
 
     clean, _ = scenes
-    rec = _run(clean, _config(calibrate_pupil="false", calibrate_aberrations="false"))
+    rec = _run(clean, _config(calibrate_pupil="false", calibrate_aberrations="false", parts_test_images="held_out"))
     stage = rec._build_stage(len(rec.config.stages) - 1)
     mask = rec._loss_mask(stage)
     err, held = rec._choice_errors(stage, mask)
