@@ -19,6 +19,10 @@ the first digits (a, d) = (p, q):
     S = F2h·A·F2w (second half of the DFT), S ← S·K (or conj(K); K stored in digit order, already divided by
     H·W), C = conj(F2h)·S·conj(F2w) (first half of the inverse), C ← C·conj(twiddle), written back in place.
 
+Each kernel is self-contained (the masked tile load and the small DFT matrices are written out in both): a helper
+decorated with ``triton.jit`` cannot be called from a kernel that Triton's interpreter runs through
+``InterpretedFunction`` (the same reason ``tl.zeros``, a jit function, is avoided below).
+
 The small DFT matrices and twiddles are computed in registers from integer phases (exact modulo N). Complex
 products are four real ``tl.dot`` calls; ``PRECISION`` is Triton's ``input_precision`` ("ieee" for float32
 products; "tf32x3" uses tensor cores at about float32 accuracy).

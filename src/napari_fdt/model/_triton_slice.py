@@ -17,17 +17,12 @@ import torch
 __all__ = ["available", "adjoint_screen"]
 
 
-@functools.lru_cache(maxsize=1)
+@functools.lru_cache(maxsize=1)  # asked once per slice of every backward pass on CUDA
 def available() -> bool:
     """True when Triton imports and a CUDA device is present."""
-    if not torch.cuda.is_available():
-        return False
-    try:
-        import triton  # noqa: F401
-        import triton.language  # noqa: F401
-    except Exception:
-        return False
-    return _kernel() is not None
+    from napari_fdt.model.fused_loop import available as fused_available
+
+    return fused_available("cuda")
 
 
 @functools.lru_cache(maxsize=2)

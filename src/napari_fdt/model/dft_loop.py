@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import torch
 
-__all__ = ["DftPlan", "split_factors", "dft_slice_loop"]
+__all__ = ["DftPlan", "split_factors", "digit_index", "dft_slice_loop"]
 
 
 def split_factors(n: int) -> tuple[int, int]:
@@ -32,6 +32,11 @@ def split_factors(n: int) -> tuple[int, int]:
         if n % a == 0:
             best = a
     return best, n // best
+
+
+def digit_index(n1: int, n2: int, device=None) -> torch.Tensor:
+    """(n1, n2) natural frequency index ``k1 + n1·k2`` of each digit-order position [k1, k2] of a length n1·n2 axis."""
+    return torch.arange(n1, device=device)[:, None] + n1 * torch.arange(n2, device=device)[None, :]
 
 
 def _dft(n: int, sign: float, dtype: torch.dtype, device) -> torch.Tensor:
@@ -59,7 +64,7 @@ class _Axis:
 
     def digit_index(self) -> torch.Tensor:
         """(n1, n2) natural frequency index ``k1 + n1·k2`` of each digit-order position [k1, k2]."""
-        return torch.arange(self.n1)[:, None] + self.n1 * torch.arange(self.n2)[None, :]
+        return digit_index(self.n1, self.n2)
 
 
 class DftPlan:

@@ -33,7 +33,7 @@ import os
 
 import torch
 
-from napari_fdt.model.dft_loop import DftPlan, split_factors
+from napari_fdt.model.dft_loop import digit_index, split_factors
 
 __all__ = ["available", "interpreting", "supports", "fused_slice_loop", "PRECISIONS"]
 
@@ -120,10 +120,11 @@ class _Plan:
         return {"N1H": self.n1h, "N2H": self.n2h, "N1W": self.n1w, "N2W": self.n2w}
 
     def digit_kernel(self, kernel: torch.Tensor) -> torch.Tensor:
-        """K/(H·W) in digit order, as interleaved float32 (H, W, 2)."""
-        plan = DftPlan((self.h, self.w), dtype=torch.complex64, device="cpu")
-        kd = plan.permute(kernel.detach().to("cpu", torch.complex64)) / (self.h * self.w)
-        return torch.view_as_real(kd.contiguous()).contiguous().to(kernel.device)
+        """K/(H·W) in digit order, as interleaved float32 (H, W, 2), on the kernel's device (one gather per call)."""
+        ih = digit_index(self.n1h, self.n2h, kernel.device)
+        iw = digit_index(self.n1w, self.n2w, kernel.device)
+        kd = kernel.detach().to(torch.complex64)[ih[:, :, None, None], iw[None, None, :, :]] / (self.h * self.w)
+        return torch.view_as_real(kd.reshape(self.h, self.w).contiguous())
 
     def run_outer(self, x, phi_k, *, sign, inverse_in, forward_out, field=None, u=None, gphi=None) -> None:
         dummy = x
