@@ -53,6 +53,11 @@ SETTINGS = {
     "parts_env": {"pixel_integration": "true", "calibrate_aberrations": "true", "coarse_model": "envelope",
                   "parts_test_images": "held_out"},
     "auto_ms": {"coarse_model": "multislice"},
+    # run-to-run spread of the defaults (the batch order's seed)
+    "auto_seed1": {"seed": 1},
+    "auto_seed2": {"seed": 2},
+    # diagnostic (not a default): the defaults with the pupil's edge the calibration found on _real (0.004), not stated 0
+    "auto_edge004": {"pupil_edge": 0.004},
     # diagnostic (not a default): "auto" told the pupil is hard (what _effects states), so only its detection is missing
     "auto_hard": {"pupil_edge": 0.0, "calibrate_pupil": "false", "parts_test_images": "held_out"},
 }
@@ -102,6 +107,7 @@ def run_one(scene: str, setting: str, device: str) -> dict:
     for _ in rec.run():
         pass
     wall = time.perf_counter() - t0
+    np.save(folder / f"delta_n_{setting}.npy", rec.delta_n_full())  # for diagnosis (out/ is not in the repository)
     parts = model_parts_summary(rec)
     if parts.get("chosen"):
         parts["chosen"].pop("reference_image_errors", None)
