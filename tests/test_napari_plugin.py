@@ -425,10 +425,13 @@ def test_settings_round_trip_in_the_cli_format(make_napari_viewer, tmp_path) -> 
     w.coherence.value = "mask"
     w.tv_xy_weight.value = 0.001
     w.seed.value = 3
+    w.parts_rerun.value = "finest"
+    w.parts_test_images.value = "held_out"
     path = w.save_settings(tmp_path / "s.json")
     cfg = load_config(path)
     assert [(s.factor, s.iterations) for s in cfg.stages] == [(2, 7), (1, 9)]
     assert cfg.coherence == "mask" and cfg.tv_xy_weight == pytest.approx(0.001) and cfg.seed == 3
+    assert cfg.parts_rerun == "finest" and cfg.parts_test_images == "held_out"
     # a file written by the command line loads into the widget, keeping settings the widget does not show
     cli_path = tmp_path / "cli.json"
     data = SolverConfig(lr_ri=0.02, ssim_weight=0.5).to_dict()

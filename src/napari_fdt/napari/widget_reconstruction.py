@@ -95,7 +95,7 @@ _FIELDS = ("stages", "coarse_model", "batch_size", "l1_l2_total", "ssim_weight",
            "calibrate_sources", "calibrate_gain", "calibrate_source_depth", "calibrate_pixel_size",
            "calibrate_slice_spacing", "calibration_from_stage", "coherence", "mask_threshold", "seed", "snapshot_every",
            "validation_fraction", "early_stopping", "pixel_integration", "obliquity_correction", "calibrate_pupil",
-           "calibrate_aberrations")
+           "calibrate_aberrations", "parts_rerun", "parts_test_images")
 #: Settings the widget numbers from 1 (as the status line does) while the configuration counts from 0.
 _ONE_BASED = ("calibration_from_stage",)
 
@@ -139,6 +139,8 @@ class ReconstructionWidget(Container):
         self.obliquity_correction = f("obliquity_correction", "obliquity correction")
         self.calibrate_pupil = f("calibrate_pupil", "fit pupil (NA, edge)")
         self.calibrate_aberrations = f("calibrate_aberrations", "fit aberrations")
+        self.parts_rerun = f("parts_rerun", "rerun with kept parts")
+        self.parts_test_images = f("parts_test_images", "parts tested on")
         #: which optional parts the last run needed, and why (RI.json's model_parts)
         self.parts_info = Label(value="")
         self.coherence = f("coherence", "coherence")
@@ -173,7 +175,7 @@ class ReconstructionWidget(Container):
                                          self.calibrate_pixel_size, self.calibrate_slice_spacing, self.calibration_from_stage])
         coherence = Container(widgets=[self.coherence, self.mask_threshold, self.masks_button])
         parts = Container(widgets=[self.pixel_integration, self.obliquity_correction, self.calibrate_pupil,
-                                   self.calibrate_aberrations, self.parts_info])
+                                   self.calibrate_aberrations, self.parts_rerun, self.parts_test_images, self.parts_info])
         run = Container(widgets=[
             self.device, self.seed, self.snapshot_every, self.validation_fraction, self.early_stopping,
             Container(widgets=[self.save_settings_button, self.load_settings_button], layout="horizontal", labels=False)])
