@@ -263,3 +263,23 @@ def test_progress_in_a_log_is_plain_lines() -> None:
     assert "\r" not in text and "\x1b" not in text and text.isascii()
     lines = text.splitlines()
     assert any("10/10" in line for line in lines) and "stage 1/1 complete" in lines
+
+
+def test_progress_starts_again_when_the_stages_run_again_with_model_parts() -> None:
+    """A run whose model-parts choice kept a part runs every stage again: the bar follows the count back to its start and
+    names the parts (the count would otherwise stand still until it passed the first pass's iterations)."""
+    from types import SimpleNamespace
+
+    from napari_fdt.cli import _show_progress
+
+    bar = _progress_bar(10, disable=False, stream=_Pipe())
+
+    def snap(it: int, again: tuple[str, ...]) -> SimpleNamespace:
+        return SimpleNamespace(stage=0, n_stages=2, factor=2, losses={"total": 1.0}, validation_error=0.1, eta_s=1.0,
+                               total_iterations=10, global_iteration=it, stage_complete=False, rerun_with=again)
+
+    _show_progress(bar, snap(8, ()))
+    assert bar.n == 8 and "again" not in bar.desc
+    _show_progress(bar, snap(3, ("aberrations",)))
+    assert bar.n == 3 and bar.total == 10 and "again with aberrations" in bar.desc
+    bar.close()

@@ -117,8 +117,12 @@ def _run(acq, cfg) -> Reconstructor:
 
 def test_auto_switches_the_aberrations_on_only_where_the_data_has_them(scenes) -> None:
     clean, aberrated = scenes
-    rec = _run(aberrated, _config(obliquity_correction="auto"))
+    rec = Reconstructor(aberrated, _config(obliquity_correction="auto"), device="cpu")
+    snaps = [(s_.global_iteration, s_.rerun_with) for s_ in rec.run()]
     choice = rec.parts_choice
+    # the snapshots say when the stages run again and with what (the widget and the CLI show it: the count restarts)
+    back = next(i for i in range(1, len(snaps)) if snaps[i][0] < snaps[i - 1][0])
+    assert all(w == () for _, w in snaps[:back]) and all(w == ("aberrations",) for _, w in snaps[back:])
     assert choice is not None and choice.parts["aberrations"] and not choice.parts["obliquity"], choice.trials
     assert choice.chosen_by["aberrations"] == "validation" and choice.chosen_by["pixel_integration"] == "setting"
     assert choice.chosen_by["obliquity"] == "validation" and choice.chosen_by["pupil"] == "acquisition"

@@ -355,7 +355,8 @@ def _progress_bar(total: int, *, disable: bool, stream=None):
 
 def _show_progress(bar, snap) -> None:
     """Advance the bar to a snapshot: stage, iteration, loss, validation error and the solver's time-left estimate."""
-    bar.set_description(f"stage {snap.stage + 1}/{snap.n_stages} (x{snap.factor})", refresh=False)
+    again = f", again with {'+'.join(snap.rerun_with)}" if snap.rerun_with else ""
+    bar.set_description(f"stage {snap.stage + 1}/{snap.n_stages} (x{snap.factor}{again})", refresh=False)
     post = {}
     loss = snap.losses.get("total")
     if loss is not None:
@@ -366,10 +367,13 @@ def _show_progress(bar, snap) -> None:
     bar.set_postfix(post, refresh=False)
     bar.total = snap.total_iterations
     step = snap.global_iteration - bar.n
+    if step < 0:  # the stages run again with the model parts the data needed: the count starts again
+        bar.reset(total=snap.total_iterations)
+        step = snap.global_iteration
     if step > 0:
         bar.update(step)
     if snap.stage_complete and not bar.disable:
-        bar.write(f"stage {snap.stage + 1}/{snap.n_stages} (x{snap.factor}) complete at iteration {snap.global_iteration}"
+        bar.write(f"stage {snap.stage + 1}/{snap.n_stages} (x{snap.factor}{again}) complete at iteration {snap.global_iteration}"
                   + (f", loss {loss:.4g}" if loss is not None else ""), file=bar.fp)
 
 

@@ -441,7 +441,8 @@ class ReconstructionWidget(Container):
         self._time_left.add(snap.stage, snap.iteration, snap.elapsed_s)
         left = self._time_left.seconds_left()
         left_txt = "" if left is None else f", about {_duration(left)} left"
-        self.status.value = (f"run #{self._runs}: stage {snap.stage + 1}/{snap.n_stages} (×{snap.factor}), iteration "
+        again = f" again with {', '.join(p.replace('_', ' ') for p in snap.rerun_with)}" if snap.rerun_with else ""
+        self.status.value = (f"run #{self._runs}: stage {snap.stage + 1}/{snap.n_stages}{again} (×{snap.factor}), iteration "
                              f"{snap.iteration}/{snap.stage_iterations}; {_duration(snap.elapsed_s)} elapsed{left_txt}")
         self.losses.value = "loss: " + ", ".join(f"{k} {v:.4g}" for k, v in snap.losses.items())
         self.curve.add(snap)

@@ -97,6 +97,9 @@ class Snapshot:
     validation_error: float | None = None
     #: the same error on the last training batch (its trained gains; this rank's part in a distributed run)
     train_error: float | None = None
+    #: the model parts the data needed when the stages run again with them (``parts_rerun``): the iteration count
+    #: then starts again from the first stage; empty during the first pass
+    rerun_with: tuple[str, ...] = ()
 
     def delta_n_full(self) -> np.ndarray:
         """Δn on the acquisition grid (n_slices, H, W), float32."""
@@ -900,10 +903,18 @@ class Reconstructor:
             sources_um=self.sources_um(), gains=self.gains(),
             calibration=self.calibration.summary(), losses=losses, elapsed_s=elapsed, eta_s=remaining,
             stage_complete=complete, full_shape=self.full_shape, validation_error=validation_error, train_error=train_error,
+            rerun_with=self._rerun_parts(),
         )
         self.history.append({"stage": stage.index, "iteration": it, "global_iteration": global_it,
                              "elapsed_s": elapsed, **losses, "validation_error": validation_error, "train_error": train_error})
         return snap
+
+    def _rerun_parts(self) -> tuple[str, ...]:
+        """The parts kept by the data while the stages run again with them (:attr:`Snapshot.rerun_with`)."""
+        choice = self.parts_choice
+        if choice is None or choice.rerun != "stages":
+            return ()
+        return tuple(p for p, on in choice.parts.items() if on and choice.chosen_by.get(p) == "validation")
 
     # -- distributed ----------------------------------------------------------------------------
     def _share_per_source_rows(self, optimiser_state: bool = False) -> None:
