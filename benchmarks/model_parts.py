@@ -56,11 +56,27 @@ SETTINGS = {
     # run-to-run spread of the defaults (the batch order's seed)
     "auto_seed1": {"seed": 1},
     "auto_seed2": {"seed": 2},
+    "auto_seed3": {"seed": 3},
+    "auto_seed4": {"seed": 4},
     # diagnostic (not a default): the defaults with the pupil's edge the calibration found on _real (0.004), not stated 0
     "auto_edge004": {"pupil_edge": 0.004},
     # diagnostic (not a default): "auto" told the pupil is hard (what _effects states), so only its detection is missing
     "auto_hard": {"pupil_edge": 0.0, "calibrate_pupil": "false", "parts_test_images": "held_out"},
 }
+
+
+def overrides(setting: str) -> dict:
+    """The configuration overrides of a setting: a name of :data:`SETTINGS`, or ``NAME@key=value@key=value`` (the
+    named setting with more overrides, values as JSON, e.g. ``auto@seed=2@lr_ri_final_ratio=0.1``)."""
+    name, *pairs = setting.split("@")
+    out = dict(SETTINGS[name])
+    for pair in pairs:
+        key, value = pair.split("=", 1)
+        try:
+            out[key] = json.loads(value)
+        except json.JSONDecodeError:
+            out[key] = value
+    return out
 
 
 def scene_names() -> list[str]:
@@ -101,7 +117,7 @@ def run_one(scene: str, setting: str, device: str) -> dict:
     truth, _ = read_volume_tiff(folder / "ground_truth_ri.tif")
     true_dn = truth - acq.optics.n_background
     truth_src = np.array(json.loads((folder / "ground_truth_sources_um.json").read_text())["sources_um"])
-    cfg = SolverConfig.from_dict({**SolverConfig().to_dict(), **SETTINGS[setting]})
+    cfg = SolverConfig.from_dict({**SolverConfig().to_dict(), **overrides(setting)})
     t0 = time.perf_counter()
     rec = Reconstructor(acq, cfg, device=device)
     for _ in rec.run():

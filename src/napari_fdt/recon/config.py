@@ -103,6 +103,10 @@ class SolverConfig:
     delta_n_max: float = setting(0.1, gt=0, description="bound of Δn (absolute RI units)")
     activation: Activation = setting("paper", strict=False, description="`\"paper\"` (Δn ≥ 0) or `\"signed\"`")
     lr_ri: float = setting(0.05, gt=0, description="Adam step of the RI parameters (activation input units)")
+    lr_ri_final_ratio: float = setting(
+        1.0, gt=0, le=1, description="the RI step at the end of the finest stage over `lr_ri`: the step falls along that stage "
+        "as ½(1 + cos(π·t))·(1 − r) + r (t from 0 to 1); 1 keeps it constant. A constant step leaves the last iterate "
+        "wherever the last batches pushed it (docs/solver.md, \"Run-to-run spread\")")
     # losses
     l1_l2_total: float = setting(1.0, ge=0, description="α + β", fix="0 switches the term off")
     l1_ramp_start: float = setting(0.0, ge=0, le=1, description="fraction of the run where α starts rising from 0 (≤ `l1_ramp_end`)",

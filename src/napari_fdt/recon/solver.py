@@ -56,6 +56,7 @@ from napari_fdt.recon.model_parts import (
 )
 from napari_fdt.recon.preflight import check_backward_mode, check_memory, warn_about_images, warn_about_sampling
 from napari_fdt.recon.regularisation import PROBE_SHARE, TV_PATH, TVChoice, candidate_weights, pick, selection_stages, tv_is_auto
+from napari_fdt.recon.schedule import final_step_scale
 from napari_fdt.recon.stages import Stage, build_stage, camera_model_options, stated_pixel_integration
 from napari_fdt.recon.validation import BestIterate, holdout_indices, per_image_errors, relative_image_error
 from napari_fdt.recon.volume import RIVolume, upsample_to
@@ -617,6 +618,9 @@ class Reconstructor:
                         return
                     progress = global_it / max(1, cfg.total_iterations)
                     snapshot_due = it == stage.iterations or it % cfg.snapshot_every == 0
+                    if si == len(cfg.stages) - 1:
+                        for group in vol_opt.param_groups:
+                            group["lr"] = cfg.lr_ri * final_step_scale(it, stage.iterations, cfg.lr_ri_final_ratio)
                     terms, err = self._step(stage, mask, vol_opt, batch_size, data_range, progress, snapshot_due)
                     train_error = err if snapshot_due else train_error
                     global_it += 1
