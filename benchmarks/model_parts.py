@@ -135,6 +135,7 @@ def run_one(scene: str, setting: str, device: str) -> dict:
         "validation_error": rec.stages[-1].validation_error if rec.stages else None,
         "source_lateral_rms_um": source_errors(rec.sources_um(), truth_src)["lateral_rms_um"],
         "calibration": rec.calibration.summary(), "model_parts": parts, "wall_s": wall,
+        "tv_xy_weight": None if rec.tv_choice is None else rec.tv_choice.tv_xy_weight, "overrides": overrides(setting),
         "stage_seconds": [r.seconds for r in rec.stages], "threads": torch.get_num_threads(),
         "cpu": platform.processor() or platform.machine(), "torch": torch.__version__, "date": time.strftime("%Y-%m-%d"),
     }
