@@ -1,0 +1,33 @@
+"""The automatic TV weight for several batch-order seeds: the pilot alone (no full run), its held-out error per weight.
+
+Usage (repository root; a scene folder of ``benchmarks/model_parts.py``)::
+
+    python benchmarks/tv_choice_seeds.py out/parts/letters_clean 0 1 2
+
+Used in docs/solver.md ("Run-to-run spread") to tell a spread of the chosen weight from a spread of the trajectory.
+"""
+
+from __future__ import annotations
+
+import sys
+
+import torch
+
+from napari_fdt import read_acquisition
+from napari_fdt.recon.config import SolverConfig
+from napari_fdt.recon.solver import Reconstructor
+
+
+def main(argv: list[str]) -> None:
+    torch.set_num_threads(1)
+    acq = read_acquisition(argv[0])
+    for seed in map(int, argv[1:]):
+        rec = Reconstructor(acq, SolverConfig(seed=seed), device="cpu")
+        rec._pilot(None)
+        c = rec.tv_choice
+        trials = ", ".join(f"τ {t['tau']:g}: {t['validation_error']:.5f}" for t in c.trials)
+        print(f"{argv[0]} seed {seed}: τ_xy {c.tv_xy_weight:g} ({trials})", flush=True)
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])
