@@ -174,6 +174,8 @@ def test_a_checkpoint_between_the_passes_resumes_the_second(scenes) -> None:
     assert rec.coarse_model == "multislice" and rec._choose_again == ["pupil"] and rec._auto_parts == ["pupil"]
     assert rec.calibration.fit_aberrations and not rec.calibration.fit_pupil
     assert rec.calibration.position_frozen_stages == frozenset()  # positions train in multi-slice coarse stages
+    # ... with the multi-slice step length there (the stage roles follow the coarse model, as in an unbroken run)
+    assert rec.calibration.envelope_stages == frozenset() and rec.calibration.depth_frozen_stages == frozenset()
 
 
 def test_no_choice_without_a_split_or_with_fixed_settings(scenes) -> None:

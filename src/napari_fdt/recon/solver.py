@@ -301,11 +301,15 @@ class Reconstructor:
                           pupil_edge=camera_model_options(self.config, self.acquisition)["pupil_edge"])
         if getattr(self, "parts", None):
             cal.fit_pupil, cal.fit_aberrations = self.parts["pupil"], self.parts["aberrations"]
+        self._set_stage_roles(cal)
+        return cal
+
+    def _set_stage_roles(self, cal: Calibration) -> None:
+        """Tell ``cal`` which stages run the envelope model and in which its positions or depths stay fixed (they
+        follow :attr:`coarse_model`)."""
         cal.position_frozen_stages = position_frozen_stages(self.config, self.coarse_model)
         cal.depth_frozen_stages = depth_frozen_stages(self.config, self.coarse_model)
-        cal.envelope_stages = frozenset(i for i, s in enumerate(self.config.stages) if s.factor > 1) \
-            if self.coarse_model == "envelope" else frozenset()
-        return cal
+        cal.envelope_stages = envelope_stages(self.config, self.coarse_model)
 
     # -- optional model parts ---------------------------------------------------------------------
     def _init_parts(self) -> None:
@@ -370,7 +374,7 @@ class Reconstructor:
         envelope model holds none of the parts; a coarse model given by name is kept)."""
         if self.config.coarse_model == "auto":
             self.coarse_model = "multislice"
-            self.calibration.position_frozen_stages = position_frozen_stages(self.config, self.coarse_model)
+            self._set_stage_roles(self.calibration)
 
     def _restart_with_parts(self) -> None:
         """After a first choice that kept parts (``parts_rerun`` ``"stages"``): back to the state before any stage, with
@@ -1024,23 +1028,34 @@ class Reconstructor:
         return rec
 
 
+def envelope_stages(config: SolverConfig, coarse_model: str) -> frozenset[int]:
+    """Stages that run the envelope model: factor > 1 with ``coarse_model`` ``"envelope"`` (as :func:`build_stage`)."""
+    if coarse_model != "envelope":
+        return frozenset()
+    return frozenset(i for i, s in enumerate(config.stages) if s.factor > 1)
+
+
+def _envelope_stages_before_multislice(config: SolverConfig, coarse_model: str) -> frozenset[int]:
+    """The envelope stages that a multi-slice stage follows (none when every stage is an envelope one)."""
+    env = envelope_stages(config, coarse_model)
+    return frozenset(i for i in env if not all(j in env for j in range(i, len(config.stages))))
+
+
 def position_frozen_stages(config: SolverConfig, coarse_model: str) -> frozenset[int]:
     """Stages whose source positions and depth offset stay fixed: with ``calibrate_sources_in_envelope_stages`` off, the
     envelope stages (factor > 1, ``coarse_model`` ``"envelope"``) that a multi-slice stage follows. Fitted with the volume
     at the truth, the envelope model pulls the positions off (``docs/solver.md``, "Source positions")."""
-    if config.calibrate_sources_in_envelope_stages or coarse_model != "envelope":
+    if config.calibrate_sources_in_envelope_stages:
         return frozenset()
-    envelope = [s.factor > 1 for s in config.stages]
-    return frozenset(i for i, e in enumerate(envelope) if e and not all(envelope[i:]))
+    return _envelope_stages_before_multislice(config, coarse_model)
 
 
 def depth_frozen_stages(config: SolverConfig, coarse_model: str) -> frozenset[int]:
     """Stages whose source depths (each source's own and the common offset) stay fixed while x, y train: with
     ``calibrate_source_depth_in_envelope_stages`` off, the envelope stages that a multi-slice stage follows."""
-    if config.calibrate_source_depth_in_envelope_stages or coarse_model != "envelope":
+    if config.calibrate_source_depth_in_envelope_stages:
         return frozenset()
-    envelope = [s.factor > 1 for s in config.stages]
-    return frozenset(i for i, e in enumerate(envelope) if e and not all(envelope[i:]))
+    return _envelope_stages_before_multislice(config, coarse_model)
 
 
 def reconstruct(acquisition: Acquisition, config: SolverConfig | None = None, *, device: str = "auto", **kwargs) -> Iterator[Snapshot]:
