@@ -78,8 +78,9 @@ def config_for(setting: str, base: dict | None = None):
     return SolverConfig.from_dict({**SolverConfig().to_dict(), **d})
 
 
-def run_one(scene: str, setting: str, device: str, base: dict | None = None) -> dict:
-    """One full reconstruction; the row of the results file."""
+def run_one(scene: str, setting: str, device: str, base: dict | None = None, on_snapshot=None) -> dict:
+    """One full reconstruction; the row of the results file. ``on_snapshot(rec, snap, truth_src, t0)``, if given, sees
+    every snapshot (``benchmarks/source_positions.py`` traces the sources with it)."""
     from napari_fdt import read_acquisition, read_volume_tiff
     from napari_fdt.recon.metrics import relative_delta_n_error
     from napari_fdt.recon.report import evaluate_images, source_errors
@@ -95,6 +96,8 @@ def run_one(scene: str, setting: str, device: str, base: dict | None = None) -> 
     rec = Reconstructor(acq, cfg, device=device)
     stages = []
     for snap in rec.run():
+        if on_snapshot is not None:
+            on_snapshot(rec, snap, truth_src, t0)
         if snap.stage_complete:
             stages.append({"stage": snap.stage, "factor": snap.factor, "validation_error": snap.validation_error,
                            "relative_delta_n_error": relative_delta_n_error(snap.delta_n_full(), true_dn)})

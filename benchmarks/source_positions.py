@@ -106,44 +106,21 @@ def fixed_volume_fit(folder: Path, factor: int, model: str, start: str = "initia
 def traced_run(scene: str, setting: str, overrides: dict | None = None, every: int = 40, verbose: bool = False) -> dict:
     """One full default reconstruction of a suite scene (``benchmarks/regularisation.py``'s ``run_one`` row) with the
     source errors traced every ``every`` iterations of each stage and at each stage's end (``trace``)."""
-    import platform
     import sys
 
     sys.path.insert(0, str(Path(__file__).parent))
     import regularisation as suite
-    from napari_fdt import read_acquisition, read_volume_tiff
-    from napari_fdt.recon.metrics import relative_delta_n_error
-    from napari_fdt.recon.report import evaluate_images, source_errors
-    from napari_fdt.recon.solver import Reconstructor
 
-    folder, _ = suite.SCENES[scene]
-    acq = read_acquisition(folder)
-    truth, _ = read_volume_tiff(folder / "ground_truth_ri.tif")
-    true_dn = truth - acq.optics.n_background
-    truth_src = np.array(json.loads((folder / "ground_truth_sources_um.json").read_text())["sources_um"])
-    cfg = suite.config_for(setting, overrides)
-    t0 = time.perf_counter()
-    rec = Reconstructor(acq, cfg, device="cpu")
-    stages, trace = [], []
-    for snap in rec.run():
+    trace: list[dict] = []
+
+    def record(rec, snap, truth_src, t0) -> None:
         if snap.iteration % every == 0 or snap.stage_complete:
             trace.append({"stage": snap.stage, "iteration": snap.iteration, **errors(rec.sources_um(), truth_src),
                           "depth_offset_um": float(rec.calibration.depth_offset_um.detach()), "seconds": time.perf_counter() - t0})
             if verbose:
                 print(f"stage {snap.stage} " + _line(trace[-1]), flush=True)
-        if snap.stage_complete:
-            stages.append({"stage": snap.stage, "factor": snap.factor, "validation_error": snap.validation_error,
-                           "relative_delta_n_error": relative_delta_n_error(snap.delta_n_full(), true_dn)})
-    wall = time.perf_counter() - t0
-    _, fit = evaluate_images(rec)
-    src = source_errors(rec.sources_um(), truth_src)
-    return {"scene": scene, "setting": setting, "device": "cpu", "config_overrides": overrides or {},
-            "relative_delta_n_error": relative_delta_n_error(rec.delta_n_full(), true_dn),
-            "validation_error": rec.stages[-1].validation_error if rec.stages else None, "stages": stages,
-            "tv": None if rec.tv_choice is None else rec.tv_choice.to_dict(), "image_relative_error": fit["image_relative_error"],
-            "source_lateral_rms_um": src["lateral_rms_um"], "source_depth_rms_um": src["depth_rms_um"], "wall_s": wall,
-            "iterations": cfg.total_iterations, "threads": torch.get_num_threads(), "cpu": platform.processor() or platform.machine(),
-            "torch": torch.__version__, "date": time.strftime("%Y-%m-%d"), "trace": trace}
+
+    return {**suite.run_one(scene, setting, "cpu", overrides, on_snapshot=record), "trace": trace}
 
 
 def main(argv: list[str] | None = None) -> None:
