@@ -112,8 +112,17 @@ def run_one(scene: str, setting: str, device: str, base: dict | None = None, on_
         "source_lateral_rms_um": src["lateral_rms_um"], "source_depth_rms_um": src["depth_rms_um"], "wall_s": wall,
         "iterations": cfg.total_iterations, "threads": torch.get_num_threads(),
         "cpu": platform.processor() or platform.machine(), "torch": torch.__version__,
-        "date": time.strftime("%Y-%m-%d"),
+        "date": time.strftime("%Y-%m-%d"), "commit": code_version(),
     }
+
+
+def code_version() -> str:
+    """The commit the row was made with (``git describe --always --dirty``), so that rows of older code can be told apart."""
+    try:
+        return subprocess.run(["git", "describe", "--always", "--dirty"], cwd=ROOT, capture_output=True, text=True,
+                              check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
 
 
 def results_path(device: str) -> Path:

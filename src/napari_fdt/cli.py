@@ -481,6 +481,11 @@ def _run_and_write(args, config, acq, out: Path, json_out: Path, truth, truth_sr
     write_result(rec, out, report, overwrite=args.overwrite)
     st = ", ".join(f"x{r['factor']}: {r.get('stopped_at') or r['iterations']} it, {r['seconds_per_iteration']:.3f} s/it" for r in report["stages"])
     print(f"wrote {out} and {json_out}: {report['seconds_total']:.1f} s on {rec.device} ({st})")
+    lengths = report.get("stage_lengths")
+    if lengths and lengths["iterations"] != lengths["requested_iterations"]:
+        print(f"finest stage lengthened to {lengths['iterations'][-1]} iterations (asked {lengths['requested_iterations'][-1]}): "
+              f"{lengths['passes'][-1]:.0f} passes over the {lengths['n_images']} images, so that every source is fitted "
+              f"at least {lengths['final_stage_min_passes']:g} times (final_stage_min_passes)")
     fit = report.get("image_fit")
     if fit:
         print(f"image fit: relative error {fit['image_relative_error']:.4f}, PSNR {fit['image_psnr']:.1f} dB, SSIM {fit['image_ssim']:.3f}")

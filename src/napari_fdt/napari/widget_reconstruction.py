@@ -63,7 +63,7 @@ from napari_fdt.napari.widget_common import (
 )
 from napari_fdt.napari.widget_curve import ErrorCurveWidget
 from napari_fdt.recon.command import format_command, reconstruct_command
-from napari_fdt.recon.config import SolverConfig, load_config
+from napari_fdt.recon.config import SolverConfig, load_config, resolve_stage_lengths
 from napari_fdt.recon.report import describe_parts
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -337,7 +337,8 @@ class ReconstructionWidget(Container):
         with self.feedback.guard():
             layer = self.layer.value
             acq = acquisition_of(layer)
-            config = self.config()
+            # the stages as the solver will run them (the finest lengthened for large acquisitions): progress and time left
+            config = resolve_stage_lengths(self.config(), acq.n_images)
             sources = sources_for(self._viewer, layer, acq, required=False)
             device = self.device.value
             from napari_fdt.device import resolve_device

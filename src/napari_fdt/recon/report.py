@@ -47,6 +47,18 @@ def source_errors(calibrated_um: np.ndarray, true_um: np.ndarray) -> dict[str, f
     }
 
 
+def stage_lengths(rec: Any) -> dict[str, Any]:
+    """The stages' iterations as asked (``requested_iterations``) and as run (``iterations``), and the passes over
+    the images each makes (iterations × batch / images; a source is fitted once per pass): the finest stage is
+    lengthened to ``final_stage_min_passes`` (:func:`napari_fdt.recon.config.resolve_stage_lengths`)."""
+    cfg = rec.config
+    n = max(1, rec.acquisition.n_images)
+    used = [s.iterations for s in cfg.stages]
+    return {"requested_iterations": list(getattr(rec, "requested_stage_iterations", used)), "iterations": used,
+            "passes": [s.iterations * min(cfg.stage_batch(i), n) / n for i, s in enumerate(cfg.stages)],
+            "final_stage_min_passes": cfg.final_stage_min_passes, "n_images": n}
+
+
 def build_report(
     rec: Reconstructor,
     *,
@@ -76,6 +88,7 @@ def build_report(
         "hardware": {"torch": torch.__version__, "python": platform.python_version(), "threads": torch.get_num_threads(),
                      "device_name": torch.cuda.get_device_name(rec.device) if rec.device.type == "cuda" else platform.processor() or platform.machine()},
         "config": rec.config.to_dict(),
+        "stage_lengths": stage_lengths(rec),
         "ri": {"shape": [o.n_slices, *rec.full_shape], "n_background": o.n_background, "units": "absolute refractive index",
                "voxel_size_um": [o.slice_spacing_um, o.pixel_size_um, o.pixel_size_um],
                "slice_order": "slice 0 nearest the sources"},

@@ -40,7 +40,7 @@ from napari_fdt.model.render import iter_batches
 from napari_fdt.recon.batches import BatchOrder
 from napari_fdt.recon.calibration import Calibration
 from napari_fdt.recon.checkpoint import checkpoint_path, checkpoint_state, read_checkpoint, restore_checkpoint, write_checkpoint
-from napari_fdt.recon.config import SolverConfig, resolve_coarse_model
+from napari_fdt.recon.config import SolverConfig, resolve_coarse_model, resolve_stage_lengths
 from napari_fdt.recon.losses import BatchShare, LossWeights, as_floats, total_loss
 from napari_fdt.recon.model_parts import (
     BINARY_PARTS,
@@ -178,7 +178,11 @@ class Reconstructor:
     ) -> None:
         self.acquisition = acquisition
         self.group = group
-        self.config = config or SolverConfig()
+        requested = config or SolverConfig()
+        #: the configuration as run: the finest stage lengthened to ``final_stage_min_passes`` passes over the images
+        #: (:func:`napari_fdt.recon.config.resolve_stage_lengths`); ``requested_stage_iterations`` are the stages' as given
+        self.config = resolve_stage_lengths(requested, acquisition.n_images)
+        self.requested_stage_iterations = [s.iterations for s in requested.stages]
         self.device = resolve_device(device)
         self.dtype = torch.float32
         cfg = self.config
