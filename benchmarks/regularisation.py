@@ -92,6 +92,7 @@ def run_one(scene: str, setting: str, device: str, base: dict | None = None, on_
     true_dn = truth - acq.optics.n_background
     truth_src = np.array(json.loads((folder / "ground_truth_sources_um.json").read_text())["sources_um"])
     cfg = config_for(setting, base)
+    commit = code_version()  # at the start: the code this process imported
     t0 = time.perf_counter()
     rec = Reconstructor(acq, cfg, device=device)
     stages = []
@@ -112,7 +113,7 @@ def run_one(scene: str, setting: str, device: str, base: dict | None = None, on_
         "source_lateral_rms_um": src["lateral_rms_um"], "source_depth_rms_um": src["depth_rms_um"], "wall_s": wall,
         "iterations": cfg.total_iterations, "threads": torch.get_num_threads(),
         "cpu": platform.processor() or platform.machine(), "torch": torch.__version__,
-        "date": time.strftime("%Y-%m-%d"), "commit": code_version(),
+        "date": time.strftime("%Y-%m-%d"), "commit": commit,
     }
 
 

@@ -6,6 +6,7 @@ Needs napari, a Qt binding, pytest-qt and an X display (``bash scripts/test.sh``
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import sys
@@ -68,7 +69,9 @@ def _docked(viewer, widget):
     return widget
 
 
-def _settings(widget: ReconstructionWidget, stages: str) -> None:
+def _settings(widget: ReconstructionWidget, stages: str, final_stage_min_passes: float = 0.0) -> None:
+    """Small runs of exactly ``stages`` (``final_stage_min_passes`` 0: the finest stage is not lengthened)."""
+    widget.set_config(dataclasses.replace(widget.config(), final_stage_min_passes=final_stage_min_passes))
     widget.stages.value = stages
     widget.batch_size.value = 4
     widget.snapshot_every.value = 1
@@ -726,15 +729,19 @@ def test_error_curve_updates_during_a_run(make_napari_viewer, qtbot, tmp_path) -
     viewer = make_napari_viewer()
     _open(viewer, folder)
     w = _docked(viewer, ReconstructionWidget(viewer))
-    _settings(w, "2x10, 1x40")
+    _settings(w, "2x10, 1x40", final_stage_min_passes=24)  # the default
     w.validation_fraction.value = 0.2
     w.run_button.clicked.emit()
+    # 16 images in batches of 4: the finest stage's 40 iterations are 10 passes, lengthened to 24 passes = 96 iterations,
+    # which the progress bar, the curve's range and the status know as the run starts (no update has arrived yet)
+    assert w.progress.max == 10 + 96 and w.curve.curve.total_iterations == 10 + 96 and "96 iterations" in w.status.value
     qtbot.waitUntil(lambda: len(w.curve.curve.validation) >= 3, timeout=60_000)
-    assert w.running or len(w.curve.curve.validation) < 50  # points arrive before the run ends, one per snapshot
+    assert w.running or len(w.curve.curve.validation) < 106  # points arrive before the run ends, one per snapshot
     _wait_done(qtbot, w)
     assert w.feedback.last_error is None
     curve = w.curve.curve
-    assert len(curve.validation) == 50 and len(curve.train) == 50  # snapshot_every 1: 10 + 40 iterations
+    assert len(curve.validation) == 106 and len(curve.train) == 106  # snapshot_every 1: 10 + 96 iterations
+    assert w._report["stage_lengths"]["iterations"] == [10, 96] and w._report["config"]["stages"][1]["iterations"] == 40
     assert all(0 < v < 1 for _, v in curve.validation)
     assert w._report["validation"]["n_images"] == 3 and "validation" in w.curve_caption.value
 

@@ -111,7 +111,7 @@ def _config(**kw):
 
     # Fixed TV weights: with "auto" the held-out images choose the weights (test_regularisation.py), which is their use
     base = dict(stages=[StageConfig(2, 6), StageConfig(1, 8)], batch_size=4, snapshot_every=2, validation_fraction=0.2,
-                tv_xy_weight=0.0, tv_z_weight=0.0)
+                tv_xy_weight=0.0, tv_z_weight=0.0, final_stage_min_passes=0)  # the stages as given
     base.update(kw)
     return SolverConfig(**base)
 

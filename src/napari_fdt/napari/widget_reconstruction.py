@@ -337,8 +337,9 @@ class ReconstructionWidget(Container):
         with self.feedback.guard():
             layer = self.layer.value
             acq = acquisition_of(layer)
+            config = self.config()
             # the stages as the solver will run them (the finest lengthened for large acquisitions): progress and time left
-            config = resolve_stage_lengths(self.config(), acq.n_images)
+            run_config = resolve_stage_lengths(config, acq.n_images)
             sources = sources_for(self._viewer, layer, acq, required=False)
             device = self.device.value
             from napari_fdt.device import resolve_device
@@ -357,8 +358,8 @@ class ReconstructionWidget(Container):
             kwargs["contrast_limits"] = (n_b, n_b + 0.5 * config.delta_n_max)
             kwargs["metadata"]["fdt_run"] = self._runs
             self._ri_layer = self._viewer.add_image(data, **kwargs)  # one layer per run: earlier runs are kept
-            self._stage_iterations = [s.iterations for s in config.stages]
-            self._time_left = TimeLeft(self._stage_iterations, stage_costs(acq.optics, acq.image_shape, config, acq.n_images,
+            self._stage_iterations = [s.iterations for s in run_config.stages]
+            self._time_left = TimeLeft(self._stage_iterations, stage_costs(acq.optics, acq.image_shape, run_config, acq.n_images,
                                                                                 device_type))
             worker = GeneratorWorker(
                 reconstruction_job, acq, config, device=device, initial_sources_um=sources, stop=stop,
@@ -372,13 +373,16 @@ class ReconstructionWidget(Container):
             worker.finished.connect(self._on_finished)
             self._worker = worker
             self._stop, self._done, self._closing = stop, done, closing
-            self.progress.max = max(1, config.total_iterations)
+            self.progress.max = max(1, run_config.total_iterations)
             self.progress.value = 0
-            self.curve.reset(config.total_iterations)
+            self.curve.reset(run_config.total_iterations)
             self.curve_caption.value = ""
             self.losses.value = ""
             self._set_running(True)
             self.status.value = f"run #{self._runs}: starting on {device}…"
+            if run_config.stages[-1].iterations != config.stages[-1].iterations:
+                self.status.value += (f" (finest stage {run_config.stages[-1].iterations} iterations, not {config.stages[-1].iterations}: "
+                                      f"{config.final_stage_min_passes:g} passes over the {acq.n_images} images)")
             self._watch_close()
             self._t0 = time.perf_counter()
         if worker is not None:  # started outside the guard's warning capture (see widget_common._THREADS)

@@ -34,7 +34,7 @@ def checkpoint_state(rec: Reconstructor) -> dict[str, Any]:
     """The state of ``rec`` as a checkpoint dict (tensors on the CPU)."""
     return {
         "format": FORMAT, "version": 1,
-        "config": rec.config.to_dict(), "completed_stages": rec.completed_stages,
+        "config": rec.requested_config.to_dict(), "completed_stages": rec.completed_stages,
         "volume": None if rec.volume is None else rec.volume.state_dict(), "volume_factor": rec.volume_factor,
         **rec.calibration.state_dict(),
         **rec.batches.state_dict(),

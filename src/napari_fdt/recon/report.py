@@ -54,7 +54,8 @@ def stage_lengths(rec: Any) -> dict[str, Any]:
     cfg = rec.config
     n = max(1, rec.acquisition.n_images)
     used = [s.iterations for s in cfg.stages]
-    return {"requested_iterations": list(getattr(rec, "requested_stage_iterations", used)), "iterations": used,
+    asked = rec.requested_config.stages
+    return {"requested_iterations": [s.iterations for s in asked], "iterations": used,
             "passes": [s.iterations * min(cfg.stage_batch(i), n) / n for i, s in enumerate(cfg.stages)],
             "final_stage_min_passes": cfg.final_stage_min_passes, "n_images": n}
 
@@ -87,7 +88,7 @@ def build_report(
         "device": str(rec.device),
         "hardware": {"torch": torch.__version__, "python": platform.python_version(), "threads": torch.get_num_threads(),
                      "device_name": torch.cuda.get_device_name(rec.device) if rec.device.type == "cuda" else platform.processor() or platform.machine()},
-        "config": rec.config.to_dict(),
+        "config": rec.requested_config.to_dict(),  # as given; the stages as run: stage_lengths
         "stage_lengths": stage_lengths(rec),
         "ri": {"shape": [o.n_slices, *rec.full_shape], "n_background": o.n_background, "units": "absolute refractive index",
                "voxel_size_um": [o.slice_spacing_um, o.pixel_size_um, o.pixel_size_um],

@@ -178,11 +178,11 @@ class Reconstructor:
     ) -> None:
         self.acquisition = acquisition
         self.group = group
-        requested = config or SolverConfig()
+        #: the configuration as given (what RI.json and checkpoints store: resolving it again gives the same run)
+        self.requested_config = config or SolverConfig()
         #: the configuration as run: the finest stage lengthened to ``final_stage_min_passes`` passes over the images
-        #: (:func:`napari_fdt.recon.config.resolve_stage_lengths`); ``requested_stage_iterations`` are the stages' as given
-        self.config = resolve_stage_lengths(requested, acquisition.n_images)
-        self.requested_stage_iterations = [s.iterations for s in requested.stages]
+        #: (:func:`napari_fdt.recon.config.resolve_stage_lengths`)
+        self.config = resolve_stage_lengths(self.requested_config, acquisition.n_images)
         self.device = resolve_device(device)
         self.dtype = torch.float32
         cfg = self.config
