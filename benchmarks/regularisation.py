@@ -109,7 +109,9 @@ def run_one(scene: str, setting: str, device: str, base: dict | None = None, on_
     return {
         "scene": scene, "setting": setting, "device": device, "config_overrides": base or {},
         "relative_delta_n_error": relative_delta_n_error(rec.delta_n_full(), true_dn), "validation_error": val,
-        "stages": stages, "tv": None if rec.tv_choice is None else rec.tv_choice.to_dict(), "image_relative_error": fit["image_relative_error"],
+        "stages": stages, "tv": None if rec.tv_choice is None else rec.tv_choice.to_dict(),
+        "parts_needed": [] if rec.parts_choice is None else rec.parts_choice.needed,
+        "finest_iterations": rec.config.stages[-1].iterations, "image_relative_error": fit["image_relative_error"],
         "source_lateral_rms_um": src["lateral_rms_um"], "source_depth_rms_um": src["depth_rms_um"], "wall_s": wall,
         "iterations": cfg.total_iterations, "threads": torch.get_num_threads(),
         "cpu": platform.processor() or platform.machine(), "torch": torch.__version__,
@@ -139,8 +141,9 @@ def _effective_overrides(overrides: dict) -> dict:
     return {k: v for k, v in overrides.items() if defaults.get(k) != v}
 
 
-def load_rows(paths: list[Path]) -> list[dict]:
-    """Rows of the results files, the last of each (scene, setting, overrides) kept."""
+def load_rows(paths: list[Path], since: str | None = None) -> list[dict]:
+    """Rows of the results files, the last of each (scene, setting, overrides) kept; with ``since`` (YYYY-MM-DD) only
+    rows made on or after that day (rows of older code stay in the file as history)."""
     rows: dict[tuple, dict] = {}
     for p in paths:
         if not p.is_file():
@@ -148,6 +151,8 @@ def load_rows(paths: list[Path]) -> list[dict]:
         for line in p.read_text().splitlines():
             if line.strip():
                 r = json.loads(line)
+                if since is not None and r.get("date", "") < since:
+                    continue
                 r["config_overrides"] = _effective_overrides(r.get("config_overrides", {}))
                 rows[(r["scene"], r["setting"], json.dumps(r.get("config_overrides", {}), sort_keys=True))] = r
     return list(rows.values())
@@ -217,26 +222,27 @@ def table(rows: list[dict]) -> str:
     return text
 
 
-def write_doc(rows: list[dict]) -> None:
+def write_doc(rows: list[dict], since: str | None = None) -> None:
     """Replace the regularisation section of docs/ablation.md (between its markers) with the current table."""
     start, end = "<!-- regularisation:start -->", "<!-- regularisation:end -->"
     text = DOC.read_text(encoding="utf-8")
-    hw = sorted({f"{r['device']} ({r['threads']} threads, {r['cpu']}, torch {r['torch']}, {r['date']})" for r in rows})
+    hw = sorted({f"{r['device']} ({r['threads']} thread{'s' if r['threads'] > 1 else ''}, {r['cpu']}, torch {r['torch']}, {r['date']})"
+                 for r in rows})
+    commits = sorted({r.get("commit", "?") for r in rows})
     scenes = "; ".join(f"*{name}*: " + ("the bundled `sample_data/letters`" if args is None else f"`fdt simulate {args}`")
                        for name, (_, args) in SCENES.items() if any(r["scene"] == name for r in rows))
     body = "\n".join([
         start,
         "Made by `python benchmarks/regularisation.py run --scenes SCENES --settings auto,0,1,5,10,50,200` and",
-        "`python benchmarks/regularisation.py table --write` (every row, with each stage's errors and the trials of \"auto\",",
-        "is in `benchmarks/results/regularisation_<device>.jsonl`). Each row is a full reconstruction with the default",
-        "settings (10 % of the images held out) except the TV weights: `auto` (the default), `0` (no TV) or τ (τ_xy = τ,",
-        "τ_z = τ/2). Relative Δn error against the truth; validation error of the held-out images at the end; the",
-        "calibrated sources' lateral RMS error; wall time.",
+        f"`python benchmarks/regularisation.py table --write{' --since ' + since if since else ''}` (every row, with each stage's "
+        "errors, the trials of \"auto\" and the model parts kept,",
+        "is in `benchmarks/results/regularisation_<device>.jsonl`; older rows stay there as history). Each row is a full",
+        "reconstruction with the default settings (10 % of the images held out) except the TV weights: `auto` (the default),",
+        "`0` (no TV) or τ (τ_xy = τ, τ_z = τ/2). Relative Δn error against the truth; validation error of the held-out",
+        "images at the end; the calibrated sources' lateral RMS error; wall time.",
         f"Scenes (seed 0): {scenes}.",
-        f"Hardware: {'; '.join(hw)}. Most wall times were taken with one thread per run while other jobs shared the",
-        "2 cores and say little; the cost of \"auto\" measured on a quiet machine (the sample, 2 threads: 47.2 s against",
-        "35.9 s with the chosen weights given as numbers, +31 %) is in docs/solver.md. The first three sample rows (τ 0, 1,",
-        "5) ran with 2 threads, the rest with 1: float32 sums differ with the thread count, and so do long runs.",
+        f"Hardware: {'; '.join(hw)}; code: {', '.join(commits)}. The runs took one thread each, two to four at a time on",
+        "the 2 cores, so their wall times compare only roughly; the cost of \"auto\" on a quiet machine is in docs/solver.md.",
         "",
         table(rows),
         end,
@@ -262,6 +268,7 @@ def main(argv: list[str] | None = None) -> None:
     t = sub.add_parser("table")
     t.add_argument("--devices", default="cpu,cuda")
     t.add_argument("--write", action="store_true", help="write the section of docs/ablation.md")
+    t.add_argument("--since", default=None, help="only rows made on or after this day (YYYY-MM-DD): the current code's")
     args = p.parse_args(argv)
     if args.cmd == "make-scenes":
         make_scenes(args.scenes.split(","), args.device)
@@ -279,10 +286,10 @@ def main(argv: list[str] | None = None) -> None:
                 print(f"{scene:10s} {setting:5s} err {row['relative_delta_n_error']:.3f} val {row['validation_error'] or float('nan'):.4f} "
                       f"src {row['source_lateral_rms_um']:.3f} µm {row['wall_s']:.0f} s  [{st}] {row['tv'] or ''}", flush=True)
     else:
-        rows = load_rows([results_path(d) for d in args.devices.split(",")])
+        rows = load_rows([results_path(d) for d in args.devices.split(",")], args.since)
         print(table(rows))
         if args.write:
-            write_doc(rows)
+            write_doc(rows, args.since)
 
 
 if __name__ == "__main__":
