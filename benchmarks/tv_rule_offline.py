@@ -1,0 +1,101 @@
+"""Rules for the automatic TV weight, compared offline on recorded runs (issue 12, "auto within 5 % of the best TV").
+
+Usage (repository root)::
+
+    python benchmarks/tv_rule_offline.py --since 2026-11-25          # table of rules × scenes, means over seeds
+    python benchmarks/tv_rule_offline.py --since 2026-11-25 --markdown
+
+An "auto" run is bit-identical to the run given its chosen weight as a number (``tests/test_regularisation.py``), and
+its row in ``benchmarks/results/regularisation_cpu.jsonl`` keeps every trial of the pilot with its per-image held-out
+errors. So any rule that reads only those trials can be evaluated without running it: its choice on a (scene, seed) is
+a weight of the path, and its outcome is the fixed-weight row of that weight and seed (``regularisation.py run
+--settings 0,1,3,10 --set '{"seed": S}'``). A rule whose choice has no such row is reported as missing, never guessed.
+
+The rules: the paired k-standard-error rule of ``napari_fdt.recon.regularisation.pick`` for k = 0 (the plain lowest
+validation error), 1 (the default) and 2. Each scene's reference is the best weight of the sweep by its mean error
+over the same seeds (weights run with every seed that has an "auto" row).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from napari_fdt.recon.regularisation import pick  # noqa: E402
+from regularisation import RESULTS, SCENES, load_rows  # noqa: E402
+
+RULES = {"argmin (0 SE)": 0.0, "1 SE (default)": 1.0, "2 SE": 2.0}
+
+
+def _seed(row: dict) -> int:
+    return int((row.get("config_overrides") or {}).get("seed", 0))
+
+
+def evaluate(rows: list[dict]) -> list[dict]:
+    """One record per scene: seeds, the sweep's mean errors, and per rule its choices, mean error and ratio to the best."""
+    out = []
+    for scene in SCENES:
+        rs = [r for r in rows if r["scene"] == scene and set(r.get("config_overrides") or {}) <= {"seed"}]
+        autos = {_seed(r): r for r in rs if r["setting"] == "auto" and r.get("tv") and r["tv"].get("trials")}
+        if not autos:
+            continue
+        fixed: dict[float, dict[int, float]] = {}
+        for r in rs:
+            if r["setting"] != "auto":
+                fixed.setdefault(float(r["setting"]), {})[_seed(r)] = r["relative_delta_n_error"]
+        for sd, r in autos.items():  # an auto run is the fixed run at its choice
+            fixed.setdefault(float(r["tv"]["tv_xy_weight"]), {}).setdefault(sd, r["relative_delta_n_error"])
+        seeds = sorted(autos)
+        means = {tau: float(np.mean([by[s] for s in seeds])) for tau, by in fixed.items() if set(seeds) <= set(by)}
+        if not means:
+            continue
+        best = min(means, key=means.get)
+        rec = {"scene": scene, "seeds": seeds, "means": dict(sorted(means.items())), "best": best, "rules": {}}
+        for name, k in RULES.items():
+            chosen = {s: float(pick(autos[s]["tv"]["trials"], k)["tau"]) for s in seeds}
+            errs = [fixed.get(chosen[s], {}).get(s) for s in seeds]
+            missing = [s for s, e in zip(seeds, errs) if e is None]
+            mean = None if missing else float(np.mean(errs))
+            rec["rules"][name] = {"chosen": chosen, "errors": errs, "mean": mean, "missing": missing,
+                                  "ratio": None if mean is None else mean / means[best]}
+        out.append(rec)
+    return out
+
+
+def markdown(records: list[dict]) -> str:
+    lines = ["| scene | seeds | sweep mean errors (τ: error) | best | " + " | ".join(RULES) + " |",
+             "|---|---|---|---|" + "---|" * len(RULES)]
+    for rec in records:
+        sweep = ", ".join(f"{t:g}: {e:.3f}" for t, e in rec["means"].items())
+        cells = []
+        for name in RULES:
+            r = rec["rules"][name]
+            ch = "/".join(f"{r['chosen'][s]:g}" for s in rec["seeds"])
+            cells.append(f"τ {ch}: " + ("missing " + ",".join(map(str, r["missing"])) if r["mean"] is None
+                                       else f"{r['mean']:.3f} ({r['ratio']:.2f}×)"))
+        lines.append(f"| {rec['scene']} | {', '.join(map(str, rec['seeds']))} | {sweep} | {rec['best']:g} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--since", default=None, help="only rows made on or after this day (YYYY-MM-DD)")
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--markdown", action="store_true")
+    args = p.parse_args(argv)
+    records = evaluate(load_rows([RESULTS / f"regularisation_{args.device}.jsonl"], args.since))
+    if args.markdown:
+        print(markdown(records))
+        return
+    for rec in records:
+        print(rec["scene"], "seeds", rec["seeds"], "best", rec["best"], {k: round(v, 3) for k, v in rec["means"].items()})
+        for name, r in rec["rules"].items():
+            print(f"   {name:16s} chosen {r['chosen']} errors {r['errors']} mean {r['mean']} ratio {r['ratio']}")
+
+
+if __name__ == "__main__":
+    main()
