@@ -293,7 +293,7 @@ def resolve_stage_lengths(config: SolverConfig, n_images: int) -> SolverConfig:
     """
     if config.final_stage_min_passes <= 0 or not config.stages or n_images <= 0:
         return config
-    finest = min(range(len(config.stages)), key=lambda i: (config.stages[i].factor, -i))
+    finest = len(config.stages) - 1  # each factor divides the previous one: the last stage is the finest
     stage = config.stages[finest]
     if stage.iterations <= 0:
         return config

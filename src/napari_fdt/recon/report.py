@@ -47,7 +47,7 @@ def source_errors(calibrated_um: np.ndarray, true_um: np.ndarray) -> dict[str, f
     }
 
 
-def stage_lengths(rec: Any) -> dict[str, Any]:
+def stage_lengths(rec: Reconstructor) -> dict[str, Any]:
     """The stages' iterations as asked (``requested_iterations``) and as run (``iterations``), and the passes over
     the images each makes (iterations × batch / images; a source is fitted once per pass): the finest stage is
     lengthened to ``final_stage_min_passes`` (:func:`napari_fdt.recon.config.resolve_stage_lengths`)."""
