@@ -6,6 +6,11 @@ masks, in-place passes and adjoint are checked here without a GPU (their speed i
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+import textwrap
+
 import numpy as np
 import pytest
 import torch
@@ -130,3 +135,39 @@ def test_fused_mode_refused_before_the_run(monkeypatch) -> None:
     sim = simulate(np.zeros((4, 32, 32), np.float32), OPTICS, source_grid(3, 6.0, 12.0), noise=False, device="cpu")
     with pytest.raises(FDTInputError, match="backward_mode.*'fused' cannot run on cpu"):
         Reconstructor(sim.acquisition, SolverConfig(stages=[StageConfig(1, 2)], backward_mode="fused"), device="cpu")
+
+
+def test_cpu_model_does_not_import_triton() -> None:
+    """A CPU model without the interpreter never imports Triton (importing it where napari has loaded Mesa's
+    OpenGL, libLLVM, crashes the process): a fresh interpreter builds a model, renders an image, takes a gradient
+    and asks for the fused mode, and Triton is still not in ``sys.modules``."""
+    code = textwrap.dedent("""
+        import sys
+        import numpy as np
+        import torch
+        from napari_fdt.errors import FDTInputError
+        from napari_fdt.model.forward import MultiSliceModel
+        from napari_fdt.model.fused_loop import available, supports
+        from napari_fdt.model.render import render_images
+        from napari_fdt.physics.grid import plan_for_sources
+        from napari_fdt.physics.optics import Optics
+
+        optics = Optics(wavelength_um=0.6, na=0.6, n_background=1.33, pixel_size_um=0.35, n_slices=4,
+                        slice_spacing_um=1.0, image_plane_um=0.0)
+        src = np.array([[0.5, -0.3, 10.0]])
+        model = MultiSliceModel(optics, plan_for_sources(optics, (16, 16), src), device="cpu")
+        image = render_images(model, np.zeros((4, 16, 16), np.float32), src)
+        assert image.shape == (1, 16, 16) and float(image.sum()) > 0
+        dn = torch.zeros((4, 16, 16), requires_grad=True)
+        model(dn, torch.tensor(src, dtype=torch.float32)).sum().backward()
+        assert not available("cpu") and not supports(model.plan.padded_shape, "cpu")[0]
+        try:
+            MultiSliceModel(optics, model.plan, device="cpu", backward_mode="fused")
+        except FDTInputError:
+            pass
+        print("triton" in sys.modules)
+    """)
+    env = {k: v for k, v in os.environ.items() if k != "FDT_TRITON_INTERPRET"}
+    run = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.strip().splitlines()[-1] == "False", run.stdout

@@ -19,7 +19,7 @@ __all__ = ["available", "adjoint_screen"]
 
 @functools.lru_cache(maxsize=1)  # asked once per slice of every backward pass on CUDA
 def available() -> bool:
-    """True when Triton imports and a CUDA device is present."""
+    """True when a CUDA device is present and Triton imports (Triton is not imported without CUDA)."""
     from napari_fdt.model.fused_loop import available as fused_available
 
     return fused_available("cuda")

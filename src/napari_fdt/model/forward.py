@@ -345,7 +345,7 @@ class MultiSliceModel:
         rho_max = float(rho.detach().max()) + 2 * step
         n_rho = int(math.ceil(rho_max / step)) + 2
         f_max = _value(edges[-1])
-        s_max = min(0.999, f_max * float(lam) / o.n_background)
+        s_max = min(0.999, f_max * _value(lam) / o.n_background)
         tan_max = s_max / math.sqrt(1.0 - s_max * s_max)
         per_unit = 1.25 * (float(h.detach().max()) * tan_max + rho_max) + 4.0
         per_unit = 2.0 ** math.ceil(math.log2(per_unit))  # few distinct node sets: the Bessel table is reused

@@ -60,14 +60,17 @@ def interpreting(interpret: bool | None = None) -> bool:
 
 def available(device: torch.device | str, *, interpret: bool | None = None) -> bool:
     """True when the fused loop can run on ``device``: Triton imports and the device is CUDA, or the CPU with
-    ``interpret`` (Triton's interpreter; None: :func:`interpreting`)."""
+    ``interpret`` (Triton's interpreter; None: :func:`interpreting`).
+
+    Triton is imported only when the device could use it: importing it in a process where napari has loaded
+    Mesa's OpenGL (its libLLVM) crashes, so a CPU model without the interpreter must never touch it.
+    """
     device = torch.device(device)
-    interpret = interpreting(interpret)
-    if not _triton_importable():
-        return False
     if device.type == "cuda":
-        return torch.cuda.is_available()
-    return interpret and device.type == "cpu"
+        could_run = torch.cuda.is_available()
+    else:
+        could_run = device.type == "cpu" and interpreting(interpret)
+    return could_run and _triton_importable()
 
 
 #: Largest factor of a grid side (its tile side in registers): sides up to 64·64 = 4096.

@@ -50,7 +50,10 @@ def radial_nodes(edges: list, panels_per_unit: float, *, device=None, dtype=torc
     w = torch.tensor(_GL_W / 2.0, device=device, dtype=dtype)
     nodes, weights = [], []
     for a, b in zip(edges[:-1], edges[1:]):
-        length = float(b - a)
+        # the length only sets the (integer) panel count: a plain number, outside autograd; the nodes and weights
+        # below use the edges themselves, so their gradient is untouched
+        d = b - a
+        length = float(d.detach()) if isinstance(d, torch.Tensor) else float(d)
         if length <= 0:
             continue
         n_pan = max(2, int(math.ceil(panels_per_unit * length)))
