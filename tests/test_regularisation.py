@@ -123,8 +123,10 @@ def test_a_resumed_run_keeps_the_choice(scene16, tmp_path) -> None:
 
 
 def test_cancelling_the_pilot_stops_before_the_first_stage(scene16) -> None:
-    """A cancel during the trials ends the run with nothing completed and no choice (the next run chooses again)."""
+    """A cancel during the trials ends the run with nothing completed and no choice (the next run chooses again); the
+    snapshots were the pilot's (the two weights it had tried)."""
     rec = Reconstructor(scene16.acquisition, _config(), device="cpu")
     polls = iter(range(1000))
     snaps = list(rec.run(should_stop=lambda: next(polls) >= 4))  # stage 0 has 6 iterations: stopped inside the trials
-    assert snaps == [] and rec.completed_stages == 0 and rec.tv_choice is None and rec.volume is None
+    assert [s.phase for s in snaps] == ["tv_choice"] * 2 and [s.tv_weights[0] for s in snaps] == list(TV_PATH[:2])
+    assert rec.completed_stages == 0 and rec.tv_choice is None and rec.volume is None

@@ -354,9 +354,19 @@ def _progress_bar(total: int, *, disable: bool, stream=None):
 
 
 def _show_progress(bar, snap) -> None:
-    """Advance the bar to a snapshot: stage, iteration, loss, validation error and the solver's time-left estimate."""
+    """Advance the bar to a snapshot: stage, iteration, loss, validation error and the solver's time-left estimate.
+
+    While the pilot chooses the TV weight (phase "tv_choice") the bar counts the pilot's own iterations (its stages, then
+    each weight's trial, one line per weight tried) and says so; the count starts again when the phase changes (the pass,
+    and the stages run again with model parts)."""
+    phase = getattr(snap, "phase", "run")
+    pilot = phase == "tv_choice"
+    weights = getattr(snap, "tv_weights", None)
     again = f", again with {'+'.join(snap.rerun_with)}" if snap.rerun_with else ""
-    bar.set_description(f"stage {snap.stage + 1}/{snap.n_stages} (x{snap.factor}{again})", refresh=False)
+    where = f"stage {snap.stage + 1}/{snap.n_stages} (x{snap.factor}{again})"
+    if pilot:
+        where = f"choosing TV weight, stage {snap.stage + 1}/{snap.n_stages} (x{snap.factor})"
+    bar.set_description(where + (f", tried xy {weights[0]:g}" if weights is not None else ""), refresh=False)
     post = {}
     loss = snap.losses.get("total")
     if loss is not None:
@@ -365,16 +375,24 @@ def _show_progress(bar, snap) -> None:
         post["val"] = f"{snap.validation_error:.4f}"
     post["left"] = f"{snap.eta_s:.0f}s"
     bar.set_postfix(post, refresh=False)
-    bar.total = snap.total_iterations
-    step = snap.global_iteration - bar.n
-    if step < 0:  # the stages run again with the model parts the data needed: the count starts again
-        bar.reset(total=snap.total_iterations)
-        step = snap.global_iteration
+    total, done = (snap.phase_iterations, snap.phase_iteration) if pilot else (snap.total_iterations, snap.global_iteration)
+    new_phase = getattr(bar, "fdt_phase", phase) != phase
+    bar.fdt_phase = phase
+    bar.total = total
+    step = done - bar.n
+    if step < 0 or new_phase:  # a new phase (the pass after the pilot; the stages again with model parts): the count starts again
+        bar.reset(total=total)
+        step = done
     if step > 0:
         bar.update(step)
-    if snap.stage_complete and not bar.disable:
-        bar.write(f"stage {snap.stage + 1}/{snap.n_stages} (x{snap.factor}{again}) complete at iteration {snap.global_iteration}"
-                  + (f", loss {loss:.4g}" if loss is not None else ""), file=bar.fp)
+    if bar.disable:
+        return
+    if weights is not None:
+        val = f"validation error {snap.validation_error:.4f}" if snap.validation_error is not None else "no validation error"
+        bar.write(f"choosing TV weight: tried xy {weights[0]:g}, z {weights[1]:g}: {val}", file=bar.fp)
+    elif snap.stage_complete:
+        bar.write(f"{where} complete at iteration {snap.global_iteration}" + (f", loss {loss:.4g}" if loss is not None else ""),
+                  file=bar.fp)
 
 
 def _config_from_args(args: argparse.Namespace):
@@ -460,10 +478,12 @@ def _run_and_write(args, config, acq, out: Path, json_out: Path, truth, truth_sr
     writer = group is None or group.is_writer
     cancelled = False
     bar = _progress_bar(rec.config.total_iterations, disable=args.quiet or not writer)
+    snapshots = rec.run(checkpoint_dir=args.checkpoint_dir)
     try:
-        for snap in rec.run(checkpoint_dir=args.checkpoint_dir):
+        for snap in snapshots:
             _show_progress(bar, snap)
     except KeyboardInterrupt:
+        snapshots.close()  # interrupted in the TV pilot between two snapshots: back to no stage complete (not the pilot's)
         cancelled = True
         bar.close()
         if not writer:

@@ -26,7 +26,7 @@ import time
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable, Iterator, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Generator, Iterator, Sequence
 
 import numpy as np
 import torch
@@ -54,8 +54,10 @@ from napari_fdt.recon.model_parts import (
     parts_stage,
     requested_parts,
 )
+from napari_fdt.recon.phases import RERUN, RUN, TV_CHOICE, phase_counts, probe_iterations, work_left
+from napari_fdt.recon.phases import phase_label as _phase_label
 from napari_fdt.recon.preflight import check_backward_mode, check_memory, warn_about_images, warn_about_sampling
-from napari_fdt.recon.regularisation import PROBE_SHARE, TV_PATH, TVChoice, candidate_weights, pick, selection_stages, tv_is_auto
+from napari_fdt.recon.regularisation import TV_PATH, TVChoice, candidate_weights, pick, selection_stages, tv_is_auto
 from napari_fdt.recon.schedule import final_step_scale
 from napari_fdt.recon.stages import Stage, build_stage, camera_model_options, stated_pixel_integration
 from napari_fdt.recon.validation import BestIterate, holdout_indices, per_image_errors, relative_image_error
@@ -101,6 +103,25 @@ class Snapshot:
     #: the model parts the data needed when the stages run again with them (``parts_rerun``): the iteration count
     #: then starts again from the first stage; empty during the first pass
     rerun_with: tuple[str, ...] = ()
+    #: "tv_choice" for snapshots of the pilot that chooses the TV weight, "run" for the pass, "rerun" for the stages run
+    #: again with kept model parts (:mod:`napari_fdt.recon.phases`: the counts of each)
+    phase: str = RUN
+    #: iterations done in this phase, and in it in all (the pilot: its stages', then the trials'); in "run" and "rerun"
+    #: equal to ``global_iteration`` and ``total_iterations``
+    phase_iteration: int = 0
+    phase_iterations: int = 0
+    #: (τ_xy, τ_z) the pilot has just tried (a trial's snapshot: ``validation_error`` is the trial's); None otherwise
+    tv_weights: tuple[float, float] | None = None
+
+    @property
+    def phase_label(self) -> str:
+        """The phase in plain English: "choosing the smoothing (TV) weight", "reconstructing", "reconstructing again with …"."""
+        return _phase_label(self.phase, self.rerun_with, self.tv_weights)
+
+    @property
+    def phase_progress(self) -> float:
+        """The share of this phase done (:attr:`progress` when the phase's count is not given)."""
+        return self.phase_iteration / self.phase_iterations if self.phase_iterations > 0 else self.progress
 
     def delta_n_full(self) -> np.ndarray:
         """Δn on the acquisition grid (n_slices, H, W), float32."""
@@ -239,6 +260,8 @@ class Reconstructor:
         self._choose_again: list[str] = []
         #: whether :meth:`run` must run the stages again from the first (set by the first choice that keeps a part)
         self._restart_pending = False
+        #: whether the pilot is running (its snapshots are phase "tv_choice")
+        self._piloting = False
         self._init_parts()
         self.loss_weights = LossWeights.from_config(cfg)
         #: the TV weights chosen from the data ("auto"; :mod:`napari_fdt.recon.regularisation`), None until chosen
@@ -262,23 +285,35 @@ class Reconstructor:
         checkpoint (``checkpoint_dir/stage_<i>.pt``).
 
         With ``"auto"`` TV weights, a pilot first runs the stages up to the selection stage and tries the weights there
-        (:meth:`_pilot`), without snapshots; the run then starts from the beginning with the chosen weights.
+        (:meth:`_pilot`; its snapshots are :attr:`Snapshot.phase` "tv_choice"); the run then starts from the beginning
+        with the chosen weights (phase "run"; "rerun" when the stages run again with model parts).
         """
         if self.tv_choice is None and tv_is_auto(self.config) and self.completed_stages == 0:
-            if not self._pilot(should_stop):
+            ok = yield from self._pilot(should_stop)
+            if not ok:
                 return
         yield from self._run_stages(should_stop, checkpoint_dir)
         if self._restart_pending:  # the choice kept a part: every stage again with it (parts_rerun "stages")
             self._restart_pending = False
             yield from self._run_stages(should_stop, checkpoint_dir)
 
-    def _pilot(self, should_stop: Callable[[], bool] | None) -> bool:
+    def _pilot(self, should_stop: Callable[[], bool] | None) -> Generator[Snapshot, None, bool]:
         """Choose the "auto" TV weights: run the stages before the selection stage as the run would (TV off), try the
         weights at the selection stage (:meth:`_choose_tv`), then return to the initial state with the weights set, so
-        that the run equals one given them as numbers from its first stage on. False when cancelled meanwhile."""
+        that the run equals one given them as numbers from its first stage on. Yields the snapshots meanwhile (phase
+        "tv_choice"); returns False when cancelled meanwhile (closed or failed: back to the initial state too)."""
         t0 = time.perf_counter()
-        for _ in self._run_stages(should_stop, None):  # ends at the selection stage, once the weights are tried
-            pass
+        self._piloting, finished = True, False
+        try:
+            for snap in self._run_stages(should_stop, None):  # ends at the selection stage, once the weights are tried
+                paused = time.perf_counter()
+                yield snap
+                t0 += time.perf_counter() - paused  # the consumer's time is not the pilot's
+            finished = True
+        finally:
+            self._piloting = False
+            if not finished:
+                self._restart()
         choice = self.tv_choice
         self._restart()
         if choice is None:  # cancelled
@@ -602,7 +637,7 @@ class Reconstructor:
             best = BestIterate(tolerance=cfg.early_stopping_tolerance)
             t0 = time.perf_counter()
             if self.tv_choice is None and tv_is_auto(cfg) and si in selection_stages(cfg):
-                self._choose_tv(stage, mask, batch_size, data_range, global_it, should_stop)
+                yield from self._choose_tv(stage, mask, batch_size, data_range, global_it, should_stop)
                 return  # the pilot (run) ends here and starts the run again with the choice
             choose = False  # whether the "auto" parts are chosen at the end of this stage
             if (self.parts_choice is None or self._choose_again) and si == parts_stage(cfg):
@@ -678,16 +713,17 @@ class Reconstructor:
 
     # -- automatic regularisation ---------------------------------------------------------------
     def _choose_tv(self, stage: Stage, mask: torch.Tensor | None, batch_size: int, data_range: float, global_it: int,
-                   should_stop: Callable[[], bool] | None) -> None:
+                   should_stop: Callable[[], bool] | None) -> Iterator[Snapshot]:
         """Try every weight of the TV path from the stage's starting state and set :attr:`tv_choice` to the one the
         held-out images prefer (:mod:`napari_fdt.recon.regularisation`); left None when stopped (cancelled) meanwhile.
-        The state is then a trial's: the pilot (:meth:`_pilot`) starts the run again."""
+        Yields a snapshot after each weight. The state is then a trial's: the pilot (:meth:`_pilot`) starts the run again."""
         cfg = self.config
         t0 = time.perf_counter()
-        n_probe = max(1, int(round(PROBE_SHARE * stage.iterations)))
+        n_probe = probe_iterations(stage.iterations)
         start = self._capture_branch()
         trials = []
-        for tau in TV_PATH:
+        for k, tau in enumerate(TV_PATH):
+            t1 = time.perf_counter()
             self._restore_branch(start)
             xy, z = candidate_weights(cfg, tau)
             self.loss_weights = dataclasses.replace(self.loss_weights, tv_xy=xy, tv_z=z)
@@ -695,9 +731,13 @@ class Reconstructor:
             for it in range(n_probe):
                 if self._stop_requested(should_stop):
                     return
-                self._step(stage, mask, vol_opt, batch_size, data_range, (global_it + it) / max(1, cfg.total_iterations))
+                terms, train_error = self._step(stage, mask, vol_opt, batch_size, data_range,
+                                                (global_it + it) / max(1, cfg.total_iterations), it == n_probe - 1)
             err, each = self._validation(stage, mask, per_image=True)
             trials.append({"tau": tau, "tv_xy_weight": xy, "tv_z_weight": z, "validation_error": err, "image_errors": each})
+            snap = self._snapshot(stage, n_probe, global_it + n_probe, terms, t1, False, err, train_error, trial=k)
+            self.elapsed_s += time.perf_counter() - t1  # (the pilot sets the run's time when it ends)
+            yield snap
         win = pick(trials)
         self.tv_choice = TVChoice(win["tv_xy_weight"], win["tv_z_weight"], stage=stage.index, probe_iterations=n_probe,
                                   trials=trials, seconds=time.perf_counter() - t0)
@@ -897,16 +937,20 @@ class Reconstructor:
         return (h / g) * (w / g)
 
     def _snapshot(self, stage: Stage, it: int, global_it: int, terms: dict, stage_t0: float, complete: bool,
-                  validation_error: float | None = None, train_error: float | None = None) -> Snapshot:
+                  validation_error: float | None = None, train_error: float | None = None, trial: int | None = None) -> Snapshot:
+        """The snapshot now (``trial``: the index in the TV path of the weight the pilot has just tried)."""
         cfg = self.config
+        rerun_with = self._rerun_parts()
+        phase = TV_CHOICE if self._piloting else (RERUN if rerun_with else RUN)
         terms = self._gather(terms, optimiser_state=complete)
         now = time.perf_counter()
         elapsed = self.elapsed_s + (now - stage_t0)
         per_it = (now - stage_t0) / max(it, 1)
-        remaining = (stage.iterations - it) * per_it
+        left, later = work_left(cfg, phase, stage.index, it, trial)
+        remaining = left * per_it
         cur_cost = self._stage_cost(stage.factor)
-        for s in cfg.stages[stage.index + 1 :]:
-            remaining += s.iterations * per_it * self._stage_cost(s.factor) / cur_cost
+        for iterations, factor in later:
+            remaining += iterations * per_it * self._stage_cost(factor) / cur_cost
         losses = as_floats(terms) if terms else {}
         snap = Snapshot(
             stage=stage.index, n_stages=len(cfg.stages), factor=stage.factor, iteration=it,
@@ -915,8 +959,9 @@ class Reconstructor:
             sources_um=self.sources_um(), gains=self.gains(),
             calibration=self.calibration.summary(), losses=losses, elapsed_s=elapsed, eta_s=remaining,
             stage_complete=complete, full_shape=self.full_shape, validation_error=validation_error, train_error=train_error,
-            rerun_with=self._rerun_parts(),
+            rerun_with=rerun_with, phase=phase, tv_weights=None if trial is None else candidate_weights(cfg, TV_PATH[trial]),
         )
+        snap.phase_iteration, snap.phase_iterations = phase_counts(cfg, phase, global_it, trial)
         self.history.append({"stage": stage.index, "iteration": it, "global_iteration": global_it,
                              "elapsed_s": elapsed, **losses, "validation_error": validation_error, "train_error": train_error})
         return snap
