@@ -276,22 +276,43 @@ def test_optics_entries_refuse_unit_mistakes_with_the_widget_labels() -> None:
                 slice_spacing_um="2")
     assert optics_from_entries(good) == Optics(wavelength_um=0.635, n_background=1.33, na=0.8, pixel_size_um=0.33,
                                                n_slices=8, slice_spacing_um=2.0)
-    assert missing_optics({}) == ["wavelength (µm)", "n background", "NA", "pixel size (µm)", "slices", "slice spacing (µm)"]
+    assert missing_optics({}) == ["emission wavelength (µm)", "medium refractive index", "objective NA",
+                                  "pixel size in sample (µm)", "number of slices", "slice thickness (µm)"]
     cases = {
-        ("wavelength_um", "635"): "wavelength (µm): 635 looks like nm, not µm (enter 0.635",
-        ("wavelength_um", "6.35e-7"): "wavelength (µm): 6.35e-07 looks like m, not µm (enter 0.635",
-        ("pixel_size_um", "330"): "pixel size (µm): 330 looks like nm, not µm (enter 0.33",
-        ("pixel_size_um", "0.00033"): "pixel size (µm): 0.00033 looks like mm, not µm (enter 0.33",
-        ("na", "1.4"): "NA: 1.4 is not below n background 1.33 (an NA of 1.4 needs an immersion index above it",
-        ("na", "80"): "NA: 80 is not below n background 1.33 (80 looks like an angle or a percentage",
-        ("n_slices", "2.5"): "slices: 2.5 is not a whole number",
-        ("slice_spacing_um", "x"): "slice spacing (µm): 'x' is not a number",
-        ("n_background", ""): "n background: is empty",
+        ("wavelength_um", "635"): "emission wavelength (µm): 635 looks like nm, not µm (enter 0.635",
+        ("wavelength_um", "6.35e-7"): "emission wavelength (µm): 6.35e-07 looks like m, not µm (enter 0.635",
+        ("pixel_size_um", "330"): "pixel size in sample (µm): 330 looks like nm, not µm (enter 0.33",
+        ("pixel_size_um", "0.00033"): "pixel size in sample (µm): 0.00033 looks like mm, not µm (enter 0.33",
+        ("na", "1.4"): "objective NA: 1.4 is not below the medium refractive index 1.33 (an NA of 1.4 needs an "
+                       "immersion index above it",
+        ("na", "80"): "objective NA: 80 is not below the medium refractive index 1.33 (80 looks like an angle or a "
+                      "percentage",
+        ("n_slices", "2.5"): "number of slices: 2.5 is not a whole number",
+        ("slice_spacing_um", "x"): "slice thickness (µm): 'x' is not a number",
+        ("slice_spacing_um", "-1"): "slice thickness (µm): must be positive",
+        ("n_background", ""): "medium refractive index: is empty",
+        ("n_background", "0.5"): "medium refractive index: must be >= 1",
     }
     for (name, text), message in cases.items():
         with pytest.raises(FDTInputError) as exc:
             optics_from_entries({**good, name: text})
         assert str(exc.value).startswith(message), str(exc.value)
+
+
+def test_optics_labels_are_plain_words_and_tooltips_name_the_field() -> None:
+    """The acquisition widget labels each optics field in plain words with its unit; its tooltip starts with the
+    field's name in the files and the API (``n_background: …``), so both vocabularies are on screen."""
+    from napari_fdt.napari.settings import OPTICS_LABELS
+    from napari_fdt.napari.widget_acquisition import OPTICS_TIPS
+    from napari_fdt.physics.optics import OPTICS_FIELDS
+
+    assert set(OPTICS_LABELS) == set(OPTICS_TIPS) == set(OPTICS_FIELDS)
+    assert OPTICS_LABELS["n_background"] == "medium refractive index"
+    for name in OPTICS_FIELDS:
+        label = OPTICS_LABELS[name]
+        assert "_" not in label and label.replace(" ", "_") != name, label
+        assert label.endswith("(µm)") == name.endswith("_um"), label
+        assert OPTICS_TIPS[name].startswith(f"{name}: "), OPTICS_TIPS[name]
 
 
 def _simulated_timings(iterations, costs, seconds_per_cost, setup_s, every, rng):

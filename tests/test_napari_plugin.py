@@ -150,9 +150,9 @@ def test_invalid_optics_show_the_core_message_and_the_widget_stays_usable(make_n
     _open(viewer, tiny_dir)
     w = _docked(viewer, AcquisitionWidget(viewer))
     w.na.value = "1.5"
-    assert not w.fit_button.enabled and "NA: 1.5 is not below n background 1.33" in w.optics_state.value
+    assert not w.fit_button.enabled and "objective NA: 1.5 is not below the medium refractive index 1.33" in w.optics_state.value
     w.apply_button.clicked.emit()
-    assert w.feedback.last_error.startswith("NA: 1.5 is not below n background 1.33")
+    assert w.feedback.last_error.startswith("objective NA: 1.5 is not below the medium refractive index 1.33")
     assert "NA: 1.5" in w.feedback.label.value
     assert any("NA: 1.5 is not below" in m for m in notifications)
     w.na.value = "0.8"
@@ -180,13 +180,13 @@ def test_bare_stack_cannot_reconstruct_until_optics_are_entered(make_napari_view
     r = _docked(viewer, ReconstructionWidget(viewer))
     # no placeholder physics: every optics field empty, the actions disabled with the missing fields named
     assert all(getattr(w, name).value == "" for name in TINY_OPTICS)
-    assert "without optics: enter wavelength (µm), n background, NA, pixel size (µm)" in w.feedback.label.value
-    assert not w.fit_button.enabled and w.optics_state.value.startswith("wavelength (µm): is empty")
-    assert not r.run_button.enabled and "missing wavelength (µm), n background, NA" in r.status.value
+    assert "without optics: enter emission wavelength (µm), medium refractive index, objective NA, pixel size in sample (µm)" in w.feedback.label.value
+    assert not w.fit_button.enabled and w.optics_state.value.startswith("emission wavelength (µm): is empty")
+    assert not r.run_button.enabled and "missing emission wavelength (µm), medium refractive index, objective NA" in r.status.value
     r.run_button.clicked.emit()
-    assert r.feedback.last_error.startswith("optics: stack has no optics yet (missing wavelength (µm)")
+    assert r.feedback.last_error.startswith("optics: stack has no optics yet (missing emission wavelength (µm)")
     _type_optics(w, **{k: v for k, v in TINY_OPTICS.items() if k != "na"})
-    assert not w.fit_button.enabled and w.optics_state.value.startswith("NA: is empty")
+    assert not w.fit_button.enabled and w.optics_state.value.startswith("objective NA: is empty")
     _type_optics(w, na=0.8)
     assert w.fit_button.enabled and w.optics_state.value == ""
     w.apply_button.clicked.emit()
@@ -206,7 +206,7 @@ def test_a_stack_opened_by_napari_builtin_reader_is_offered(make_napari_viewer, 
     w = _docked(viewer, AcquisitionWidget(viewer))
     r = _docked(viewer, ReconstructionWidget(viewer))
     assert w.layer.value is builtin and r.layer.value is builtin
-    assert not r.run_button.enabled and "missing wavelength (µm)" in r.status.value
+    assert not r.run_button.enabled and "missing emission wavelength (µm)" in r.status.value
     _type_optics(w, **TINY_OPTICS)
     w.depth_um.value = "15"
     w.fit_sources()
@@ -228,11 +228,11 @@ def test_a_wavelength_in_nm_is_refused_with_a_unit_hint(make_napari_viewer, tiny
     w.wavelength_um.value = "635"
     assert not w.fit_button.enabled and "635 looks like nm" in w.optics_state.value
     w.apply_button.clicked.emit()
-    assert w.feedback.last_error.startswith("wavelength (µm): 635 looks like nm, not µm (enter 0.635")
+    assert w.feedback.last_error.startswith("emission wavelength (µm): 635 looks like nm, not µm (enter 0.635")
     assert layer.metadata[META_ACQUISITION].optics.wavelength_um == pytest.approx(0.635)  # nothing applied
     w.pixel_size_um.value = "330"
     w.wavelength_um.value = "0.635"
-    assert "pixel size (µm): 330 looks like nm" in w.optics_state.value
+    assert "pixel size in sample (µm): 330 looks like nm" in w.optics_state.value
 
 
 def test_optics_typed_are_kept_per_layer(make_napari_viewer, tiny_sim, tmp_path) -> None:
@@ -271,19 +271,18 @@ def test_reconstruction_streams_every_stage_and_saves(make_napari_viewer, qtbot,
     _settings(w, "2x3, 1x3")
     w.run_button.clicked.emit()
     assert w.running and w.cancel_button.enabled and not w.run_button.enabled
-    ri = viewer.layers[f"{acq_layer.name} RI #1 (2x3, 1x3, seed 0)"]
-    data_events = []
-    ri.events.data.connect(lambda e: data_events.append(1))
     _wait_done(qtbot, w)
     assert w.feedback.last_error is None, w.feedback.label.value
+    ri = viewer.layers[f"{acq_layer.name} RI #1 (2x3, 1x3, seed 0)"]
     # at least one update per stage, and every stage end
     assert {s for s, _, _ in w.layer_updates} == {0, 1}
     assert [(s, c) for s, _, c in w.layer_updates if c] == [(0, True), (1, True)]
-    assert len(data_events) >= 2
+    # the solver ran in a process of its own: napari's process never imported Triton (it segfaults next to Mesa's GL)
+    assert "torch._dynamo" not in sys.modules or "triton" in sys.modules  # (another test may have imported it)
     assert ri.data.shape == (4, 32, 32) and np.allclose(ri.scale, (2.0, 0.33, 0.33))
     assert np.allclose(ri.translate, (1.0, -16 * 0.33, -16 * 0.33))
     assert np.allclose(ri.data, w._rec.ri_full())
-    assert ri.data.max() > 1.33 and w.progress.value == w.progress.max == 6
+    assert ri.data.max() > 1.33 and w.progress.value == w.progress.max == w._progress_offset + 6  # the TV pilot, then 6
     assert ri.metadata[META_REPORT]["completed_stages"] == 2
     assert "done: 2 stages" in w.status.value and "total" in w.losses.value
     # calibrated sources in a points layer of their own
@@ -325,14 +324,14 @@ def test_cancel_keeps_the_last_complete_stage(make_napari_viewer, qtbot, tiny_di
     _wait_done(qtbot, w)
     rec = w._rec
     assert w.cancelled and rec.completed_stages == 1
-    assert rec.last_complete.stage == 0
+    done, expected = w._last_complete  # the volume the first stage ended on, as it reached the widget
+    assert done == 1
     ri = viewer.layers[f"{acq_layer.name} RI #1 (2x3, 1x2000, seed 0)"]
-    expected = np.float32(1.33) + rec.last_complete.delta_n_full()
-    assert np.allclose(ri.data, expected, atol=1e-6)
+    assert np.allclose(ri.data, expected, atol=1e-6) and np.allclose(rec.ri_full(), expected, atol=1e-6)
     assert ri.metadata[META_REPORT]["cancelled"] is True
     assert "run #1 cancelled: showing the last complete stage (1/2)" in w.status.value
     assert w.run_button.enabled and not w.cancel_button.enabled
-    assert w.progress.value == 3  # the bar shows the kept stage, not where the cancel caught the run
+    assert w.progress.value == w._progress_offset + 3  # the bar shows the kept stage, not where the cancel caught the run
 
 
 def test_viewer_stays_responsive_during_a_run(make_napari_viewer, qtbot, tiny_dir) -> None:
@@ -394,6 +393,31 @@ def test_errors_during_a_run_are_shown(make_napari_viewer, qtbot, tiny_sim, noti
     w.run_button.clicked.emit()
     assert w.feedback.last_error.startswith("stages: factor 4 is followed by 3")
     assert not w.running
+
+
+def test_a_crash_of_the_computation_leaves_napari_and_the_last_stage(make_napari_viewer, qtbot, tiny_dir) -> None:
+    """The computation process killed (SIGKILL, as the kernel's out-of-memory killer does) after its first stage:
+    the viewer and its layers live on, the RI layer holds the first stage's volume, the widget says what happened."""
+    viewer = make_napari_viewer()
+    acq_layer = _open(viewer, tiny_dir)
+    w = _docked(viewer, ReconstructionWidget(viewer))
+    w.job_target = "crashing_job:crash_after_first_stage"  # tests/crashing_job.py
+    _settings(w, "2x3, 1x3")
+    n_layers = len(viewer.layers)
+    w.run_button.clicked.emit()
+    _wait_done(qtbot, w)
+    assert "killed by signal 9 (SIGKILL)" in w.feedback.last_error, w.feedback.label.value
+    assert "the computation process ended; showing the last complete stage (1/2)" in w.status.value
+    assert acq_layer in viewer.layers and len(viewer.layers) >= n_layers + 1
+    done, first_stage = w._last_complete
+    ri = viewer.layers[f"{acq_layer.name} RI #1 (2x3, 1x3, seed 0)"]
+    assert done == 1 and np.array_equal(ri.data, first_stage) and ri.data.max() > 1.33
+    assert w.progress.value == w._progress_offset + 3 and w.run_button.enabled and not w.cancel_button.enabled
+    # the widget runs again
+    w.job_target = None
+    w.run_button.clicked.emit()
+    _wait_done(qtbot, w)
+    assert w.feedback.last_error is None and "run #2 done" in w.status.value
 
 
 def test_edited_points_are_what_the_solver_uses(make_napari_viewer, qtbot, tiny_dir) -> None:
@@ -562,7 +586,7 @@ def test_an_error_in_a_background_fit_is_shown_and_the_widget_stays_usable(make_
 
 
 def test_a_bug_in_a_preview_is_reported_with_its_type(make_napari_viewer, qtbot, tiny_dir, monkeypatch, notifications) -> None:
-    import napari_fdt.napari.widget_reconstruction as wr
+    import napari_fdt.napari.widget_results as wr  # the result and preview actions
 
     def broken(*args, **kwargs):
         raise RuntimeError("simulated failure")
@@ -712,7 +736,10 @@ def test_settings_widgets_are_generated_from_the_schema(make_napari_viewer) -> N
     assert w.batch_size.min == 1 and w.snapshot_every.min == 1 and w.snapshot_every.value == SolverConfig().snapshot_every
     assert tuple(w.coarse_model.choices) == COARSE_MODELS and tuple(w.coherence.choices) == COHERENCE_MODELS
     assert w.mask_threshold.min == 0 and w.mask_threshold.max == 1
-    assert w.tv_xy_weight.tooltip == fields["tv_xy_weight"].description.replace("`", "")  # markdown quotes dropped
+    # plain words in the label; the physics name, the field's name and the schema's description in the tooltip
+    assert w.tv_xy_weight.label == "smoothing across (xy)"
+    assert w.tv_xy_weight.tooltip == ("total variation (TV) weight, xy (tv_xy_weight): "
+                                      + fields["tv_xy_weight"].description.replace("`", ""))  # markdown quotes dropped
     assert w.tv_xy_weight.value == "auto" and w.tv_xy_weight.number.enabled is False
     assert w.calibrate_gain.value is True and w.calibrate_pixel_size.value is False
     assert w.calibration_from_stage.value == SolverConfig().calibration_from_stage + 1  # numbered from 1, as the status
@@ -794,8 +821,6 @@ def test_gui_save_acquisition_then_the_command_line_reproduces_the_run(make_napa
     """GUI: edit a source, Save acquisition…, Copy command; the command on the saved folder gives the widget's volume."""
     import shlex
 
-    from napari_fdt.cli import main
-
     viewer = make_napari_viewer()
     layer = _open(viewer, tiny_dir)
     a = _docked(viewer, AcquisitionWidget(viewer))
@@ -821,7 +846,12 @@ def test_gui_save_acquisition_then_the_command_line_reproduces_the_run(make_napa
     _wait_done(qtbot, w)
     assert w.feedback.last_error is None, w.feedback.label.value
     args = shlex.split(command)[1:]
-    assert main(args) == 0
+    # in a terminal, as a user pastes it (not in napari's process, where the solver's Triton import would meet Mesa's GL)
+    import subprocess
+
+    proc = subprocess.run([sys.executable, "-c", "import sys; from napari_fdt.cli import main; sys.exit(main(sys.argv[1:]))",
+                           *args, "--quiet"], capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
     out = args[args.index("--out") + 1]
     volume, _ = read_volume_tiff(out)
     assert np.allclose(volume, w._rec.ri_full(), atol=1e-5)

@@ -33,6 +33,9 @@ class FDTInputError(ValueError):
             message += f" ({fix})"
         super().__init__(message)
 
+    def __reduce__(self):  # pickled with its three parts (the plugin's computation process sends errors to napari's)
+        return type(self), (self.field, self.problem, self.fix)
+
 
 class FDTWarning(UserWarning):
     """A geometry or sampling the model can run but not represent faithfully."""

@@ -78,7 +78,9 @@ def reconstruction_job(
         for snap in rec.run(should_stop=stop.is_set):
             now = time.perf_counter()
             ri = None
-            if snap.stage_complete or now - last >= min_interval_s:
+            if getattr(snap, "phase", "run") == "tv_choice":  # the pilot's volumes are trials, not the result
+                pass
+            elif snap.stage_complete or now - last >= min_interval_s:
                 ri = n_b + snap.delta_n_full()
                 last = time.perf_counter()
             yield Update("snapshot", snapshot=snap, ri=ri)

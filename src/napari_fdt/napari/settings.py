@@ -60,11 +60,12 @@ def merge_config(base: SolverConfig, values: dict[str, Any]) -> SolverConfig:
 
 # -- optics as the acquisition widget shows them: text fields, empty until the file or the user gives them --------
 
-#: The label of every optics field in the widget (errors name the field by its label).
+#: The label of every optics field in the widget, in plain words (errors name the field by its label; the tooltips,
+#: ``napari_fdt.napari.widget_acquisition.OPTICS_TIPS``, start with the field's name in the files and the API).
 OPTICS_LABELS: dict[str, str] = {
-    "wavelength_um": "wavelength (µm)", "n_background": "n background", "na": "NA",
-    "pixel_size_um": "pixel size (µm)", "n_slices": "slices", "slice_spacing_um": "slice spacing (µm)",
-    "image_plane_um": "image plane (µm)",
+    "wavelength_um": "emission wavelength (µm)", "n_background": "medium refractive index", "na": "objective NA",
+    "pixel_size_um": "pixel size in sample (µm)", "n_slices": "number of slices", "slice_spacing_um": "slice thickness (µm)",
+    "image_plane_um": "focal plane depth (µm)",
 }
 #: Fields that may stay empty, with the value an empty field means (``Optics``' own default).
 OPTICS_OPTIONAL: dict[str, float] = {"image_plane_um": 0.0}
@@ -111,7 +112,7 @@ def optics_from_entries(entries: dict[str, str]) -> Optics:
     """The optics typed in the widget (field → text), checked; raises :class:`FDTInputError` naming the widget's label.
 
     Empty required fields are refused by name; a wavelength outside 0.3–2 µm, a pixel size outside 0.02–20 µm or
-    an NA not below n background are refused with the likely mistake (e.g. ``635 looks like nm``); then
+    an NA not below the medium refractive index are refused with the likely mistake (e.g. ``635 looks like nm``); then
     :class:`~napari_fdt.physics.optics.Optics` checks the rest (its message relabelled with the widget's words).
     """
     missing = missing_optics(entries)
@@ -128,10 +129,11 @@ def optics_from_entries(entries: dict[str, str]) -> Optics:
     if dx > 0 and not PIXEL_SIZE_RANGE_UM[0] <= dx <= PIXEL_SIZE_RANGE_UM[1]:
         raise _unit_hint(OPTICS_LABELS["pixel_size_um"], dx, *PIXEL_SIZE_RANGE_UM, "the pixel size in the sample")
     na, n_b = values["na"], values["n_background"]
+    medium = OPTICS_LABELS["n_background"]
     if na > 0 and n_b >= 1 and na >= n_b:
-        hint = (f"{na:g} looks like an angle or a percentage: NA = n·sin(θ) is below n background" if na > 2
-                else f"an NA of {na:g} needs an immersion index above it: check n background (oil 1.518, water 1.33)")
-        raise FDTInputError(OPTICS_LABELS["na"], f"{na:g} is not below n background {n_b:g}", hint)
+        hint = (f"{na:g} looks like an angle or a percentage: NA = n·sin(θ) is below the {medium}" if na > 2
+                else f"an NA of {na:g} needs an immersion index above it: check the {medium} (oil 1.518, water 1.33)")
+        raise FDTInputError(OPTICS_LABELS["na"], f"{na:g} is not below the {medium} {n_b:g}", hint)
     if values["n_slices"] != int(values["n_slices"]):
         raise FDTInputError(OPTICS_LABELS["n_slices"], f"{values['n_slices']:g} is not a whole number", "enter an integer ≥ 1")
     values["n_slices"] = int(values["n_slices"])
@@ -139,7 +141,7 @@ def optics_from_entries(entries: dict[str, str]) -> Optics:
         return Optics(**values)
     except FDTInputError as exc:
         label = OPTICS_LABELS.get(exc.field, exc.field)
-        raise FDTInputError(label, exc.problem.replace("n_background", "n background"), exc.fix) from None
+        raise FDTInputError(label, exc.problem.replace("n_background", f"the {medium}"), exc.fix) from None
 
 
 def unique_path(path: Path) -> Path:

@@ -67,15 +67,18 @@ if TYPE_CHECKING:  # pragma: no cover
 
 __all__ = ["AcquisitionWidget", "OPTICS_TIPS"]
 
-#: Tooltips of the optics fields (where to find the value).
+#: Tooltips of the optics fields (where to find the value), each starting with the field's name in the files and the
+#: API (``acquisition.json``, :class:`~napari_fdt.physics.optics.Optics`); the labels are plain words
+#: (:data:`napari_fdt.napari.settings.OPTICS_LABELS`).
 OPTICS_TIPS = {
-    "wavelength_um": "vacuum emission wavelength of the fluorophore, µm (e.g. 0.635 for 635 nm)",
-    "n_background": "refractive index of the medium around the sample (water 1.33, oil 1.518)",
-    "na": "numerical aperture of the detection objective (below n background)",
-    "pixel_size_um": "camera pixel size divided by the magnification, µm in the sample",
-    "n_slices": "number of slices of the RI volume to reconstruct",
-    "slice_spacing_um": "thickness of one slice of the RI volume, µm",
-    "image_plane_um": "camera focal plane below the volume's top face, µm (empty: 0, the top face)",
+    "wavelength_um": "wavelength_um: vacuum emission wavelength of the fluorophore, µm (e.g. 0.635 for 635 nm)",
+    "n_background": "n_background: the refractive index of the immersion medium around the sample (water 1.33, oil 1.518)",
+    "na": "na: numerical aperture of the detection objective (below the medium refractive index)",
+    "pixel_size_um": "pixel_size_um: camera pixel size divided by the magnification, µm in the sample "
+                     "(e.g. 6.5 µm pixels at 40×: 0.1625)",
+    "n_slices": "n_slices: number of slices of the RI volume to reconstruct",
+    "slice_spacing_um": "slice_spacing_um: thickness of one slice of the RI volume, µm",
+    "image_plane_um": "image_plane_um: camera focal plane below the volume's top face, µm (empty: 0, the top face)",
 }
 
 
@@ -94,11 +97,11 @@ class AcquisitionWidget(Container):
         self.apply_button = PushButton(text="Apply optics")
         self.save_acquisition_button = PushButton(text="Save acquisition…")
         self.depth_um = LineEdit(label="source depth (µm)", value="",
-                                 tooltip="common depth of the sources below the volume, µm; empty: estimated from the "
+                                 tooltip="depth_um: common depth of the sources below the volume, µm; empty: estimated from the "
                                          "image widths (a lower bound when the light discs fill the images)")
         self.fit_button = PushButton(text="Fit sources")
         self.file_sources_button = PushButton(text="Sources from file")
-        self.image_index = SpinBox(label="image", min=0, max=0)
+        self.image_index = SpinBox(label="image", min=0, max=0, tooltip="index of the image to predict (0: the first)")
         self.preview_button = PushButton(text="Forward preview")
         self.feedback = Feedback()
         optics_box = Container(widgets=[*(getattr(self, n) for n in OPTICS_FIELDS), self.optics_state,

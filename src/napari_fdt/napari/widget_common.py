@@ -523,13 +523,17 @@ _HIDDEN_IN_3D = frozenset({"acquisition", "stack", "masks"})
 
 
 def follow_ndisplay(viewer) -> None:
-    """In 3D hide the image stacks (and masks) the plugin knows; back in 2D show again those it hid.
+    """In 3D hide the image stacks (and masks) the plugin knows and turn the camera oblique; back in 2D show again
+    those it hid.
 
     Each widget connects its own follower; they agree (a layer already hidden is left to the one that hid it)."""
     hidden: list = []
 
     def on_ndisplay(event=None) -> None:
         if viewer.dims.ndisplay == 3:
+            from napari_fdt.napari.result_view import oblique_camera
+
+            oblique_camera(viewer)  # not straight down the z axis, where the slices overlap into one block
             for layer in viewer.layers:
                 if layer.visible and (layer.metadata.get(META_KIND) in _HIDDEN_IN_3D or layer.metadata.get(META_NEEDS_OPTICS)):
                     layer.visible = False

@@ -22,28 +22,19 @@ import numpy as np
 from magicgui.widgets import ComboBox, Container, Label, LineEdit, ProgressBar, PushButton, SpinBox
 
 from napari_fdt.errors import FDTInputError
-from napari_fdt.napari.compute import check_index, illumination_coverage, mask_stack, predicted_vs_measured
-from napari_fdt.napari.job import JobResult, TimeLeft, Update, reconstruction_job, stage_costs
+from napari_fdt.napari.job import JobResult, TimeLeft, Update, stage_costs
 from napari_fdt.napari.layers import (
     META_ACQUISITION,
     META_ID,
     META_KIND,
-    META_OWNER,
     META_PATH,
     META_REPORT,
-    STACK_AXIS_LABELS,
-    STACK_UNITS,
-    UNITS,
-    lateral_translate,
     ri_layer,
-    side_by_side,
-    stack_scale,
-    stack_translate,
-    volume_scale,
-    volume_translate,
 )
+from napari_fdt.napari.remote_job import ComputeProcessDied, RunResult, remote_reconstruction
+from napari_fdt.napari.result_view import content_slice, keep_view, results_line, ri_contrast_limits, show_slice, truth_error
 from napari_fdt.napari.schema_widgets import schema_widget
-from napari_fdt.napari.settings import format_stages, merge_config, unique_path
+from napari_fdt.napari.settings import format_stages, merge_config
 from napari_fdt.napari.widget_common import (
     BackgroundTasks,
     CloseWatcher,
@@ -53,7 +44,6 @@ from napari_fdt.napari.widget_common import (
     claim_dock_height,
     follow_layers,
     follow_ndisplay,
-    put_layer,
     refresh_layer_choice,
     sections_panel,
     set_sources,
@@ -62,7 +52,7 @@ from napari_fdt.napari.widget_common import (
     track_thread,
 )
 from napari_fdt.napari.widget_curve import ErrorCurveWidget
-from napari_fdt.recon.command import format_command, reconstruct_command
+from napari_fdt.napari.widget_results import ResultActions, with_tiff_suffix
 from napari_fdt.recon.config import SolverConfig, load_config, resolve_stage_lengths
 from napari_fdt.recon.report import describe_parts
 
@@ -70,12 +60,6 @@ if TYPE_CHECKING:  # pragma: no cover
     import napari
 
 __all__ = ["ReconstructionWidget", "UPDATE_INTERVAL_S", "device_choices", "with_tiff_suffix"]
-
-
-def with_tiff_suffix(path: str | Path) -> Path:
-    """``path`` with ``.ome.tif`` added when it has no ``.tif``/``.tiff`` suffix (``my_cells_RI`` → ``my_cells_RI.ome.tif``)."""
-    path = Path(path)
-    return path if path.suffix.lower() in (".tif", ".tiff") else path.with_name(path.name + ".ome.tif")
 
 
 def _duration(seconds: float) -> str:
@@ -107,11 +91,11 @@ def device_choices() -> list[str]:
     return ["auto", "cpu"] + (["cuda"] if torch.cuda.is_available() else [])
 
 
-class ReconstructionWidget(Container):
+class ReconstructionWidget(ResultActions, Container):
     """Dock widget: settings, Reconstruct / Cancel, progress, and the results of the last run."""
 
     def __init__(self, napari_viewer: "napari.viewer.Viewer") -> None:
-        super().__init__(labels=True)
+        super().__init__(labels=False)  # rows below carry their own labels; status and results span the width
         self._viewer = napari_viewer
         self._base = SolverConfig()
         d = self._base
@@ -120,14 +104,14 @@ class ReconstructionWidget(Container):
                                tooltip="factor x iterations per stage, coarse to fine, e.g. 4x100, 2x100, 1x160")
         # Settings generated from the schema: bounds, defaults, choices and tooltips are SolverConfig's.
         f = self._setting
-        self.coarse_model = f("coarse_model", "coarse model")
+        self.coarse_model = f("coarse_model", "model of coarse stages", "coarse model")
         self.batch_size = f("batch_size", "batch size")
-        self.l1_l2_total = f("l1_l2_total", "L1 + L2 weight", step=0.01)
-        self.ssim_weight = f("ssim_weight", "SSIM weight", step=0.01)
-        self.tv_xy_weight = f("tv_xy_weight", "TV xy weight", step=1e-3)
-        self.tv_z_weight = f("tv_z_weight", "TV z weight", step=1e-3)
+        self.l1_l2_total = f("l1_l2_total", "pixel error weight", "L1 + L2 loss weight", step=0.01)
+        self.ssim_weight = f("ssim_weight", "image structure weight", "SSIM loss weight", step=0.01)
+        self.tv_xy_weight = f("tv_xy_weight", "smoothing across (xy)", "total variation (TV) weight, xy", step=1e-3)
+        self.tv_z_weight = f("tv_z_weight", "smoothing in depth (z)", "total variation (TV) weight, z", step=1e-3)
         self.calibrate_sources = f("calibrate_sources", "calibrate source positions")
-        self.calibrate_gain = f("calibrate_gain", "calibrate gains")
+        self.calibrate_gain = f("calibrate_gain", "calibrate source brightness", "per-image gain")
         self.calibrate_source_depth = f("calibrate_source_depth", "calibrate source depth")
         self.calibrate_pixel_size = f("calibrate_pixel_size", "calibrate pixel size")
         self.calibrate_slice_spacing = f("calibrate_slice_spacing", "calibrate slice spacing")
@@ -136,15 +120,15 @@ class ReconstructionWidget(Container):
             max=99, tooltip="first stage (1 = the first, as the status line counts) with position/optics calibration; "
                             "gains are calibrated from the start")
         self.pixel_integration = f("pixel_integration", "pixel integration")
-        self.obliquity_correction = f("obliquity_correction", "obliquity correction")
+        self.obliquity_correction = f("obliquity_correction", "tilted-ray correction", "obliquity correction")
         self.calibrate_pupil = f("calibrate_pupil", "fit pupil (NA, edge)")
         self.calibrate_aberrations = f("calibrate_aberrations", "fit aberrations")
         self.parts_rerun = f("parts_rerun", "rerun with kept parts")
         self.parts_test_images = f("parts_test_images", "parts tested on")
         #: which optional parts the last run needed, and why (RI.json's model_parts)
         self.parts_info = Label(value="")
-        self.coherence = f("coherence", "coherence")
-        self.mask_threshold = f("mask_threshold", "mask threshold", step=0.05)
+        self.coherence = f("coherence", "coherent-light model", "partial coherence model")
+        self.mask_threshold = f("mask_threshold", "coherent-area threshold", "coherence mask threshold", step=0.05)
         self.masks_button = PushButton(text="Preview masks")
         self.device = ComboBox(label="device", choices=device_choices(), value="auto")
         self.seed = f("seed", "seed")
@@ -157,6 +141,8 @@ class ReconstructionWidget(Container):
         self.cancel_button = PushButton(text="Cancel", enabled=False)
         self.progress = ProgressBar(label="progress", value=0, min=0, max=1)
         self.status = Label(value="")
+        #: the last run's key numbers (image fit, validation error, error against a loaded truth), above the fold
+        self.results = Label(value="")
         self.losses = Label(value="")
         self.curve = ErrorCurveWidget()
         self.curve_caption = Label(value="")
@@ -182,14 +168,18 @@ class ReconstructionWidget(Container):
         self.details = Container(widgets=[self.losses, self.curve_caption])
         results = Container(widgets=[self.compare_index, self.compare_button, self.coverage_button])
         self.extend([
-            Container(widgets=[self.layer]),
+            Container(widgets=[self.layer, self.progress]),
             Container(widgets=[self.run_button, self.cancel_button], layout="horizontal", labels=False),
-            self.progress, self.status,
+            self.status, self.results,
             Container(widgets=[self.save_button, self.command_button], layout="horizontal", labels=False),
             self.feedback.label,
         ])
-        for w in (self.status, self.losses, self.curve_caption, self.parts_info):
+        from qtpy.QtWidgets import QSizePolicy
+
+        for w in (self.status, self.results, self.losses, self.curve_caption, self.parts_info):
             w.native.setWordWrap(True)
+            # the dock's whole width (a word-wrapped QLabel otherwise keeps its narrow size hint)
+            w.native.setSizePolicy(QSizePolicy.Policy.Expanding, QSizePolicy.Policy.Preferred)
         # the error curve sits under its caption (a plain Qt widget in the container's layout)
         self.details.native.layout().addWidget(self.curve)
         self.sections = sections_panel([
@@ -220,6 +210,11 @@ class ReconstructionWidget(Container):
         self._run_name = ""
         self._runs = 0
         self._stage_iterations: list[int] = []
+        #: (stages completed, absolute RI) of the last stage end that reached the widget (kept if the process dies)
+        self._last_complete: tuple[int, np.ndarray] | None = None
+        self._run_iterations, self._progress_offset = 0, 0
+        #: the job the computation process runs, "module:function" (napari_fdt.napari.remote_job.JOB_TARGET)
+        self.job_target: str | None = None
         self.last_command: str | None = None
         self.cancelled = False
         #: (stage, iteration, stage_complete) of every update written into the RI layer (for tests and logs).
@@ -235,9 +230,14 @@ class ReconstructionWidget(Container):
         follow_ndisplay(napari_viewer)
         follow_layers(napari_viewer, self.layer, self._refresh)
 
-    def _setting(self, name: str, label: str, step: float | None = None):
-        """The widget of SolverConfig field ``name`` (schema bounds, default, choices, description as tooltip)."""
-        return schema_widget(SolverConfig, name, label=label, value=getattr(self._base, name), step=step)
+    def _setting(self, name: str, label: str, physics: str | None = None, step: float | None = None):
+        """The widget of SolverConfig field ``name`` (schema bounds, default, choices, description as tooltip).
+
+        ``label`` is in plain words; the tooltip starts with the physics name (``physics``, else the label) and the
+        field's name in settings files and on the command line, then the schema's description."""
+        widget = schema_widget(SolverConfig, name, label=label, value=getattr(self._base, name), step=step)
+        widget.tooltip = f"{physics or label} ({name}): {widget.tooltip}"
+        return widget
 
     # -- layers -------------------------------------------------------------------------------
     def _choices(self, _widget=None) -> list[tuple[str, object]]:
@@ -349,22 +349,21 @@ class ReconstructionWidget(Container):
             self._acq_layer = layer
             self._rec, self._report, self.cancelled = None, None, False
             self.layer_updates = []
+            self._last_complete = None
             stop, done, closing = threading.Event(), threading.Event(), threading.Event()
             self._runs += 1
             self._run_name = f"{layer.name} RI #{self._runs} ({format_stages(config.stages)}, seed {config.seed})"
-            n_b = acq.optics.n_background
-            data, kwargs, _ = ri_layer(np.full((acq.optics.n_slices, *acq.image_shape), n_b, np.float32),
-                                       acq.optics, self._run_name, owner=layer.metadata.get(META_ID))
-            kwargs["contrast_limits"] = (n_b, n_b + 0.5 * config.delta_n_max)
-            kwargs["metadata"]["fdt_run"] = self._runs
-            self._ri_layer = self._viewer.add_image(data, **kwargs)  # one layer per run: earlier runs are kept
+            # one layer per run (earlier runs are kept), added when the first volume arrives: a uniform placeholder
+            # would cover the images with one flat colour until then
+            self._ri_layer = None
+            self._close_result()  # the previous run's computation process (its solver, its GPU memory)
             self._stage_iterations = [s.iterations for s in run_config.stages]
             self._time_left = TimeLeft(self._stage_iterations, stage_costs(acq.optics, acq.image_shape, run_config, acq.n_images,
                                                                                 device_type))
-            worker = GeneratorWorker(
-                reconstruction_job, acq, config, device=device, initial_sources_um=sources, stop=stop,
+            worker = GeneratorWorker(  # the solver runs in a process of its own (napari_fdt.napari.remote_job: why)
+                remote_reconstruction, acq, config, device=device, initial_sources_um=sources, stop=stop,
                 done=done, closing=closing, min_interval_s=UPDATE_INTERVAL_S,
-                acquisition_path=layer.metadata.get(META_PATH),
+                acquisition_path=layer.metadata.get(META_PATH), target=self.job_target,
             )
             worker.yielded.connect(self._on_update)
             worker.returned.connect(self._on_returned)
@@ -373,13 +372,16 @@ class ReconstructionWidget(Container):
             worker.finished.connect(self._on_finished)
             self._worker = worker
             self._stop, self._done, self._closing = stop, done, closing
+            #: iterations of the pass, and of the pilot before it (known from its first snapshot): the bar spans both
+            self._run_iterations, self._progress_offset = run_config.total_iterations, 0
             self.progress.max = max(1, run_config.total_iterations)
             self.progress.value = 0
             self.curve.reset(run_config.total_iterations)
             self.curve_caption.value = ""
             self.losses.value = ""
             self._set_running(True)
-            self.status.value = f"run #{self._runs}: starting on {device}…"
+            self.results.value = ""
+            self.status.value = f"run #{self._runs}: starting the computation process on {device}…"
             if run_config.stages[-1].iterations != config.stages[-1].iterations:
                 self.status.value += (f" (finest stage {run_config.stages[-1].iterations} iterations, not {config.stages[-1].iterations}: "
                                       f"{config.final_stage_min_passes:g} passes over the {acq.n_images} images)")
@@ -425,12 +427,14 @@ class ReconstructionWidget(Container):
         return answer == QMessageBox.StandardButton.Yes
 
     def _on_viewer_closing(self) -> bool:
-        """The viewer closes: stop the run and wait (at most 60 s) until its thread has ended."""
+        """The viewer closes: end the computation process (a run's is killed at once) and wait until the thread that
+        relayed it has ended (at most 10 s)."""
+        self._close_result()
         if not self.running:
             return False
         self._closing.set()
         self._stop.set()
-        self._done.wait(timeout=60.0)
+        self._done.wait(timeout=10.0)
         return True
 
     def _on_update(self, update: Update) -> None:
@@ -442,7 +446,18 @@ class ReconstructionWidget(Container):
             self.status.value = "evaluating the fit of every image…"
             return
         snap = update.snapshot
-        self.progress.value = snap.global_iteration
+        phase = getattr(snap, "phase", "run")
+        if phase == "tv_choice":  # the pilot that chooses the TV weight: its own words and count, no volume yet
+            if not self._progress_offset and snap.phase_iterations:  # the bar spans the pilot, then the pass
+                self._progress_offset = int(snap.phase_iterations)
+                self.progress.max = self._progress_offset + self._run_iterations
+            self.progress.value = min(int(snap.phase_iteration), self._progress_offset)
+            left_txt = f", about {_duration(snap.eta_s)} left" if snap.eta_s and snap.eta_s > 0 else ""
+            self.status.value = (f"run #{self._runs}: {snap.phase_label}, trial stage {snap.stage + 1}/{snap.n_stages} "
+                                 f"(×{snap.factor}); {_duration(snap.elapsed_s)} elapsed{left_txt}")
+            self.losses.value = "loss: " + ", ".join(f"{k} {v:.4g}" for k, v in snap.losses.items())
+            return
+        self.progress.value = self._progress_offset + snap.global_iteration
         self._time_left.add(snap.stage, snap.iteration, snap.elapsed_s)
         left = self._time_left.seconds_left()
         left_txt = "" if left is None else f", about {_duration(left)} left"
@@ -452,27 +467,53 @@ class ReconstructionWidget(Container):
         self.losses.value = "loss: " + ", ".join(f"{k} {v:.4g}" for k, v in snap.losses.items())
         self.curve.add(snap)
         self.curve_caption.value = "error: " + self.curve.curve.caption()
-        if update.ri is not None and self._ri_layer is not None:
+        if update.ri is not None:
             self._show_ri(update.ri)
             self.layer_updates.append((snap.stage, snap.iteration, snap.stage_complete))
+            if snap.stage_complete:
+                self._last_complete = (snap.stage + 1, update.ri)
             # (no warning capture here: the worker owns the process's warning hook while it runs)
-            set_sources(self._viewer, self._acq_layer, snap.sources_um, kind="calibrated", name=self._calibrated_name())
+            self._put_sources(snap.sources_um)
 
     def _calibrated_name(self) -> str:
         return f"{self._acq_layer.name} sources calibrated #{self._runs}"
 
-    def _show_ri(self, ri: np.ndarray) -> None:
+    def _put_sources(self, sources_um: np.ndarray) -> None:
+        """The calibrated sources in their layer, without taking the selection or moving the z slider (they lie
+        below the volume: a new layer there would widen the z range and pull the slider out of the volume)."""
+        with keep_view(self._viewer):
+            set_sources(self._viewer, self._acq_layer, sources_um, kind="calibrated", name=self._calibrated_name())
+
+    def _show_ri(self, ri: np.ndarray, *, focus: bool = False) -> None:
+        """Write ``ri`` into this run's RI layer (added with the first volume, or again if the user deleted it), with
+        contrast limits from the data. A new layer, or ``focus``, selects it and moves the z slider to its slice with
+        the most structure; otherwise the view stays where the user has it."""
         layer = self._ri_layer
-        if layer not in self._viewer.layers:  # the user deleted it: add it again
+        n_b = float(self._acq_layer.metadata[META_ACQUISITION].optics.n_background)
+        limits = ri_contrast_limits(ri, n_b)
+        if layer is None or layer not in self._viewer.layers:
             acq = acquisition_of(self._acq_layer)
             data, kwargs, _ = ri_layer(ri, acq.optics, self._run_name, owner=self._acq_layer.metadata.get(META_ID))
+            kwargs["metadata"]["fdt_run"] = self._runs
+            kwargs["contrast_limits"] = limits
             self._ri_layer = layer = self._viewer.add_image(data, **kwargs)
-        layer.data = ri
-        lo = float(self._acq_layer.metadata[META_ACQUISITION].optics.n_background)
-        layer.contrast_limits = (lo, max(lo + 1e-4, float(ri.max())))
+            focus = True
+        else:
+            layer.data = ri
+            layer.contrast_limits = limits
+        if focus:
+            self._viewer.layers.selection.active = layer
+            show_slice(self._viewer, layer, content_slice(ri, n_b))
+
+    def _close_result(self) -> None:
+        """End the computation process kept for the last run's *Predicted vs measured*."""
+        if isinstance(self._rec, RunResult):
+            self._rec.close()
 
     def _on_returned(self, result: JobResult) -> None:
         if self._closing.is_set():
+            if isinstance(result.rec, RunResult):
+                result.rec.close()
             return
         self._rec = result.rec
         self.cancelled = result.cancelled
@@ -491,26 +532,35 @@ class ReconstructionWidget(Container):
         self._report = result.report
         parts = (result.report or {}).get("model_parts")
         self.parts_info.value = describe_parts(parts) if parts else ""
-        self._show_ri(result.ri)
+        self._show_ri(result.ri, focus=True)
         self._ri_layer.metadata[META_REPORT] = result.report
-        set_sources(self._viewer, self._acq_layer, result.sources_um, kind="calibrated", name=self._calibrated_name())
+        self._put_sources(result.sources_um)
         n = len(result.rec.config.stages)
-        fit = (result.report or {}).get("image_fit", {})
-        fit_txt = f"; image fit: relative error {fit['image_relative_error']:.3f}" if "image_relative_error" in fit else ""
+        n_b = float(result.rec.acquisition.optics.n_background)
+        self.results.value = results_line(result.report, truth_error(self._viewer, self._acq_layer, result.ri, n_b))
         if result.cancelled:
-            self.progress.value = sum(self._stage_iterations[: result.completed_stages])
+            self.progress.value = self._progress_offset + sum(self._stage_iterations[: result.completed_stages])
             self.status.value = (f"run #{self._runs} cancelled: showing the last complete stage "
-                                 f"({result.completed_stages}/{n}){fit_txt}")
+                                 f"({result.completed_stages}/{n})")
         else:
             self.progress.value = self.progress.max
-            self.status.value = (f"run #{self._runs} done: {n} stages in {result.rec.elapsed_s:.1f} s on "
-                                 f"{result.rec.device}{fit_txt}")
+            self.status.value = f"run #{self._runs} done: {n} stages in {result.rec.elapsed_s:.1f} s on {result.rec.device}"
 
     def _on_error(self, exc: Exception) -> None:
         if self._closing.is_set():
             return
-        self.progress.value = 0
-        self.status.value = f"run #{self._runs} failed"
+        if isinstance(exc, ComputeProcessDied) and self._last_complete is not None:
+            done, ri = self._last_complete
+            self._show_ri(ri, focus=True)
+            self.progress.value = self._progress_offset + sum(self._stage_iterations[:done])
+            self.status.value = (f"run #{self._runs} failed: the computation process ended; showing the last complete "
+                                 f"stage ({done}/{len(self._stage_iterations)})")
+        else:
+            if isinstance(exc, ComputeProcessDied) and self._ri_layer is not None and self._ri_layer in self._viewer.layers:
+                self._viewer.layers.remove(self._ri_layer)  # a part of a first stage: nothing complete to keep
+                self._ri_layer = None
+            self.progress.value = 0
+            self.status.value = f"run #{self._runs} failed"
         self.feedback.exception(exc)
 
     def _on_warning(self, args: tuple) -> None:
@@ -527,167 +577,3 @@ class ReconstructionWidget(Container):
         if self._closing.is_set():
             return
         self._set_running(False)
-
-    # -- results ------------------------------------------------------------------------------
-    def _result(self):
-        if self._rec is None or self._report is None:
-            raise FDTInputError("result", "there is no finished reconstruction", "press Reconstruct first")
-        return self._rec
-
-    def save_result(self, path: str | Path) -> tuple[Path, Path]:
-        """Write the RI volume (OME-TIFF) and its report (``.json`` beside it), as ``fdt reconstruct``."""
-        from napari_fdt.recon.report import write_result
-
-        rec = self._result()
-        report = {**self._report, "output": str(path)}
-        return write_result(rec, path, report, overwrite=True)
-
-    def _save_result_dialog(self) -> None:
-        from qtpy.QtWidgets import QFileDialog
-
-        suggestion = (self._run_name.split(" (")[0].replace(" #", "_").replace(" ", "_") or "RI") + ".ome.tif"
-        path, _ = QFileDialog.getSaveFileName(self.native, "Save RI volume", suggestion, "OME-TIFF (*.ome.tif *.tif)")
-        if path:
-            self.save_result_in_background(path)
-
-    def save_result_in_background(self, path: str | Path):
-        """:meth:`save_result` in a worker thread (the *Save RI…* button); returns the worker, or None if refused.
-
-        A name without ``.tif``/``.tiff`` gets ``.ome.tif`` (what the plugin's reader opens)."""
-        from napari_fdt.recon.report import write_result
-
-        path = with_tiff_suffix(path)
-        job = None
-        with self.feedback.guard():
-            rec = self._result()
-            report = {**self._report, "output": str(path)}  # this run's, even if another one starts meanwhile
-            job = lambda: write_result(rec, path, report, overwrite=True)  # noqa: E731
-
-        def show(written) -> None:
-            out, report_file = written
-            self.feedback.info(f"wrote {out} and {report_file}")
-
-        if job is None:
-            return None
-        return self.tasks.start("save", job, show, buttons=(self.save_button,), message=f"writing {path}…")
-
-    def show_comparison(self, index: int):
-        """Image ``index`` as the reconstruction predicts it, beside the measured one (computed in a worker; a 2-D layer)."""
-        job = None
-        with self.feedback.guard():
-            rec = self._result()
-            index = check_index(index, rec.acquisition.n_images)
-            acq_layer = self._acq_layer
-            job = lambda: predicted_vs_measured(rec, index)  # noqa: E731
-
-        def show(result) -> None:
-            pred, meas = result
-            dx = rec.acquisition.optics.pixel_size_um
-            owner = acq_layer.metadata.get(META_ID)
-            put_layer(self._viewer, (side_by_side(pred, meas), dict(
-                name=f"{acq_layer.name} fit: predicted | measured", scale=(dx, dx),
-                translate=lateral_translate(rec.acquisition.image_shape, dx), units=UNITS[:2], colormap="gray",
-                metadata={META_KIND: "comparison", META_OWNER: owner, "fdt_image": int(index)}), "image"))
-            rel = float(np.linalg.norm(pred - meas) / max(float(np.linalg.norm(meas)), 1e-30))
-            self.feedback.info(f"image {index}: relative error {rel:.3f} (predicted left, measured right)")
-
-        if job is None:
-            return None
-        return self.tasks.start("comparison", job, show, buttons=(self.compare_button,),
-                                message=f"predicting image {index}…")
-
-    def show_coverage(self):
-        """How many sources light each voxel within the pupil, as a volume layer (calibrated sources after a run).
-
-        Computed in a worker thread; returns the worker, or None if refused.
-        """
-        job = None
-        with self.feedback.guard():
-            layer = self.layer.value
-            acq = acquisition_of(layer)
-            if self._rec is not None and layer is self._acq_layer and not self.running:
-                sources = self._rec.sources_um()
-            else:
-                sources = sources_for(self._viewer, layer, acq)
-            job = lambda: illumination_coverage(acq.optics, acq.image_shape, sources)  # noqa: E731
-
-        def show(cov: np.ndarray) -> None:
-            put_layer(self._viewer, (cov, dict(
-                name=f"{layer.name} coverage", scale=volume_scale(acq.optics),
-                translate=volume_translate(acq.optics, acq.image_shape), units=UNITS, colormap="viridis",
-                contrast_limits=(0, max(1, int(cov.max()))),
-                metadata={META_KIND: "coverage", META_OWNER: layer.metadata.get(META_ID)}), "image"))
-            self.feedback.info(f"coverage: {int(cov.min())} to {int(cov.max())} sources per voxel; "
-                               f"{100 * float((cov == 0).mean()):.0f} % of the voxels unlit")
-
-        if job is None:
-            return None
-        return self.tasks.start("coverage", job, show, buttons=(self.coverage_button,),
-                                message=f"counting the sources that light each voxel of {layer.name}…")
-
-    # -- coherence masks and the command line --------------------------------------------------------
-    def preview_masks(self):
-        """The coherence masks of all sources for this widget's mask threshold (in a worker thread) → an image stack layer."""
-        job = None
-        with self.feedback.guard():
-            layer = self.layer.value
-            acq = acquisition_of(layer)
-            sources = sources_for(self._viewer, layer, acq)
-            threshold = float(self.mask_threshold.value)
-            job = lambda: mask_stack(acq, sources, threshold=threshold)  # noqa: E731
-
-        def show(masks: np.ndarray) -> None:
-            o = acq.optics
-            put_layer(self._viewer, (masks[:, None], dict(
-                name=f"{layer.name} masks", scale=stack_scale(o.pixel_size_um, o.thickness_um),
-                translate=stack_translate(acq.image_shape, o.pixel_size_um, o.thickness_um), units=STACK_UNITS,
-                axis_labels=STACK_AXIS_LABELS, colormap="green", blending="additive", opacity=0.5, contrast_limits=(0, 1),
-                metadata={META_KIND: "masks", META_OWNER: layer.metadata.get(META_ID)}), "image"))
-            self.feedback.info(f"masks of {len(masks)} sources at threshold {threshold:g}: "
-                               f"{100 * masks.mean():.0f} % of the pixels on average")
-
-        if job is None:
-            return None
-        return self.tasks.start("masks", job, show, buttons=(self.masks_button,),
-                                message=f"computing the masks of {layer.name}…")
-
-    def copy_command(self) -> str | None:
-        """The ``fdt reconstruct`` line that repeats this widget's run, to the clipboard; None if refused.
-
-        It needs the acquisition as a folder on disk that holds what the widget uses (optics and sources as
-        edited): the layer's folder if they are unchanged, else *Save acquisition…* first. The settings are written
-        beside that folder (``<folder>_settings.json``, a new name each time: nothing is overwritten).
-        """
-        from napari_fdt.data.io import read_acquisition
-
-        with self.feedback.guard():
-            layer = self.layer.value
-            acq = acquisition_of(layer)
-            config = self.config()
-            folder = layer.metadata.get(META_PATH)
-            if not folder or not (Path(folder) / "acquisition.json").is_file():
-                raise FDTInputError("Copy command", f"{layer.name} is not an acquisition folder on disk",
-                                    "press Save acquisition… in the FDT acquisition widget first")
-            on_disk = read_acquisition(folder)
-            sources = sources_for(self._viewer, layer, acq, required=False)
-            same_sources = (sources is None and on_disk.sources_um is None) or (
-                sources is not None and on_disk.sources_um is not None
-                and np.allclose(sources, on_disk.sources_um, rtol=0, atol=1e-9))
-            if on_disk.optics != acq.optics or not same_sources:
-                raise FDTInputError("Copy command", f"the optics or sources of {layer.name} differ from {folder}",
-                                    "press Save acquisition… in the FDT acquisition widget to write them, then copy again")
-            folder = Path(folder)
-            settings = unique_path(folder.with_name(f"{folder.name}_settings.json"))
-            config.save(settings)
-            out = unique_path(folder.with_name(f"{folder.name}_RI.ome.tif"))
-            command = format_command(reconstruct_command(folder, out, settings, device=self.device.value))
-            self.last_command = command
-            try:
-                from qtpy.QtWidgets import QApplication
-
-                QApplication.clipboard().setText(command)
-            except Exception:  # noqa: BLE001 (no clipboard on this display: the line is shown below anyway)
-                pass
-            self.feedback.info(f"copied: {command}")
-            return command
-        return None

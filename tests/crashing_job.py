@@ -1,0 +1,19 @@
+"""A job for the plugin's computation process that dies as a native crash or an out-of-memory kill would (tests only).
+
+``crash_after_first_stage`` runs :func:`napari_fdt.napari.job.reconstruction_job` and kills its own process with
+SIGKILL once the first stage's end has been sent to napari's process.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+
+from napari_fdt.napari.job import reconstruction_job
+
+
+def crash_after_first_stage(**kwargs):
+    for update in reconstruction_job(**kwargs):
+        yield update
+        if update.kind == "snapshot" and update.snapshot.stage_complete and getattr(update.snapshot, "phase", "run") != "tv_choice":
+            os.kill(os.getpid(), signal.SIGKILL)
