@@ -142,13 +142,15 @@ def main() -> int:
     rec_w.validation_fraction.value = 0.1  # shows the validation curve (orange) beside the training one
     rec_w.device.value = "cpu"
     rec_w.start()
+    deadline = time.perf_counter() + 1800  # a busy machine can be 10× slower than the 30 s quoted above
+    while rec_w._ri_layer is None and rec_w.running and time.perf_counter() < deadline:
+        pump(0.1)  # the RI layer appears with the run's first volume (after the TV pilot)
     ri = rec_w._ri_layer
     ri.rendering = "mip"
     viewer.dims.ndisplay = 3
     viewer.layers["letters sources"].visible = True
     view_3d(viewer, (-25, 35, 130), (-14, 0, 0), 9)
     calibrated = "letters sources calibrated #1"
-    deadline = time.perf_counter() + 1800  # a busy machine can be 10× slower than the 30 s quoted above
     while "stage 3/3" not in rec_w.status.value and time.perf_counter() < deadline:
         pump(0.1)
     pump(1.0)
