@@ -212,7 +212,7 @@ class ReconstructionWidget(ResultActions, Container):
         self._stage_iterations: list[int] = []
         #: (stages completed, absolute RI) of the last stage end that reached the widget (kept if the process dies)
         self._last_complete: tuple[int, np.ndarray] | None = None
-        self._run_iterations, self._progress_offset = 0, 0
+        self._run_iterations, self._progress_offset, self._pilot_s = 0, 0, 0.0
         #: the job the computation process runs, "module:function" (napari_fdt.napari.remote_job.JOB_TARGET)
         self.job_target: str | None = None
         self.last_command: str | None = None
@@ -373,7 +373,7 @@ class ReconstructionWidget(ResultActions, Container):
             self._worker = worker
             self._stop, self._done, self._closing = stop, done, closing
             #: iterations of the pass, and of the pilot before it (known from its first snapshot): the bar spans both
-            self._run_iterations, self._progress_offset = run_config.total_iterations, 0
+            self._run_iterations, self._progress_offset, self._pilot_s = run_config.total_iterations, 0, 0.0
             self.progress.max = max(1, run_config.total_iterations)
             self.progress.value = 0
             self.curve.reset(run_config.total_iterations)
@@ -452,13 +452,14 @@ class ReconstructionWidget(ResultActions, Container):
                 self._progress_offset = int(snap.phase_iterations)
                 self.progress.max = self._progress_offset + self._run_iterations
             self.progress.value = min(int(snap.phase_iteration), self._progress_offset)
+            self._pilot_s = float(snap.elapsed_s)  # the pass's time-left model starts after it
             left_txt = f", about {_duration(snap.eta_s)} left" if snap.eta_s and snap.eta_s > 0 else ""
             self.status.value = (f"run #{self._runs}: {snap.phase_label}, trial stage {snap.stage + 1}/{snap.n_stages} "
                                  f"(×{snap.factor}); {_duration(snap.elapsed_s)} elapsed{left_txt}")
             self.losses.value = "loss: " + ", ".join(f"{k} {v:.4g}" for k, v in snap.losses.items())
             return
         self.progress.value = self._progress_offset + snap.global_iteration
-        self._time_left.add(snap.stage, snap.iteration, snap.elapsed_s)
+        self._time_left.add(snap.stage, snap.iteration, snap.elapsed_s - self._pilot_s)
         left = self._time_left.seconds_left()
         left_txt = "" if left is None else f", about {_duration(left)} left"
         again = f" again with {', '.join(p.replace('_', ' ') for p in snap.rerun_with)}" if snap.rerun_with else ""
