@@ -8,24 +8,12 @@ import time
 from types import SimpleNamespace
 
 import numpy as np
-import pytest
 
 from napari_fdt.recon.config import SolverConfig, StageConfig
 from napari_fdt.recon.model_parts import PARTS, PartsChoice
 from napari_fdt.recon.phases import TV_CHOICE, phase_label, pilot_plan
 from napari_fdt.recon.regularisation import TV_PATH
 from napari_fdt.recon.solver import Reconstructor, Snapshot
-
-
-@pytest.fixture(scope="module")
-def scene16():
-    """A 32×32, 4-slice letters scene with 16 noisy images: 3 can be held out."""
-    from napari_fdt import Optics, simulate, source_grid
-    from napari_fdt.sim.phantoms import text_phantom
-
-    o = Optics(wavelength_um=0.635, n_background=1.33, na=0.8, pixel_size_um=0.33, n_slices=4,
-               slice_spacing_um=2.0, image_plane_um=0.0)
-    return simulate(text_phantom((32, 32), 4, text="UC", delta_n=0.05), o, source_grid(4, 8.0, 15.0), seed=2, device="cpu")
 
 
 def _config(**kw) -> SolverConfig:

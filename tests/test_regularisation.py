@@ -14,17 +14,6 @@ from napari_fdt.recon.regularisation import TV_PATH, TV_Z_RATIO, candidate_weigh
 from napari_fdt.recon.solver import Reconstructor
 
 
-@pytest.fixture(scope="module")
-def scene16():
-    """A 32×32, 4-slice letters scene with 16 noisy images: 3 can be held out."""
-    from napari_fdt import Optics, simulate, source_grid
-    from napari_fdt.sim.phantoms import text_phantom
-
-    o = Optics(wavelength_um=0.635, n_background=1.33, na=0.8, pixel_size_um=0.33, n_slices=4,
-               slice_spacing_um=2.0, image_plane_um=0.0)
-    return simulate(text_phantom((32, 32), 4, text="UC", delta_n=0.05), o, source_grid(4, 8.0, 15.0), seed=2, device="cpu")
-
-
 def _config(**kw) -> SolverConfig:
     base = dict(stages=[StageConfig(2, 6), StageConfig(1, 6)], batch_size=4, snapshot_every=2, validation_fraction=0.2,
                 final_stage_min_passes=0)  # the stages as given (the lengthening: test_schedule.py)
