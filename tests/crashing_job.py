@@ -10,10 +10,11 @@ import os
 import signal
 
 from napari_fdt.napari.job import reconstruction_job
+from napari_fdt.recon.phases import TV_CHOICE
 
 
 def crash_after_first_stage(**kwargs):
     for update in reconstruction_job(**kwargs):
         yield update
-        if update.kind == "snapshot" and update.snapshot.stage_complete and getattr(update.snapshot, "phase", "run") != "tv_choice":
+        if update.kind == "snapshot" and update.snapshot.stage_complete and update.snapshot.phase != TV_CHOICE:
             os.kill(os.getpid(), signal.SIGKILL)

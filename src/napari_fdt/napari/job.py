@@ -19,6 +19,7 @@ import numpy as np
 from napari_fdt.data.acquisition import Acquisition
 from napari_fdt.physics.optics import Optics
 from napari_fdt.recon.config import SolverConfig
+from napari_fdt.recon.phases import TV_CHOICE
 
 __all__ = ["Update", "JobResult", "reconstruction_job", "stage_costs", "TimeLeft"]
 
@@ -78,9 +79,8 @@ def reconstruction_job(
         for snap in rec.run(should_stop=stop.is_set):
             now = time.perf_counter()
             ri = None
-            if getattr(snap, "phase", "run") == "tv_choice":  # the pilot's volumes are trials, not the result
-                pass
-            elif snap.stage_complete or now - last >= min_interval_s:
+            # the pilot's volumes (phase "tv_choice") are trials, not the result: no RI for them
+            if snap.phase != TV_CHOICE and (snap.stage_complete or now - last >= min_interval_s):
                 ri = n_b + snap.delta_n_full()
                 last = time.perf_counter()
             yield Update("snapshot", snapshot=snap, ri=ri)

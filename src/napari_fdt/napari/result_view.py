@@ -16,7 +16,7 @@ import numpy as np
 
 from napari_fdt.napari.layers import META_ID, META_KIND, META_OWNER
 
-__all__ = ["ri_contrast_limits", "content_slice", "show_slice", "z_inside", "keep_view", "truth_layer",
+__all__ = ["ri_contrast_limits", "CONTRAST_SAMPLE", "content_slice", "show_slice", "z_inside", "keep_view", "truth_layer",
            "truth_error", "results_line", "OBLIQUE_ANGLES", "oblique_camera", "camera"]
 
 #: napari camera angles (degrees) of the first 3D view: the volume seen from above and aside, so that slices do not
@@ -24,11 +24,18 @@ __all__ = ["ri_contrast_limits", "content_slice", "show_slice", "z_inside", "kee
 OBLIQUE_ANGLES = (-20.0, 35.0, 130.0)
 
 
+#: Most voxels :func:`ri_contrast_limits` reads (an even stride through larger volumes): it runs in the GUI thread at
+#: every update of a run: 64 ms on a 14×512×512 volume read whole, 9 ms with this sample (2 CPU cores).
+CONTRAST_SAMPLE = 1 << 18
+
+
 def ri_contrast_limits(ri: np.ndarray, n_background: float) -> tuple[float, float]:
-    """Contrast limits of an absolute RI volume from its data: the 0.1 and 99.9 percentiles, widened to hold the
-    medium's index (so that the background is the colormap's low end or middle), never narrower than 1e-4."""
-    a = np.asarray(ri, dtype=np.float32)
-    finite = a[np.isfinite(a)]
+    """Contrast limits of an absolute RI volume from its data: the 0.1 and 99.9 percentiles (of at most
+    :data:`CONTRAST_SAMPLE` voxels, evenly strided), widened to hold the medium's index (so that the background is the
+    colormap's low end or middle), never narrower than 1e-4."""
+    flat = np.asarray(ri, dtype=np.float32).reshape(-1)
+    sample = flat[:: max(1, flat.size // CONTRAST_SAMPLE)]
+    finite = sample[np.isfinite(sample)]
     if finite.size == 0:
         return float(n_background), float(n_background) + 1e-4
     lo, hi = (float(v) for v in np.percentile(finite, (0.1, 99.9)))

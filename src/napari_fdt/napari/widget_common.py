@@ -35,6 +35,7 @@ from napari_fdt.napari.layers import (
     source_point_size_um,
     sources_layer,
 )
+from napari_fdt.napari.result_view import oblique_camera
 
 __all__ = [
     "acquisition_layer_choices", "find_layer", "put_layer", "sources_for", "set_sources", "Feedback",
@@ -531,8 +532,6 @@ def follow_ndisplay(viewer) -> None:
 
     def on_ndisplay(event=None) -> None:
         if viewer.dims.ndisplay == 3:
-            from napari_fdt.napari.result_view import oblique_camera
-
             oblique_camera(viewer)  # not straight down the z axis, where the slices overlap into one block
             for layer in viewer.layers:
                 if layer.visible and (layer.metadata.get(META_KIND) in _HIDDEN_IN_3D or layer.metadata.get(META_NEEDS_OPTICS)):

@@ -54,6 +54,7 @@ from napari_fdt.napari.widget_common import (
 from napari_fdt.napari.widget_curve import ErrorCurveWidget
 from napari_fdt.napari.widget_results import ResultActions, with_tiff_suffix
 from napari_fdt.recon.config import SolverConfig, load_config, resolve_stage_lengths
+from napari_fdt.recon.phases import TV_CHOICE
 from napari_fdt.recon.report import describe_parts
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -446,8 +447,7 @@ class ReconstructionWidget(ResultActions, Container):
             self.status.value = "evaluating the fit of every image…"
             return
         snap = update.snapshot
-        phase = getattr(snap, "phase", "run")
-        if phase == "tv_choice":  # the pilot that chooses the TV weight: its own words and count, no volume yet
+        if snap.phase == TV_CHOICE:  # the pilot that chooses the TV weight: its own words and count, no volume yet
             if not self._progress_offset and snap.phase_iterations:  # the bar spans the pilot, then the pass
                 self._progress_offset = int(snap.phase_iterations)
                 self.progress.max = self._progress_offset + self._run_iterations
