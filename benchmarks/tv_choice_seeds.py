@@ -16,6 +16,7 @@ import torch
 from napari_fdt import read_acquisition
 from napari_fdt.recon.config import SolverConfig
 from napari_fdt.recon.solver import Reconstructor
+from napari_fdt.recon.tv_search import pilot
 
 
 def main(argv: list[str]) -> None:
@@ -23,7 +24,8 @@ def main(argv: list[str]) -> None:
     acq = read_acquisition(argv[0])
     for seed in map(int, argv[1:]):
         rec = Reconstructor(acq, SolverConfig(seed=seed), device="cpu")
-        rec._pilot(None)
+        for _ in pilot(rec, None):  # the pilot alone: it chooses the weights and returns to the initial state
+            pass
         c = rec.tv_choice
         trials = ", ".join(f"τ {t['tau']:g}: {t['validation_error']:.5f}" for t in c.trials)
         print(f"{argv[0]} seed {seed}: τ_xy {c.tv_xy_weight:g} ({trials})", flush=True)

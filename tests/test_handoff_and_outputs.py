@@ -265,21 +265,21 @@ def test_progress_in_a_log_is_plain_lines() -> None:
     assert any("10/10" in line for line in lines) and "stage 1/1 complete" in lines
 
 
-def test_progress_starts_again_when_the_stages_run_again_with_model_parts() -> None:
-    """A run whose model-parts choice kept a part runs every stage again: the bar follows the count back to its start and
-    names the parts (the count would otherwise stand still until it passed the first pass's iterations)."""
+def test_progress_grows_but_never_starts_again_when_the_stages_run_again_with_model_parts() -> None:
+    """A run whose model-parts choice kept a part runs every stage again: the plan appends those phases, the bar's total
+    grows and its count goes on from where it was, named by the phase."""
     from types import SimpleNamespace
 
     from napari_fdt.cli import _show_progress
 
     bar = _progress_bar(10, disable=False, stream=_Pipe())
 
-    def snap(it: int, again: tuple[str, ...]) -> SimpleNamespace:
-        return SimpleNamespace(stage=0, n_stages=2, factor=2, losses={"total": 1.0}, validation_error=0.1, eta_s=1.0,
-                               total_iterations=10, global_iteration=it, stage_complete=False, rerun_with=again)
+    def snap(done: int, of: int, name: str) -> SimpleNamespace:
+        return SimpleNamespace(losses={"total": 1.0}, validation_error=0.1, eta_s=1.0, stage_complete=False, tv_weights=None,
+                               plan_iteration=done, plan_iterations=of, phase_name=name)
 
-    _show_progress(bar, snap(8, ()))
+    _show_progress(bar, snap(8, 10, "stage 2/2 (x1)"))
     assert bar.n == 8 and "again" not in bar.desc
-    _show_progress(bar, snap(3, ("aberrations",)))
-    assert bar.n == 3 and bar.total == 10 and "again with aberrations" in bar.desc
+    _show_progress(bar, snap(13, 20, "stage 1/2 (x2) again with aberrations"))
+    assert bar.n == 13 and bar.total == 20 and "again with aberrations" in bar.desc
     bar.close()

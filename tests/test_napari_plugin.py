@@ -282,7 +282,9 @@ def test_reconstruction_streams_every_stage_and_saves(make_napari_viewer, qtbot,
     assert ri.data.shape == (4, 32, 32) and np.allclose(ri.scale, (2.0, 0.33, 0.33))
     assert np.allclose(ri.translate, (1.0, -16 * 0.33, -16 * 0.33))
     assert np.allclose(ri.data, w._rec.ri_full())
-    assert ri.data.max() > 1.33 and w.progress.value == w.progress.max == w._progress_offset + 6  # the TV pilot, then 6
+    plan = w._report["plan"]  # the bar spans the whole plan: the TV pilot, then the 2 stages of 3 iterations
+    assert ri.data.max() > 1.33 and w.progress.value == w.progress.max == plan["iterations"]
+    assert [p["iterations"] for p in plan["phases"] if p["phase"] == "run"] == [3, 3]
     assert ri.metadata[META_REPORT]["completed_stages"] == 2
     assert "done: 2 stages" in w.status.value and "total" in w.losses.value
     # calibrated sources in a points layer of their own
@@ -331,7 +333,9 @@ def test_cancel_keeps_the_last_complete_stage(make_napari_viewer, qtbot, tiny_di
     assert ri.metadata[META_REPORT]["cancelled"] is True
     assert "run #1 cancelled: showing the last complete stage (1/2)" in w.status.value
     assert w.run_button.enabled and not w.cancel_button.enabled
-    assert w.progress.value == w._progress_offset + 3  # the bar shows the kept stage, not where the cancel caught the run
+    plan = ri.metadata[META_REPORT]["plan"]["phases"]  # the bar shows the kept stage, not where the cancel caught the run
+    first = next(i for i, p in enumerate(plan) if p["phase"] == "run")
+    assert w.progress.value == sum(p["iterations"] for p in plan[: first + 1])
 
 
 def test_viewer_stays_responsive_during_a_run(make_napari_viewer, qtbot, tiny_dir) -> None:
@@ -412,7 +416,8 @@ def test_a_crash_of_the_computation_leaves_napari_and_the_last_stage(make_napari
     done, first_stage = w._last_complete
     ri = viewer.layers[f"{acq_layer.name} RI #1 (2x3, 1x3, seed 0)"]
     assert done == 1 and np.array_equal(ri.data, first_stage) and ri.data.max() > 1.33
-    assert w.progress.value == w._progress_offset + 3 and w.run_button.enabled and not w.cancel_button.enabled
+    assert w.progress.value == w._complete_at and 3 <= w._complete_at < w.progress.max  # the kept stage's place
+    assert w.run_button.enabled and not w.cancel_button.enabled
     # the widget runs again
     w.job_target = None
     w.run_button.clicked.emit()

@@ -119,6 +119,10 @@ def test_fixed_weights_have_no_pilot_and_the_stages_run_again_are_a_rerun(scene1
     rec.apply_parts_choice(PartsChoice(parts, chosen_by, rerun="stages", pending=[]))
     snaps = [s for s in rec.run()]
     assert {s.phase for s in snaps} == {"rerun"} and {s.rerun_with for s in snaps} == {("aberrations",)}
+    # the plan holds the first pass and the stages again; the count goes on after the first pass
+    assert [p.pass_name for p in rec.plan.phases] == ["run", "run", "rerun", "rerun"]
+    assert snaps[0].plan_iteration > 8 and snaps[-1].plan_iteration == snaps[-1].plan_iterations == 16
+    assert snaps[0].phase_name == "stage 1/2 (x2) again with aberrations"
     assert snaps[0].phase_label == "reconstructing again with aberrations"
 
 
@@ -136,31 +140,30 @@ class _Pipe(io.StringIO):
         return False
 
 
-def _snap(phase: str, it: int, total: int, *, done: int = 0, of: int = 0, weights=None, complete=False, again=()) -> SimpleNamespace:
-    return SimpleNamespace(stage=0, n_stages=2, factor=2, losses={"total": 1.0}, validation_error=0.1, eta_s=1.0,
-                           total_iterations=total, global_iteration=it, stage_complete=complete, rerun_with=again,
-                           phase=phase, phase_iteration=done, phase_iterations=of, tv_weights=weights)
+def _snap(done: int, of: int, name: str, *, weights=None, complete=False) -> SimpleNamespace:
+    return SimpleNamespace(losses={"total": 1.0}, validation_error=0.1, eta_s=1.0, stage_complete=complete, tv_weights=weights,
+                           plan_iteration=done, plan_iterations=of, phase_name=name)
 
 
-def test_the_bar_counts_the_pilot_then_the_pass() -> None:
+def test_the_bar_counts_the_whole_plan_and_names_its_phase() -> None:
     from napari_fdt.cli import _progress_bar, _show_progress
 
     out = _Pipe()
     bar = _progress_bar(10, disable=False, stream=out)
-    _show_progress(bar, _snap(TV_CHOICE, 2, 10, done=2, of=16))
-    assert bar.n == 2 and bar.total == 16 and bar.desc.startswith("choosing TV weight, stage 1/2 (x2)")
-    _show_progress(bar, _snap(TV_CHOICE, 4, 10, done=4, of=16, complete=True))
-    _show_progress(bar, _snap(TV_CHOICE, 6, 10, done=6, of=16, weights=(3.0, 1.5)))
+    _show_progress(bar, _snap(2, 26, "choosing the TV weight: stage 1/2 (x2)"))
+    assert bar.n == 2 and bar.total == 26 and bar.desc.startswith("choosing the TV weight: stage 1/2 (x2)")
+    _show_progress(bar, _snap(4, 26, "choosing the TV weight: stage 1/2 (x2)", complete=True))
+    _show_progress(bar, _snap(6, 26, "choosing the TV weight: trials at stage 2/2 (x1)", weights=(3.0, 1.5)))
     assert bar.n == 6 and "tried xy 3" in bar.desc
-    _show_progress(bar, _snap("run", 8, 10, done=8, of=10))  # the pass: its own count, though it is ahead of the pilot's
-    assert bar.n == 8 and bar.total == 10 and bar.desc.startswith("stage 1/2 (x2)") and "TV" not in bar.desc
-    _show_progress(bar, _snap("rerun", 2, 10, done=2, of=10, again=("aberrations",)))
-    assert bar.n == 2 and "again with aberrations" in bar.desc
+    _show_progress(bar, _snap(18, 22, "stage 1/2 (x2)"))  # the trials ended early: the plan's total shrank
+    assert bar.n == 18 and bar.total == 22 and bar.desc.startswith("stage 1/2 (x2)") and "TV" not in bar.desc
+    _show_progress(bar, _snap(24, 32, "stage 1/2 (x2) again with aberrations"))
+    assert bar.n == 24 and bar.total == 32 and "again with aberrations" in bar.desc
     bar.close()
     text = out.getvalue()
-    assert text.isascii() and "choosing TV weight: tried xy 3, z 1.5: validation error 0.1000" in text
-    assert "choosing TV weight, stage 1/2 (x2) complete at iteration 4" in text
+    assert text.isascii() and "choosing the TV weight: tried xy 3, z 1.5: validation error 0.1000" in text
+    assert "choosing the TV weight: stage 1/2 (x2) complete" in text
     quiet = _progress_bar(10, disable=True, stream=_Pipe())
-    for s in (_snap(TV_CHOICE, 2, 10, done=2, of=16, weights=(1.0, 0.5)), _snap("run", 1, 10, done=1, of=10)):
+    for s in (_snap(2, 26, "x", weights=(1.0, 0.5)), _snap(3, 26, "y")):
         _show_progress(quiet, s)
     quiet.close()

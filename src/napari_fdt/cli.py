@@ -354,19 +354,14 @@ def _progress_bar(total: int, *, disable: bool, stream=None):
 
 
 def _show_progress(bar, snap) -> None:
-    """Advance the bar to a snapshot: stage, iteration, loss, validation error and the solver's time-left estimate.
+    """Advance the bar to a snapshot: the plan's phase in words, loss, validation error and the solver's time-left.
 
-    While the pilot chooses the TV weight (phase "tv_choice") the bar counts the pilot's own iterations (its stages, then
-    each weight's trial, one line per weight tried) and says so; the count starts again when the phase changes (the pass,
-    and the stages run again with model parts)."""
-    phase = getattr(snap, "phase", "run")
-    pilot = phase == "tv_choice"
-    weights = getattr(snap, "tv_weights", None)
-    again = f", again with {'+'.join(snap.rerun_with)}" if snap.rerun_with else ""
-    where = f"stage {snap.stage + 1}/{snap.n_stages} (x{snap.factor}{again})"
-    if pilot:
-        where = f"choosing TV weight, stage {snap.stage + 1}/{snap.n_stages} (x{snap.factor})"
-    bar.set_description(where + (f", tried xy {weights[0]:g}" if weights is not None else ""), refresh=False)
+    The bar counts the iterations of the whole plan (:mod:`napari_fdt.recon.plan`: the TV pilot's stages and trials,
+    the pass, and the stages run again with kept model parts), so it never starts again; it grows when a choice of
+    model parts appends the stages run again. A line is written after each TV weight tried and each stage's end.
+    """
+    weights = snap.tv_weights
+    bar.set_description(snap.phase_name + (f", tried xy {weights[0]:g}" if weights is not None else ""), refresh=False)
     post = {}
     loss = snap.losses.get("total")
     if loss is not None:
@@ -375,24 +370,18 @@ def _show_progress(bar, snap) -> None:
         post["val"] = f"{snap.validation_error:.4f}"
     post["left"] = f"{snap.eta_s:.0f}s"
     bar.set_postfix(post, refresh=False)
-    total, done = (snap.phase_iterations, snap.phase_iteration) if pilot else (snap.total_iterations, snap.global_iteration)
-    new_phase = getattr(bar, "fdt_phase", phase) != phase
-    bar.fdt_phase = phase
-    bar.total = total
-    step = done - bar.n
-    if step < 0 or new_phase:  # a new phase (the pass after the pilot; the stages again with model parts): the count starts again
-        bar.reset(total=total)
-        step = done
+    if bar.total != snap.plan_iterations:
+        bar.total = snap.plan_iterations
+    step = snap.plan_iteration - bar.n
     if step > 0:
         bar.update(step)
     if bar.disable:
         return
     if weights is not None:
         val = f"validation error {snap.validation_error:.4f}" if snap.validation_error is not None else "no validation error"
-        bar.write(f"choosing TV weight: tried xy {weights[0]:g}, z {weights[1]:g}: {val}", file=bar.fp)
+        bar.write(f"choosing the TV weight: tried xy {weights[0]:g}, z {weights[1]:g}: {val}", file=bar.fp)
     elif snap.stage_complete:
-        bar.write(f"{where} complete at iteration {snap.global_iteration}" + (f", loss {loss:.4g}" if loss is not None else ""),
-                  file=bar.fp)
+        bar.write(f"{snap.phase_name} complete" + (f", loss {loss:.4g}" if loss is not None else ""), file=bar.fp)
 
 
 def _config_from_args(args: argparse.Namespace):
@@ -467,7 +456,7 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
 
 
 def _run_and_write(args, config, acq, out: Path, json_out: Path, truth, truth_src, group) -> int:
-    from napari_fdt.recon.report import build_report, describe_parts, write_result
+    from napari_fdt.recon.report import build_report, describe_parts, describe_plan, write_result
     from napari_fdt.recon.solver import Reconstructor
 
     device = args.device if group is None else group.device
@@ -477,7 +466,9 @@ def _run_and_write(args, config, acq, out: Path, json_out: Path, truth, truth_sr
         rec = Reconstructor(acq, config, device=device, group=group)
     writer = group is None or group.is_writer
     cancelled = False
-    bar = _progress_bar(rec.config.total_iterations, disable=args.quiet or not writer)
+    if writer and not args.quiet:
+        print(rec.plan.summary(), file=sys.stderr)
+    bar = _progress_bar(rec.plan.iterations, disable=args.quiet or not writer)
     snapshots = rec.run(checkpoint_dir=args.checkpoint_dir)
     try:
         for snap in snapshots:
@@ -501,6 +492,7 @@ def _run_and_write(args, config, acq, out: Path, json_out: Path, truth, truth_sr
     write_result(rec, out, report, overwrite=args.overwrite)
     st = ", ".join(f"x{r['factor']}: {r.get('stopped_at') or r['iterations']} it, {r['seconds_per_iteration']:.3f} s/it" for r in report["stages"])
     print(f"wrote {out} and {json_out}: {report['seconds_total']:.1f} s on {rec.device} ({st})")
+    print(describe_plan(report["plan"]))
     lengths = report.get("stage_lengths")
     if lengths and lengths["iterations"] != lengths["requested_iterations"]:
         print(f"finest stage lengthened to {lengths['iterations'][-1]} iterations (asked {lengths['requested_iterations'][-1]}): "

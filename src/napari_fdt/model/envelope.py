@@ -33,7 +33,16 @@ from napari_fdt.model.envelope_loop import envelope_loop, step_kernels
 from napari_fdt.physics.optics import Optics
 from napari_fdt.physics.propagation import axial_frequency_offset, pupil
 
-__all__ = ["EnvelopeModel"]
+__all__ = ["EnvelopeModel", "padding_px"]
+
+
+def padding_px(optics: Optics, factor: int) -> int:
+    """Pixels of the stage grid (``factor · dx``) the envelope model pads each side with: envelope diffraction spreads by
+    at most λ'/(2·pixel) over the thickness plus the exit distance, plus 4."""
+    pixel_um = optics.pixel_size_um * factor
+    lam_medium = optics.wavelength_um / optics.n_background
+    reach = (optics.thickness_um + abs(optics.image_plane_um)) * lam_medium / (2 * pixel_um)
+    return int(math.ceil(reach / pixel_um)) + 4
 
 
 class EnvelopeModel:
@@ -69,10 +78,7 @@ class EnvelopeModel:
             raise ValueError(f"batched must be True, False or 'auto', got {batched!r}")
         self.batched = self.device.type == "cuda" if batched == "auto" else bool(batched)
         h, w = self.grid_shape
-        lam_medium = optics.wavelength_um / optics.n_background
-        # Envelope diffraction spreads by at most λ'/(2·pixel) over the thickness plus the exit distance.
-        reach = (optics.thickness_um + abs(optics.image_plane_um)) * lam_medium / (2 * self.pixel_um)
-        self.pad = int(math.ceil(reach / self.pixel_um)) + 4
+        self.pad = padding_px(optics, self.factor)
         self.padded = (h + 2 * self.pad, w + 2 * self.pad)
 
     @property

@@ -17,11 +17,10 @@ from typing import Any, Iterator
 import numpy as np
 
 from napari_fdt.data.acquisition import Acquisition
-from napari_fdt.physics.optics import Optics
 from napari_fdt.recon.config import SolverConfig
 from napari_fdt.recon.phases import TV_CHOICE
 
-__all__ = ["Update", "JobResult", "reconstruction_job", "stage_costs", "TimeLeft"]
+__all__ = ["Update", "JobResult", "reconstruction_job"]
 
 
 @dataclass
@@ -98,101 +97,3 @@ def reconstruction_job(
     finally:
         if done is not None:
             done.set()
-
-
-def stage_costs(optics: Optics, image_shape: tuple[int, int], config: SolverConfig, n_images: int | None = None,
-                device_type: str = "cpu") -> list[float]:
-    """Relative cost of one iteration of every stage, known before the run: field-grid pixels × images per batch.
-
-    A stage of factor f works on a field grid of ``(H/g)·(W/g)`` pixels (``g`` the field factor of
-    :func:`napari_fdt.recon.stages.field_factor`, or f itself for the envelope model, which ``coarse_model`` ``auto``
-    picks off CUDA), one image of the batch at a time.
-    """
-    from napari_fdt.recon.config import resolve_coarse_model
-    from napari_fdt.recon.stages import field_factor
-
-    coarse = resolve_coarse_model(config.coarse_model, device_type)
-    h, w = image_shape
-    out = []
-    for s in config.stages:
-        g = s.factor if (s.factor > 1 and coarse == "envelope") else field_factor(optics, s.factor)
-        batch = s.batch_size or config.batch_size
-        if n_images is not None:
-            batch = min(batch, n_images)
-        out.append((h / g) * (w / g) * batch)
-    return out
-
-
-class TimeLeft:
-    """Time-left estimate of a run from measured per-stage cost.
-
-    ``iterations[s]`` and ``costs[s]`` (relative cost of one iteration, :func:`stage_costs`) of every stage are known
-    before the run. :meth:`add` takes each snapshot's (stage, iteration within the stage, elapsed seconds of the run).
-    The time of an interval between two snapshots of one stage, divided by its iterations × the stage's cost, measures
-    seconds per cost unit; the first interval of each stage (which holds the stage's set-up) is left out while a
-    later one exists. The current stage's rest is priced at its own measured seconds per iteration, the later stages
-    at the run's measured seconds per cost unit × their cost, plus the measured set-up time of a stage.
-    """
-
-    def __init__(self, iterations: list[int], costs: list[float]) -> None:
-        if len(iterations) != len(costs) or not iterations:
-            raise ValueError("need one cost per stage")
-        self.iterations = [int(i) for i in iterations]
-        self.costs = [float(c) for c in costs]
-        self._last: tuple[int, int, float] | None = None
-        #: per stage: [seconds, iterations] of its steady intervals, and of its first interval
-        self._steady = [[0.0, 0] for _ in iterations]
-        self._first = [[0.0, 0] for _ in iterations]
-        self._current = (0, 0)
-
-    def add(self, stage: int, iteration: int, elapsed_s: float) -> None:
-        """Record a snapshot: ``iteration`` iterations of ``stage`` done after ``elapsed_s`` seconds of the run."""
-        if self._last is None or stage != self._last[0]:
-            # a new stage: its first interval counts from the end of the previous stage (or the run's start)
-            start = 0.0 if self._last is None else self._last[2]
-            acc = self._first[stage]
-            acc[0] += max(0.0, elapsed_s - start)
-            acc[1] += int(iteration)
-        else:
-            d_it = int(iteration) - self._last[1]
-            if d_it > 0:
-                acc = self._steady[stage]
-                acc[0] += max(0.0, elapsed_s - self._last[2])
-                acc[1] += d_it
-        self._last = (int(stage), int(iteration), float(elapsed_s))
-        self._current = (int(stage), int(iteration))
-
-    def seconds_per_cost(self) -> float | None:
-        """Measured seconds per cost unit over the stages seen (steady intervals where a stage has them)."""
-        seconds = units = 0.0
-        have_steady = any(acc[1] > 0 for acc in self._steady)
-        for s, cost in enumerate(self.costs):
-            acc = self._steady[s] if (self._steady[s][1] > 0 or have_steady) else self._first[s]
-            seconds += acc[0]
-            units += acc[1] * cost
-        return seconds / units if units > 0 else None
-
-    def setup_seconds(self) -> float:
-        """Measured set-up time of a stage: the excess of a first interval over its stage's steady pace (mean)."""
-        extra = [max(0.0, first[0] - first[1] * steady[0] / steady[1])
-                 for first, steady in zip(self._first, self._steady) if steady[1] > 0 and first[1] > 0]
-        return sum(extra) / len(extra) if extra else 0.0
-
-    def seconds_left(self) -> float | None:
-        """Estimated seconds to the end of the run; None before the first snapshot."""
-        rate = self.seconds_per_cost()
-        if rate is None:
-            return None
-        stage, it = self._current
-        steady = self._steady[stage]
-        if steady[1] > 0:  # this stage's own pace
-            per_it = steady[0] / steady[1]
-        elif stage > 0:  # only the first interval (with the set-up): the earlier stages' pace × this stage's cost
-            per_it = rate * self.costs[stage]
-        else:
-            per_it = self._first[stage][0] / max(1, self._first[stage][1])
-        left = max(0, self.iterations[stage] - it) * per_it
-        setup = self.setup_seconds()
-        for s in range(stage + 1, len(self.iterations)):
-            left += setup + self.iterations[s] * rate * self.costs[s]
-        return left

@@ -22,7 +22,7 @@ import numpy as np
 from magicgui.widgets import ComboBox, Container, Label, LineEdit, ProgressBar, PushButton, SpinBox
 
 from napari_fdt.errors import FDTInputError
-from napari_fdt.napari.job import JobResult, TimeLeft, Update, stage_costs
+from napari_fdt.napari.job import JobResult, Update
 from napari_fdt.napari.layers import (
     META_ACQUISITION,
     META_ID,
@@ -207,13 +207,13 @@ class ReconstructionWidget(ResultActions, Container):
         self._ri_layer = None
         self._acq_layer = None
         self._close_watcher = None
-        self._time_left: TimeLeft | None = None
         self._run_name = ""
         self._runs = 0
-        self._stage_iterations: list[int] = []
+        self._n_stages = 0
+        #: where along the run's plan (iterations) the last complete stage ended
+        self._complete_at = 0
         #: (stages completed, absolute RI) of the last stage end that reached the widget (kept if the process dies)
         self._last_complete: tuple[int, np.ndarray] | None = None
-        self._run_iterations, self._progress_offset, self._pilot_s = 0, 0, 0.0
         #: the job the computation process runs, "module:function" (napari_fdt.napari.remote_job.JOB_TARGET)
         self.job_target: str | None = None
         self.last_command: str | None = None
@@ -343,9 +343,6 @@ class ReconstructionWidget(ResultActions, Container):
             run_config = resolve_stage_lengths(config, acq.n_images)
             sources = sources_for(self._viewer, layer, acq, required=False)
             device = self.device.value
-            from napari_fdt.device import resolve_device
-
-            device_type = resolve_device(device).type
             self.feedback.info("")
             self._acq_layer = layer
             self._rec, self._report, self.cancelled = None, None, False
@@ -358,9 +355,7 @@ class ReconstructionWidget(ResultActions, Container):
             # would cover the images with one flat colour until then
             self._ri_layer = None
             self._close_result()  # the previous run's computation process (its solver, its GPU memory)
-            self._stage_iterations = [s.iterations for s in run_config.stages]
-            self._time_left = TimeLeft(self._stage_iterations, stage_costs(acq.optics, acq.image_shape, run_config, acq.n_images,
-                                                                                device_type))
+            self._n_stages = len(run_config.stages)
             worker = GeneratorWorker(  # the solver runs in a process of its own (napari_fdt.napari.remote_job: why)
                 remote_reconstruction, acq, config, device=device, initial_sources_um=sources, stop=stop,
                 done=done, closing=closing, min_interval_s=UPDATE_INTERVAL_S,
@@ -373,9 +368,9 @@ class ReconstructionWidget(ResultActions, Container):
             worker.finished.connect(self._on_finished)
             self._worker = worker
             self._stop, self._done, self._closing = stop, done, closing
-            #: iterations of the pass, and of the pilot before it (known from its first snapshot): the bar spans both
-            self._run_iterations, self._progress_offset, self._pilot_s = run_config.total_iterations, 0, 0.0
-            self.progress.max = max(1, run_config.total_iterations)
+            #: where along the run's plan the last complete stage ended (the bar goes back there after a cancel)
+            self._complete_at = 0
+            self.progress.max = max(1, run_config.total_iterations)  # until the first snapshot brings the plan's count
             self.progress.value = 0
             self.curve.reset(run_config.total_iterations)
             self.curve_caption.value = ""
@@ -447,25 +442,19 @@ class ReconstructionWidget(ResultActions, Container):
             self.status.value = "evaluating the fit of every image…"
             return
         snap = update.snapshot
-        if snap.phase == TV_CHOICE:  # the pilot that chooses the TV weight: its own words and count, no volume yet
-            if not self._progress_offset and snap.phase_iterations:  # the bar spans the pilot, then the pass
-                self._progress_offset = int(snap.phase_iterations)
-                self.progress.max = self._progress_offset + self._run_iterations
-            self.progress.value = min(int(snap.phase_iteration), self._progress_offset)
-            self._pilot_s = float(snap.elapsed_s)  # the pass's time-left model starts after it
-            left_txt = f", about {_duration(snap.eta_s)} left" if snap.eta_s and snap.eta_s > 0 else ""
-            self.status.value = (f"run #{self._runs}: {snap.phase_label}, trial stage {snap.stage + 1}/{snap.n_stages} "
-                                 f"(×{snap.factor}); {_duration(snap.elapsed_s)} elapsed{left_txt}")
-            self.losses.value = "loss: " + ", ".join(f"{k} {v:.4g}" for k, v in snap.losses.items())
-            return
-        self.progress.value = self._progress_offset + snap.global_iteration
-        self._time_left.add(snap.stage, snap.iteration, snap.elapsed_s - self._pilot_s)
-        left = self._time_left.seconds_left()
-        left_txt = "" if left is None else f", about {_duration(left)} left"
-        again = f" again with {', '.join(p.replace('_', ' ') for p in snap.rerun_with)}" if snap.rerun_with else ""
-        self.status.value = (f"run #{self._runs}: stage {snap.stage + 1}/{snap.n_stages}{again} (×{snap.factor}), iteration "
-                             f"{snap.iteration}/{snap.stage_iterations}; {_duration(snap.elapsed_s)} elapsed{left_txt}")
+        # one bar for the whole plan (the TV pilot, the pass, the stages run again with kept parts): it never restarts
+        self.progress.max = max(1, int(snap.plan_iterations))
+        self.progress.value = min(int(snap.plan_iteration), self.progress.max)
+        left_txt = f", about {_duration(snap.eta_s)} left" if snap.eta_s and snap.eta_s > 0 else ""
+        tried = f", tried xy {snap.tv_weights[0]:g}, z {snap.tv_weights[1]:g}" if snap.tv_weights is not None else ""
+        where = "" if snap.phase == TV_CHOICE else f", iteration {snap.iteration}/{snap.stage_iterations}"
+        self.status.value = (f"run #{self._runs}: {snap.phase_name}{tried}{where}; "
+                             f"{_duration(snap.elapsed_s)} elapsed{left_txt}")
         self.losses.value = "loss: " + ", ".join(f"{k} {v:.4g}" for k, v in snap.losses.items())
+        if snap.phase == TV_CHOICE:  # the pilot's volumes are trials: no volume, no curve point
+            return
+        if snap.stage_complete:
+            self._complete_at = int(snap.plan_iteration)
         self.curve.add(snap)
         self.curve_caption.value = "error: " + self.curve.curve.caption()
         if update.ri is not None:
@@ -540,7 +529,7 @@ class ReconstructionWidget(ResultActions, Container):
         n_b = float(result.rec.acquisition.optics.n_background)
         self.results.value = results_line(result.report, truth_error(self._viewer, self._acq_layer, result.ri, n_b))
         if result.cancelled:
-            self.progress.value = self._progress_offset + sum(self._stage_iterations[: result.completed_stages])
+            self.progress.value = self._complete_at
             self.status.value = (f"run #{self._runs} cancelled: showing the last complete stage "
                                  f"({result.completed_stages}/{n})")
         else:
@@ -553,9 +542,9 @@ class ReconstructionWidget(ResultActions, Container):
         if isinstance(exc, ComputeProcessDied) and self._last_complete is not None:
             done, ri = self._last_complete
             self._show_ri(ri, focus=True)
-            self.progress.value = self._progress_offset + sum(self._stage_iterations[:done])
+            self.progress.value = self._complete_at
             self.status.value = (f"run #{self._runs} failed: the computation process ended; showing the last complete "
-                                 f"stage ({done}/{len(self._stage_iterations)})")
+                                 f"stage ({done}/{self._n_stages})")
         else:
             if isinstance(exc, ComputeProcessDied) and self._ri_layer is not None and self._ri_layer in self._viewer.layers:
                 self._viewer.layers.remove(self._ri_layer)  # a part of a first stage: nothing complete to keep

@@ -16,6 +16,7 @@ import torch
 
 from napari_fdt.data.acquisition import Acquisition
 from napari_fdt.errors import FDTInputError
+from napari_fdt.recon.snapshot import StageRecord
 
 if TYPE_CHECKING:
     from napari_fdt.recon.solver import Reconstructor
@@ -73,7 +74,6 @@ def restore_checkpoint(rec: Reconstructor, state: dict[str, Any]) -> None:
     """Put a checkpoint's state into ``rec`` (made with the checkpoint's configuration and initial sources)."""
     from napari_fdt.recon.model_parts import PartsChoice
     from napari_fdt.recon.regularisation import TVChoice
-    from napari_fdt.recon.solver import StageRecord
     from napari_fdt.recon.volume import RIVolume
 
     rec.completed_stages = state["completed_stages"]

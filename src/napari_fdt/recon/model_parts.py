@@ -5,7 +5,7 @@ The parts: the camera's pixel integration (``pixel_integration``), the thin scre
 edge (``calibrate_pupil``) and a fit of low-order aberrations (``calibrate_aberrations``). Each setting is
 ``true``, ``false`` or ``"auto"`` (the default; for ``coherence`` the other values are the coherence models).
 
-How "auto" chooses (:meth:`napari_fdt.recon.solver.Reconstructor._choose_parts`), once, in the finest stage after
+How "auto" chooses (:func:`napari_fdt.recon.parts_search.choose_parts`), once, in the finest stage after
 :data:`PARTS_SHARE` of its iterations (the full multi-slice model, and a volume holding the stage's detail: earlier, the
 held-out images' error is mostly the coarse volume's and hides what the model lacks):
 

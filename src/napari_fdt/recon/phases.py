@@ -1,4 +1,4 @@
-"""The phases of a run, as its snapshots name them (:attr:`napari_fdt.recon.solver.Snapshot.phase`).
+"""The phases of a run, as its snapshots name them (:attr:`napari_fdt.recon.snapshot.Snapshot.phase`).
 
 A run yields snapshots in up to three phases, in this order:
 
@@ -26,8 +26,7 @@ from dataclasses import dataclass
 from napari_fdt.recon.config import SolverConfig
 from napari_fdt.recon.regularisation import PROBE_SHARE, TV_PATH, selection_stages
 
-__all__ = ["TV_CHOICE", "RUN", "RERUN", "PHASES", "PilotPlan", "phase_label", "phase_counts", "pilot_plan", "probe_iterations",
-           "work_left"]
+__all__ = ["TV_CHOICE", "RUN", "RERUN", "PHASES", "PilotPlan", "phase_label", "phase_counts", "pilot_plan", "probe_iterations"]
 
 TV_CHOICE, RUN, RERUN = "tv_choice", "run", "rerun"
 PHASES = (TV_CHOICE, RUN, RERUN)
@@ -68,20 +67,6 @@ def phase_counts(config: SolverConfig, phase: str, global_iteration: int, trial:
     plan = pilot_plan(config)
     done = global_iteration if trial is None else plan.before + (trial + 1) * plan.probe
     return done, plan.iterations
-
-
-def work_left(config: SolverConfig, phase: str, stage: int, iteration: int, trial: int | None = None
-              ) -> tuple[int, list[tuple[int, int]]]:
-    """The work left after a snapshot, for its time-left estimate: (iterations left at the current stage's pace,
-    [(iterations, factor)] after them). In the pilot, that is the rest of its stages and trials and then every stage."""
-    every = [(s.iterations, s.factor) for s in config.stages]
-    if phase != TV_CHOICE:
-        return config.stages[stage].iterations - iteration, every[stage + 1:]
-    plan = pilot_plan(config)
-    if trial is not None:
-        return (plan.n_trials - trial - 1) * plan.probe, every
-    trials = (plan.n_trials * plan.probe, config.stages[plan.stage].factor)
-    return config.stages[stage].iterations - iteration, every[stage + 1:plan.stage] + [trials] + every
 
 
 def phase_label(phase: str, rerun_with: tuple[str, ...] = (), tv_weights: tuple[float, float] | None = None) -> str:

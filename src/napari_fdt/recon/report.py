@@ -21,7 +21,7 @@ from napari_fdt.model.render import iter_batches
 from napari_fdt.recon.metrics import image_metrics, ri_metrics
 from napari_fdt.recon.solver import Reconstructor
 
-__all__ = ["evaluate_images", "build_report", "write_result", "source_errors"]
+__all__ = ["evaluate_images", "plan_report", "describe_plan", "build_report", "write_result", "source_errors"]
 
 
 def evaluate_images(rec: Reconstructor, batch_size: int | None = None) -> tuple[np.ndarray, dict[str, float]]:
@@ -58,6 +58,21 @@ def stage_lengths(rec: Reconstructor) -> dict[str, Any]:
     return {"requested_iterations": [s.iterations for s in asked], "iterations": used,
             "passes": [s.iterations * min(cfg.stage_batch(i), n) / n for i, s in enumerate(cfg.stages)],
             "final_stage_min_passes": cfg.final_stage_min_passes, "n_images": n}
+
+
+def plan_report(rec) -> dict[str, Any]:
+    """The run's plan (:mod:`napari_fdt.recon.plan`) with each phase's measured seconds (None: not reached): the
+    report's time table."""
+    plan = rec.plan.to_dict()
+    for phase, seconds in zip(plan["phases"], rec.pace.measured_seconds()):
+        phase["seconds"] = seconds
+    return plan
+
+
+def describe_plan(plan: dict[str, Any]) -> str:
+    """The time table in one line: each phase's measured seconds (and the plan's prediction)."""
+    cells = [f"{p['name']} {p['seconds']:.1f} s (~{p['predicted_s']:.0f})" for p in plan["phases"] if p.get("seconds") is not None]
+    return "time by phase (s, predicted): " + "; ".join(cells)
 
 
 def build_report(
@@ -104,6 +119,7 @@ def build_report(
                            "chosen": None if rec.tv_choice is None else rec.tv_choice.to_dict()},
         "model_parts": model_parts_summary(rec),
         "seconds_total": rec.elapsed_s,
+        "plan": plan_report(rec),
         "history": rec.history,
         "final_losses": rec.final_losses,
     }

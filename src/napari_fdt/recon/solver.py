@@ -11,7 +11,9 @@ offset of the source plane's depth, and optionally the pixel size and slice spac
 The RI grid has its own Adam optimiser, rebuilt at each stage (its moments belong to voxels that the
 resampling replaces); the calibration parameters (:class:`~napari_fdt.recon.calibration.Calibration`) keep
 one Adam optimiser for the whole run. Checkpoints are :mod:`napari_fdt.recon.checkpoint`'s, the checks
-before a run :mod:`napari_fdt.recon.preflight`'s.
+before a run :mod:`napari_fdt.recon.preflight`'s; the snapshots :mod:`~napari_fdt.recon.snapshot`'s, the choice of the TV
+weights :mod:`~napari_fdt.recon.tv_search`'s, the model parts :mod:`~napari_fdt.recon.parts_switch`'s and
+:mod:`~napari_fdt.recon.parts_search`'s, the validation error :mod:`~napari_fdt.recon.run_validation`'s.
 
 Given a :class:`~napari_fdt.recon.distributed.Group` (``group=``), the run is one rank of a data-parallel
 reconstruction (``docs/distributed.md``): each rank computes the images it owns of every batch, the
@@ -20,13 +22,11 @@ gradients of the shared parameters are summed over ranks, and the result equals 
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 import time
 import warnings
-from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable, Generator, Iterator, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Iterator, Sequence
 
 import numpy as np
 import torch
@@ -34,140 +34,35 @@ import torch
 from napari_fdt.data.acquisition import Acquisition
 from napari_fdt.device import resolve_device
 from napari_fdt.errors import FDTInputError, FDTWarning
-from napari_fdt.model.coherence import coherence_masks, emission_spectrum, spectral_images
+from napari_fdt.model.coherence import coherence_masks, spectral_images
 from napari_fdt.model.gain import least_squares_gain
 from napari_fdt.model.render import iter_batches
 from napari_fdt.recon.batches import BatchOrder
 from napari_fdt.recon.calibration import Calibration
 from napari_fdt.recon.checkpoint import checkpoint_path, checkpoint_state, read_checkpoint, restore_checkpoint, write_checkpoint
 from napari_fdt.recon.config import SolverConfig, resolve_coarse_model, resolve_stage_lengths
-from napari_fdt.recon.losses import BatchShare, LossWeights, as_floats, total_loss
-from napari_fdt.recon.model_parts import (
-    BINARY_PARTS,
-    FIT_IMAGES,
-    FIT_ITERATIONS,
-    FIT_RATES,
-    FITTED_PARTS,
-    PARTS,
-    PartsChoice,
-    decide,
-    parts_stage,
-    requested_parts,
-)
-from napari_fdt.recon.phases import RERUN, RUN, TV_CHOICE, phase_counts, probe_iterations, work_left
-from napari_fdt.recon.phases import phase_label as _phase_label
+from napari_fdt.recon.losses import BatchShare, LossWeights, total_loss
+from napari_fdt.recon.model_parts import PARTS, PartsChoice, parts_stage
+from napari_fdt.recon.parts_search import choice_errors, choose_parts, fit_images
+from napari_fdt.recon.parts_switch import apply_parts_choice, init_parts, restart_with_parts
+from napari_fdt.recon.phases import RERUN, RUN, TV_CHOICE
+from napari_fdt.recon.plan import Pace, Plan, make_plan, stage_phase
 from napari_fdt.recon.preflight import check_backward_mode, check_memory, warn_about_images, warn_about_sampling
-from napari_fdt.recon.regularisation import TV_PATH, TVChoice, candidate_weights, pick, selection_stages, tv_is_auto
+from napari_fdt.recon.regularisation import TVChoice, candidate_weights, selection_stages, tv_is_auto
+from napari_fdt.recon.run_validation import end_on_best, track_validation, validation_error
 from napari_fdt.recon.schedule import final_step_scale
-from napari_fdt.recon.stages import Stage, build_stage, camera_model_options, stated_pixel_integration
-from napari_fdt.recon.validation import BestIterate, holdout_indices, per_image_errors, relative_image_error
-from napari_fdt.recon.volume import RIVolume, upsample_to
+from napari_fdt.recon.snapshot import Snapshot, StageRecord, complete_stage, rerun_parts, take_snapshot
+from napari_fdt.recon.stage_roles import depth_frozen_stages, envelope_stages, position_frozen_stages, set_stage_roles
+from napari_fdt.recon.stages import Stage, build_stage, camera_model_options
+from napari_fdt.recon.tv_search import capture_branch, choose_tv, pilot, restore_branch
+from napari_fdt.recon.validation import BestIterate, holdout_indices, relative_image_error
+from napari_fdt.recon.volume import RIVolume
 
 if TYPE_CHECKING:
     from napari_fdt.recon.distributed import Group
 
-__all__ = ["Snapshot", "StageRecord", "Reconstructor", "reconstruct"]
-
-
-@dataclass
-class Snapshot:
-    """The state of a running reconstruction.
-
-    ``delta_n`` is Δn on the stage grid (n_slices, h, w) (``delta_n_full()`` upsamples it to the
-    acquisition grid); ``sources_um`` (N, 3) the calibrated positions (acquisition coordinates);
-    ``gains`` (N,); ``calibration`` the global parameters; ``losses`` the loss terms of the last
-    iteration (unweighted); ``validation_error`` / ``train_error`` the relative image errors of the held-out
-    images and of the last batch (:mod:`napari_fdt.recon.validation`); times in seconds.
-    """
-
-    stage: int
-    n_stages: int
-    factor: int
-    iteration: int
-    stage_iterations: int
-    global_iteration: int
-    total_iterations: int
-    delta_n: np.ndarray
-    sources_um: np.ndarray
-    gains: np.ndarray
-    calibration: dict[str, float]
-    losses: dict[str, float]
-    elapsed_s: float
-    eta_s: float
-    stage_complete: bool
-    full_shape: tuple[int, int]
-    #: relative RMS error of the held-out images predicted through the volume (closed-form gains; None: no split)
-    validation_error: float | None = None
-    #: the same error on the last training batch (its trained gains; this rank's part in a distributed run)
-    train_error: float | None = None
-    #: the model parts the data needed when the stages run again with them (``parts_rerun``): the iteration count
-    #: then starts again from the first stage; empty during the first pass
-    rerun_with: tuple[str, ...] = ()
-    #: "tv_choice" for snapshots of the pilot that chooses the TV weight, "run" for the pass, "rerun" for the stages run
-    #: again with kept model parts (:mod:`napari_fdt.recon.phases`: the counts of each)
-    phase: str = RUN
-    #: iterations done in this phase, and in it in all (the pilot: its stages', then the trials'); in "run" and "rerun"
-    #: equal to ``global_iteration`` and ``total_iterations``
-    phase_iteration: int = 0
-    phase_iterations: int = 0
-    #: (τ_xy, τ_z) the pilot has just tried (a trial's snapshot: ``validation_error`` is the trial's); None otherwise
-    tv_weights: tuple[float, float] | None = None
-
-    @property
-    def phase_label(self) -> str:
-        """The phase in plain English: "choosing the smoothing (TV) weight", "reconstructing", "reconstructing again with …"."""
-        return _phase_label(self.phase, self.rerun_with, self.tv_weights)
-
-    @property
-    def phase_progress(self) -> float:
-        """The share of this phase done (:attr:`progress` when the phase's count is not given)."""
-        return self.phase_iteration / self.phase_iterations if self.phase_iterations > 0 else self.progress
-
-    def delta_n_full(self) -> np.ndarray:
-        """Δn on the acquisition grid (n_slices, H, W), float32."""
-        t = torch.from_numpy(self.delta_n)
-        return upsample_to(t, self.factor, self.full_shape).numpy()
-
-    @property
-    def progress(self) -> float:
-        return self.global_iteration / max(1, self.total_iterations)
-
-
-@dataclass
-class StageRecord:
-    """What one stage did, for the report."""
-
-    stage: int
-    factor: int
-    field_factor: int
-    grid: tuple[int, int, int]
-    window: tuple[int, int]
-    na: float
-    iterations: int
-    seconds: float = 0.0
-    model: str = "multislice"
-    #: validation error the stage ended on, its iteration (earlier than ``iterations`` when the best iterate was
-    #: kept), and the iteration early stopping ended the stage at (None: it ran to the end)
-    validation_error: float | None = None
-    best_iteration: int | None = None
-    stopped_at: int | None = None
-
-    @property
-    def seconds_per_iteration(self) -> float:
-        ran = self.stopped_at or self.iterations  # early stopping ends a stage before its iterations
-        return self.seconds / ran if ran else 0.0
-
-    def to_dict(self) -> dict[str, Any]:
-        return {"stage": self.stage, "factor": self.factor, "field_factor": self.field_factor, "grid": list(self.grid), "window": list(self.window),
-                "na": self.na, "model": self.model, "iterations": self.iterations, "seconds": self.seconds,
-                "seconds_per_iteration": self.seconds_per_iteration, "validation_error": self.validation_error,
-                "best_iteration": self.best_iteration, "stopped_at": self.stopped_at}
-
-    @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> "StageRecord":
-        """The inverse of :meth:`to_dict`."""
-        return cls(d["stage"], d["factor"], d["field_factor"], tuple(d["grid"]), tuple(d["window"]), d["na"], d["iterations"],
-                   d["seconds"], d["model"], d.get("validation_error"), d.get("best_iteration"), d.get("stopped_at"))
+# Snapshot and StageRecord (recon.snapshot) and the stage roles (recon.stage_roles) are re-exported: callers import them from here.
+__all__ = ["Snapshot", "StageRecord", "Reconstructor", "reconstruct", "envelope_stages", "position_frozen_stages", "depth_frozen_stages"]
 
 
 class Reconstructor:
@@ -262,7 +157,7 @@ class Reconstructor:
         self._restart_pending = False
         #: whether the pilot is running (its snapshots are phase "tv_choice")
         self._piloting = False
-        self._init_parts()
+        init_parts(self)
         self.loss_weights = LossWeights.from_config(cfg)
         #: the TV weights chosen from the data ("auto"; :mod:`napari_fdt.recon.regularisation`), None until chosen
         #: or when the weights are fixed numbers
@@ -274,6 +169,43 @@ class Reconstructor:
             self.tv_choice = TVChoice(*candidate_weights(cfg, 0.0), stage=0, probe_iterations=0, reason="no validation split")
         check_backward_mode(acquisition, cfg, src, self.device)
         check_memory(acquisition, cfg, src, self.device, len(self.wavelengths) if self.wavelengths else 1)
+        self._make_plan()
+
+    # -- the plan ---------------------------------------------------------------------------------
+    def _make_plan(self) -> None:
+        """The run's plan (:mod:`napari_fdt.recon.plan`) from where it stands: the TV pilot first while the weights are
+        still to choose, the stages again when a kept part makes them run again. Sets :attr:`plan` and :attr:`pace`."""
+        pilot_first = self.tv_choice is None and tv_is_auto(self.config) and self.completed_stages == 0
+        #: the phases of the run, known before its first iteration (revised when a choice adds or shortens phases)
+        self.plan = make_plan(self.config, self.acquisition.optics, self.full_shape, self.initial_sources_um, self.coarse_model,
+                              self.device.type, pilot_first)
+        #: the time-left estimate from the plan and the measured times
+        self.pace = Pace(self.plan)
+        #: the index in :attr:`plan` of the phase now running
+        self._phase_index = 0
+        if self._restart_pending or rerun_parts(self):
+            self._add_rerun_phases()
+
+    def _revise_plan(self, plan: Plan) -> None:
+        """Take a revised plan (phases appended or shortened); the measured times so far stay."""
+        self.plan = plan
+        self.pace.plan = plan
+
+    def _add_rerun_phases(self) -> None:
+        """Append every stage again, as the kept parts make them run (with their coarse model); once."""
+        if any(p.pass_name == RERUN and p.stage == 0 for p in self.plan.phases):
+            return
+        parts = tuple(p for p in PARTS if self.parts.get(p) and p in self._auto_parts) or rerun_parts(self)
+        again = [stage_phase(self.config, self.acquisition.optics, self.full_shape, self.initial_sources_um, i, self.coarse_model,
+                             self.device.type, RERUN, parts) for i in range(len(self.config.stages))]
+        self._revise_plan(self.plan.with_rerun(again))
+
+    def _enter_stage_phase(self, stage_index: int) -> None:
+        """Make the phase of stage ``stage_index`` in this pass (pilot, run or rerun) the current one."""
+        pass_name = TV_CHOICE if self._piloting else (RERUN if rerun_parts(self) else RUN)
+        if pass_name == RERUN:  # (a choice of parts applied from outside the run, as a checkpoint's)
+            self._add_rerun_phases()
+        self._phase_index = self.plan.index(pass_name, stage_index)
 
     # -- the algorithm --------------------------------------------------------------------------
     def run(self, should_stop: Callable[[], bool] | None = None, checkpoint_dir: str | Path | None = None) -> Iterator[Snapshot]:
@@ -285,44 +217,17 @@ class Reconstructor:
         checkpoint (``checkpoint_dir/stage_<i>.pt``).
 
         With ``"auto"`` TV weights, a pilot first runs the stages up to the selection stage and tries the weights there
-        (:meth:`_pilot`; its snapshots are :attr:`Snapshot.phase` "tv_choice"); the run then starts from the beginning
+        (:func:`~napari_fdt.recon.tv_search.pilot`; its snapshots are :attr:`Snapshot.phase` "tv_choice"); the run then starts from the beginning
         with the chosen weights (phase "run"; "rerun" when the stages run again with model parts).
         """
         if self.tv_choice is None and tv_is_auto(self.config) and self.completed_stages == 0:
-            ok = yield from self._pilot(should_stop)
+            ok = yield from pilot(self, should_stop)
             if not ok:
                 return
         yield from self._run_stages(should_stop, checkpoint_dir)
         if self._restart_pending:  # the choice kept a part: every stage again with it (parts_rerun "stages")
             self._restart_pending = False
             yield from self._run_stages(should_stop, checkpoint_dir)
-
-    def _pilot(self, should_stop: Callable[[], bool] | None) -> Generator[Snapshot, None, bool]:
-        """Choose the "auto" TV weights: run the stages before the selection stage as the run would (TV off), try the
-        weights at the selection stage (:meth:`_choose_tv`), then return to the initial state with the weights set, so
-        that the run equals one given them as numbers from its first stage on. Yields the snapshots meanwhile (phase
-        "tv_choice"); returns False when cancelled meanwhile (closed or failed: back to the initial state too)."""
-        t0 = time.perf_counter()
-        self._piloting, finished = True, False
-        try:
-            for snap in self._run_stages(should_stop, None):  # ends at the selection stage, once the weights are tried
-                paused = time.perf_counter()
-                yield snap
-                t0 += time.perf_counter() - paused  # the consumer's time is not the pilot's
-            finished = True
-        finally:
-            self._piloting = False
-            if not finished:
-                self._restart()
-        choice = self.tv_choice
-        self._restart()
-        if choice is None:  # cancelled
-            return False
-        choice.seconds = time.perf_counter() - t0
-        self.tv_choice = choice
-        self.loss_weights = dataclasses.replace(self.loss_weights, tv_xy=choice.tv_xy_weight, tv_z=choice.tv_z_weight)
-        self.elapsed_s = choice.seconds  # the pilot's time is the run's
-        return True
 
     def _restart(self) -> None:
         """Back to the state before any stage ran (volume, calibration and its optimiser, batch order, records)."""
@@ -340,283 +245,23 @@ class Reconstructor:
                           pupil_edge=camera_model_options(self.config, self.acquisition)["pupil_edge"])
         if getattr(self, "parts", None):
             cal.fit_pupil, cal.fit_aberrations = self.parts["pupil"], self.parts["aberrations"]
-        self._set_stage_roles(cal)
+        set_stage_roles(cal, self.config, self.coarse_model)
         return cal
 
-    def _set_stage_roles(self, cal: Calibration) -> None:
-        """Tell ``cal`` which stages run the envelope model and in which its positions or depths stay fixed (they
-        follow :attr:`coarse_model`)."""
-        cal.position_frozen_stages = position_frozen_stages(self.config, self.coarse_model)
-        cal.depth_frozen_stages = depth_frozen_stages(self.config, self.coarse_model)
-        cal.envelope_stages = envelope_stages(self.config, self.coarse_model)
-
-    # -- optional model parts ---------------------------------------------------------------------
-    def _init_parts(self) -> None:
-        """Each part's switch before any choice: as set or stated, "auto" ones off; with nothing to choose (or no
-        validation split to choose by) :attr:`parts_choice` is made at once."""
-        cfg = self.config
-        requested = requested_parts(cfg)
-        chosen_by = {p: "setting" for p in PARTS}
-        stated = stated_pixel_integration(cfg, self.acquisition)
-        if cfg.pixel_integration == "auto" and stated is not None:
-            chosen_by["pixel_integration"] = "acquisition"
-        requested["pixel_integration"] = stated
-        extra = getattr(self.acquisition, "extra", None) or {}
-        if requested["pupil"] is None and "pupil_edge" in extra and cfg.pupil_edge is None:
-            # a pupil the acquisition states (as fdt simulate writes it) is taken as stated, like its pixel integration
-            requested["pupil"] = False
-            chosen_by["pupil"] = "acquisition"
-        #: the parts chosen from the data
-        self._auto_parts = [p for p in PARTS if requested[p] is None]
-        parts = {p: bool(requested[p]) for p in PARTS}
-        if not self._auto_parts:
-            self.apply_parts_choice(PartsChoice(parts, chosen_by))
-        elif not len(self.validation_indices):
-            for p in self._auto_parts:
-                chosen_by[p] = "no validation split"
-                if p == "pixel_integration":  # the physical rule stands in for the data (camera_model_options applies it)
-                    parts[p] = camera_model_options(cfg, self.acquisition)["pixel_integration"]
-                    chosen_by[p] = "no validation split: physical rule"
-            self.apply_parts_choice(PartsChoice(parts, chosen_by))
-        else:
-            self._set_parts(parts)
-        self._parts_chosen_by = chosen_by
-
-    def _set_parts(self, parts: dict[str, bool]) -> None:
-        """Switch the parts: the spectral model's wavelengths and the calibration's pupil and aberration fits (the stage
-        models take :attr:`parts` when built)."""
-        self.parts = dict(parts)
-        o, cfg = self.acquisition.optics, self.config
-        if parts["spectral"]:
-            lams, ws = emission_spectrum(o.wavelength_um, cfg.bandwidth_um, cfg.n_wavelengths)
-            self.wavelengths, self.weights = list(map(float, lams)), list(map(float, ws))
-        else:
-            self.wavelengths, self.weights = None, None
-        self.calibration.fit_pupil = parts["pupil"]
-        self.calibration.fit_aberrations = parts["aberrations"]
-
+    # -- optional model parts (:mod:`napari_fdt.recon.parts_switch`, :mod:`napari_fdt.recon.parts_search`) -------------
     def apply_parts_choice(self, choice: PartsChoice) -> None:
-        """Take a choice of parts (made here, or read from a checkpoint): switches, and the fitted pupil values when the
-        calibration has not moved them yet. A choice whose stages run again (``rerun`` ``"stages"``) also sets the coarse
-        model they run with and the parts still to choose in the finest stage."""
-        self.parts_choice = choice
-        self._set_parts(choice.parts)
-        if choice.rerun == "stages":
-            self._use_rerun_coarse_model()
-            self._choose_again = list(choice.pending)
-            if choice.pending:
-                self._auto_parts = list(choice.pending)
-            self._parts_chosen_by = dict(choice.chosen_by)
-
-    def _use_rerun_coarse_model(self) -> None:
-        """The coarse stages of a run that holds the kept parts: multi-slice when ``coarse_model`` is ``"auto"`` (the
-        envelope model holds none of the parts; a coarse model given by name is kept)."""
-        if self.config.coarse_model == "auto":
-            self.coarse_model = "multislice"
-            self._set_stage_roles(self.calibration)
-
-    def _restart_with_parts(self) -> None:
-        """After a first choice that kept parts (``parts_rerun`` ``"stages"``): back to the state before any stage, with
-        the kept parts on from the first stage (their parameters start from the fitted values and train from
-        ``calibration_from_stage`` on) and the coarse stages multi-slice; the finest stage chooses the other auto parts
-        again (now on top of the kept ones, through a volume trained with them)."""
-        choice = self.parts_choice
-        kept = [p for p in self._auto_parts if self.parts[p]]
-        for t in choice.trials:
-            t.setdefault("pass", 1)
-        choice.rerun = "stages"
-        choice.pending = [p for p in self._auto_parts if p not in kept]
-        self.apply_parts_choice(choice)
-        fitted = {name: getattr(self.calibration, name).detach().clone() for name in ("na_scale", "pupil_edge", "zernike")}
-        self._restart()
-        self.calibration.restore_values(fitted)  # the kept parts start from their fitted values
-        self._restart_pending = True
-
-    def _choose_parts(self, stage: Stage, mask: torch.Tensor | None, should_stop: Callable[[], bool] | None) -> Stage | None:
-        """Choose the "auto" parts at the start of ``stage`` (:mod:`napari_fdt.recon.model_parts`) and return the stage
-        as rebuilt for them; None when stopped meanwhile (the parts are then back to off)."""
-        t0 = time.perf_counter()
-        cal = self.calibration
-        provisional = dict(self.parts)
-        start_values = cal.copy_values()
-        ref_err, ref_each = self._choice_errors(stage, mask)
-        reference = (ref_err, list(ref_each))
-        trials: list[dict[str, Any]] = []
-
-        def cancel() -> None:
-            cal.restore_values(start_values)
-            self._set_parts(provisional)
-
-        for part in [p for p in BINARY_PARTS if p in self._auto_parts]:
-            if self._stop_requested(should_stop):
-                cancel()
-                return None
-            t1 = time.perf_counter()
-            self._set_parts({**self.parts, part: True})
-            variant = stage if part == "spectral" else self._build_stage(stage.index)
-            vmask = self._loss_mask(variant)
-            err, each = self._choice_errors(variant, vmask)
-            verdict = decide(ref_each, each)
-            trials.append({"part": part, "validation_error": err, "image_errors": each, **verdict,
-                           "seconds": time.perf_counter() - t1})
-            if verdict["on"]:
-                stage, mask, ref_each = variant, vmask, each
-            else:
-                self._set_parts({**self.parts, part: False})
-        fitted_auto = [p for p in FITTED_PARTS if p in self._auto_parts]
-        if fitted_auto:
-            t1 = time.perf_counter()
-            cache = self._exit_cache(stage)
-            cache_s = time.perf_counter() - t1
-            kept: list[str] = []
-            for part in fitted_auto:
-                t1 = time.perf_counter()
-                before = cal.copy_values()
-                if not self._fit_pupil_parts(stage, cache, [part], should_stop):
-                    cancel()
-                    return None
-                self._set_parts({**self.parts, part: True})
-                err, each = self._choice_errors(stage, mask)
-                verdict = decide(ref_each, each)
-                trials.append({"part": part, "validation_error": err, "image_errors": each, **verdict,
-                               "fitted": self._pupil_values([part]), "seconds": time.perf_counter() - t1 + cache_s})
-                cache_s = 0.0
-                if verdict["on"]:
-                    kept.append(part)
-                    ref_each = each
-                else:
-                    self._set_parts({**self.parts, part: False})
-                    cal.restore_values(before)
-            if len(kept) > 1:  # refit together from the separate fits; kept if the held-out images agree
-                t1 = time.perf_counter()
-                before = cal.copy_values()
-                if not self._fit_pupil_parts(stage, cache, kept, should_stop):
-                    cancel()
-                    return None
-                err, each = self._choice_errors(stage, mask)
-                joint = float(np.mean(each)) <= float(np.mean(ref_each))
-                trials.append({"part": "+".join(kept), "validation_error": err, "image_errors": each, "on": joint,
-                               "fitted": self._pupil_values(kept), "seconds": time.perf_counter() - t1})
-                if joint:
-                    ref_each = each
-                else:
-                    cal.restore_values(before)
-        chosen_by = {p: ("validation" if p in self._auto_parts else self._parts_chosen_by[p]) for p in PARTS}
-        choice = PartsChoice(dict(self.parts), chosen_by, stage=stage.index, reference_error=reference[0],
-                             reference_image_errors=reference[1], trials=trials,
-                             fitted=self._pupil_values([p for p in FITTED_PARTS if self.parts[p]]),
-                             seconds=time.perf_counter() - t0)
-        first = self.parts_choice
-        if first is not None and first.rerun == "stages":  # the second pass's choice: both passes' trials, the first's reference
-            choice.trials = first.trials + [{**t, "pass": 2} for t in trials]
-            choice.reference_error, choice.reference_image_errors = first.reference_error, first.reference_image_errors
-            choice.seconds += first.seconds
-            choice.rerun = "stages"
-            self._choose_again = []
-        self.apply_parts_choice(choice)
-        return stage
+        """Take a choice of parts (made here, or read from a checkpoint): :func:`napari_fdt.recon.parts_switch.apply_parts_choice`."""
+        apply_parts_choice(self, choice)
 
     def _choice_errors(self, stage: Stage, mask: torch.Tensor | None) -> tuple[float, list[float]]:
-        """(validation error, per-image errors the parts' paired test compares): the held-out images', and with
-        ``parts_test_images`` ``"held_out+training"`` also those of the training images the parts' parameters are not
-        fitted to (more images, a stronger test; biased against a part, since the volume and their positions were
-        trained without it)."""
-        err, each = self._validation(stage, mask, per_image=True)
-        if self.config.parts_test_images != "held_out+training":
-            return err, each
-        train = np.setdiff1d(np.setdiff1d(np.arange(self.acquisition.n_images), self.validation_indices),
-                             self._fit_images().cpu().numpy())
-        with torch.no_grad():
-            dn = self.volume.delta_n()
-            preds = [self._predict_normalised(stage, dn, torch.as_tensor(train[sl], device=self.device))
-                     for sl in iter_batches(len(train), self.config.batch_size)]
-        idx = torch.as_tensor(train, device=self.device)
-        more = per_image_errors(torch.cat(preds), stage.images[idx], None if mask is None else mask[idx], fit_gain=True)
-        return err, list(each) + list(more)
-
-    def _pupil_values(self, parts: list[str]) -> dict[str, Any]:
-        """The calibration's current pupil values of ``parts``: NA and edge, Zernike coefficients by mode (rad)."""
-        from napari_fdt.physics.aberrations import ZERNIKE_MODES
-
-        cal, out = self.calibration, {}
-        if "pupil" in parts:
-            out["na"] = self.acquisition.optics.na * float(cal.na_scale.detach())
-            out["pupil_edge"] = abs(float(cal.pupil_edge.detach()))
-        if "aberrations" in parts:
-            out["zernike_rad"] = dict(zip(ZERNIKE_MODES, (float(v) for v in cal.zernike.detach().cpu())))
-        return out
+        """The parts' paired test's errors: :func:`napari_fdt.recon.parts_search.choice_errors`."""
+        return choice_errors(self, stage, mask)
 
     def _fit_images(self) -> torch.Tensor:
-        """Up to :data:`FIT_IMAGES` training images, evenly spread over them (the subset the pupil parts are fitted to)."""
-        train = np.setdiff1d(np.arange(self.acquisition.n_images), self.validation_indices)
-        pick_ = np.unique(np.round(np.linspace(0, len(train) - 1, min(FIT_IMAGES, len(train)))).astype(int))
-        return torch.as_tensor(train[pick_], device=self.device)
+        """The training images the pupil parts are fitted to: :func:`napari_fdt.recon.parts_search.fit_images`."""
+        return fit_images(self)
 
-    def _exit_cache(self, stage: Stage) -> list[tuple[torch.Tensor, list[tuple[float | None, float, torch.Tensor, torch.Tensor]]]]:
-        """For chunks of the fit images: (indices, [(wavelength, weight, exit spectra, source spectra)]) through the current
-        volume and sources (:meth:`MultiSliceModel.exit_spectra`), computed once for every pupil tried."""
-        cal, model = self.calibration, stage.model
-        base = {k: v for k, v in cal.optics_overrides(stage.optics, False, shared_frozen=True).items()
-                if k not in ("na", "pupil_edge", "zernike")}
-        lams = list(zip(self.wavelengths, self.weights)) if self.wavelengths else [(None, 1.0)]
-        out = []
-        with torch.no_grad():
-            dn = stage.to_field_grid(self.volume.delta_n())
-            idx_all = self._fit_images()
-            for sl in iter_batches(len(idx_all), self.config.batch_size):
-                idx = idx_all[sl]
-                src = stage.stage_sources(cal.calibrated_sources()[idx])
-                per = []
-                for lam, w in lams:
-                    k = model.kernels(**base, wavelength_um=lam) if (base or lam is not None) else None
-                    per.append((lam, w, *model.exit_spectra(dn, src, k)))
-                out.append((idx, per))
-        self._exit_cache_base = base
-        return out
-
-    def _fit_pupil_parts(self, stage: Stage, cache, parts: list[str], should_stop: Callable[[], bool] | None) -> bool:
-        """Fit the parameters of ``parts`` ("pupil", "aberrations") to the fit images with the volume and sources fixed:
-        :data:`FIT_ITERATIONS` Adam steps on the sum of the images' squared relative errors (gains in closed form),
-        from the calibration's current values, which are set to the result. False when stopped."""
-        cal, model, base = self.calibration, stage.model, self._exit_cache_base
-        na = cal.na_scale.detach().clone().requires_grad_("pupil" in parts)
-        edge = cal.pupil_edge.detach().clone().requires_grad_("pupil" in parts)
-        zern = cal.zernike.detach().clone().requires_grad_("aberrations" in parts)
-        groups = []
-        if "pupil" in parts:
-            groups += [{"params": [na], "lr": FIT_RATES["na_scale"]}, {"params": [edge], "lr": FIT_RATES["pupil_edge"]}]
-        if "aberrations" in parts:
-            groups.append({"params": [zern], "lr": FIT_RATES["zernike"]})
-        opt = torch.optim.Adam(groups, betas=(0.9, 0.99))
-        on_pupil = "pupil" in parts or self.parts["pupil"]
-        on_aber = "aberrations" in parts or self.parts["aberrations"]
-        for _ in range(FIT_ITERATIONS):
-            if self._stop_requested(should_stop):
-                return False
-            opt.zero_grad(set_to_none=True)
-            for idx, per in cache:
-                over = dict(base)
-                if on_pupil:
-                    over.update(na=stage.optics.na * na, pupil_edge=torch.abs(edge))
-                if on_aber:
-                    over["zernike"] = zern
-                src = stage.stage_sources(cal.calibrated_sources()[idx]).detach()
-                pred = None
-                for lam, w, exit_spec, spec0 in per:
-                    img = model.intensity_from_exit(exit_spec, spec0, src, wavelength_um=lam, **over) * w
-                    pred = img if pred is None else pred + img
-                measured = stage.images[idx]
-                g = least_squares_gain(pred, measured)
-                resid = (g.reshape(-1, 1, 1) * pred - measured).square().sum(dim=(-2, -1))
-                loss = (resid / measured.square().sum(dim=(-2, -1)).clamp_min(1e-30)).sum()
-                loss.backward()
-            opt.step()
-        with torch.no_grad():
-            cal.na_scale.copy_(na)
-            cal.pupil_edge.copy_(edge)
-            cal.zernike.copy_(zern)
-        return True
-
+    # -- the stages -----------------------------------------------------------------------------
     def _run_stages(self, should_stop: Callable[[], bool] | None, checkpoint_dir: str | Path | None) -> Iterator[Snapshot]:
         """The stages from the first not yet completed (the body of :meth:`run`)."""
         cfg = self.config
@@ -637,8 +282,9 @@ class Reconstructor:
             best = BestIterate(tolerance=cfg.early_stopping_tolerance)
             t0 = time.perf_counter()
             if self.tv_choice is None and tv_is_auto(cfg) and si in selection_stages(cfg):
-                yield from self._choose_tv(stage, mask, batch_size, data_range, global_it, should_stop)
+                yield from choose_tv(self, stage, mask, batch_size, data_range, global_it, should_stop)
                 return  # the pilot (run) ends here and starts the run again with the choice
+            self._enter_stage_phase(si)
             choose = False  # whether the "auto" parts are chosen at the end of this stage
             if (self.parts_choice is None or self._choose_again) and si == parts_stage(cfg):
                 if stage.envelope:  # the parts belong to the multi-slice model: nothing to choose on this run's stages
@@ -646,12 +292,12 @@ class Reconstructor:
                                                                         else self._parts_chosen_by[p] for p in PARTS}))
                 else:
                     choose = True
-                    stage_start = self._capture_branch(), global_it
+                    stage_start = capture_branch(self), global_it
             while True:  # a second pass when the choice of parts switched some on
                 if len(self.validation_indices) and cfg.early_stopping != "off":
                     # The stage's starting volume is a candidate too: a stage that only makes the held-out images worse
                     # ends where it began (from stage 0 on: never a volume that explains them worse than no object).
-                    self._track_validation(stage, mask, best, 0)
+                    track_validation(self, stage, mask, best, 0)
                 terms: dict = {}
                 train_error = None
                 it = 0
@@ -670,8 +316,8 @@ class Reconstructor:
                     if it == stage.iterations:
                         break
                     if it % cfg.snapshot_every == 0:
-                        val = self._track_validation(stage, mask, best, it)
-                        snap = self._snapshot(stage, it, global_it, terms, t0, False, val, train_error)
+                        val = track_validation(self, stage, mask, best, it)
+                        snap = take_snapshot(self, stage, it, global_it, terms, t0, False, val, train_error)
                         paused = time.perf_counter()
                         yield snap
                         t0 += time.perf_counter() - paused  # time spent by the consumer is not the solver's
@@ -679,11 +325,11 @@ class Reconstructor:
                             record.stopped_at = it
                             global_it += stage.iterations - it  # progress and later stages' numbering as if it had run
                             break
-                val = self._end_on_best(stage, mask, best, it, record)
+                val = end_on_best(self, stage, mask, best, it, record)
                 if not choose:
                     break
                 choose = False
-                chosen = self._choose_parts(stage, mask, should_stop)
+                chosen = choose_parts(self, stage, mask, should_stop)
                 if chosen is None:
                     self.elapsed_s += time.perf_counter() - t0
                     return
@@ -693,11 +339,16 @@ class Reconstructor:
                 if cfg.parts_rerun == "stages" and self.parts_choice.rerun is None:
                     # Parts the data needs: every stage again from the first with them on (run() goes on).
                     self.elapsed_s += time.perf_counter() - t0
-                    self._restart_with_parts()
+                    restart_with_parts(self)
+                    self._add_rerun_phases()
                     return
-                # Parts the data needs: the stage again from its start, with them on from the fitted values.
+                # Parts the data needs: the stage again from its start, with them on from the fitted values (a phase
+                # of its own in the plan).
+                kept = tuple(p for p in self._auto_parts if self.parts[p])
+                self._revise_plan(self.plan.with_rerun([dataclasses.replace(self.plan.phases[self._phase_index], parts=kept)]))
+                self._phase_index = len(self.plan.phases) - 1
                 fitted = {name: getattr(self.calibration, name).detach().clone() for name in ("na_scale", "pupil_edge", "zernike")}
-                self._restore_branch(stage_start[0])
+                restore_branch(self, stage_start[0])
                 self.calibration.restore_values(fitted)
                 global_it = stage_start[1]
                 stage, mask = chosen, self._loss_mask(chosen)
@@ -706,53 +357,10 @@ class Reconstructor:
                 data_range = float(stage.images.max())
                 best = BestIterate(tolerance=cfg.early_stopping_tolerance)
                 record.stopped_at = None
-            snap = self._complete_stage(stage, record, global_it, terms, t0, val, train_error)
+            snap = complete_stage(self, stage, record, global_it, terms, t0, val, train_error)
             if checkpoint_dir is not None and (self.group is None or self.group.is_writer):
                 self.save_checkpoint(checkpoint_path(checkpoint_dir, si))
             yield snap
-
-    # -- automatic regularisation ---------------------------------------------------------------
-    def _choose_tv(self, stage: Stage, mask: torch.Tensor | None, batch_size: int, data_range: float, global_it: int,
-                   should_stop: Callable[[], bool] | None) -> Iterator[Snapshot]:
-        """Try every weight of the TV path from the stage's starting state and set :attr:`tv_choice` to the one the
-        held-out images prefer (:mod:`napari_fdt.recon.regularisation`); left None when stopped (cancelled) meanwhile.
-        Yields a snapshot after each weight. The state is then a trial's: the pilot (:meth:`_pilot`) starts the run again."""
-        cfg = self.config
-        t0 = time.perf_counter()
-        n_probe = probe_iterations(stage.iterations)
-        start = self._capture_branch()
-        trials = []
-        for k, tau in enumerate(TV_PATH):
-            t1 = time.perf_counter()
-            self._restore_branch(start)
-            xy, z = candidate_weights(cfg, tau)
-            self.loss_weights = dataclasses.replace(self.loss_weights, tv_xy=xy, tv_z=z)
-            vol_opt = torch.optim.Adam([self.volume.x], lr=cfg.lr_ri, betas=(0.9, 0.99))
-            for it in range(n_probe):
-                if self._stop_requested(should_stop):
-                    return
-                terms, train_error = self._step(stage, mask, vol_opt, batch_size, data_range,
-                                                (global_it + it) / max(1, cfg.total_iterations), it == n_probe - 1)
-            err, each = self._validation(stage, mask, per_image=True)
-            trials.append({"tau": tau, "tv_xy_weight": xy, "tv_z_weight": z, "validation_error": err, "image_errors": each})
-            snap = self._snapshot(stage, n_probe, global_it + n_probe, terms, t1, False, err, train_error, trial=k)
-            self.elapsed_s += time.perf_counter() - t1  # (the pilot sets the run's time when it ends)
-            yield snap
-        win = pick(trials)
-        self.tv_choice = TVChoice(win["tv_xy_weight"], win["tv_z_weight"], stage=stage.index, probe_iterations=n_probe,
-                                  trials=trials, seconds=time.perf_counter() - t0)
-
-    def _capture_branch(self) -> dict[str, Any]:
-        """A full copy of what training changes (volume, calibration and its optimiser, batch order), to start
-        several candidates from one state."""
-        return {**self._capture(), "cal_opt": copy.deepcopy(self.calibration.optimiser.state_dict()),
-                "batches": copy.deepcopy(self.batches.state_dict())}
-
-    def _restore_branch(self, state: dict[str, Any]) -> None:
-        """Return to a :meth:`_capture_branch` (copies again, so the state can be restored more than once)."""
-        self._restore(state, keep_bookkeeping=True)
-        self.calibration.optimiser.load_state_dict(copy.deepcopy(state["cal_opt"]))
-        self.batches.load_state_dict(copy.deepcopy(state["batches"]))
 
     # -- per-stage set-up -----------------------------------------------------------------------
     def _build_stage(self, stage_index: int) -> Stage:
@@ -871,107 +479,11 @@ class Reconstructor:
         return spectral_images(stage.model, field_dn, src, gain, self.wavelengths, self.weights,
                                **cal.optics_overrides(stage.optics, stage.envelope, shared_frozen=held_out))
 
-    # -- validation -------------------------------------------------------------------------------
+    # -- validation (:mod:`napari_fdt.recon.run_validation`) ----------------------------------------
     def validation_error(self, stage: Stage, mask: torch.Tensor | None = None) -> float | None:
-        """Relative RMS error of the held-out images at ``stage`` (None without a validation split).
-
-        Predicted through the current volume with their positions as fitted to their own images (a fit that never
-        reaches the volume) and their gains refitted in closed form; ``mask`` (N, h_f, w_f) as the loss's. Every
-        rank computes the same number (no collective; in a distributed run after the rows are shared).
-        """
-        out = self._validation(stage, mask)
-        return None if out is None else out[0]
-
-    def _validation(self, stage: Stage, mask: torch.Tensor | None, per_image: bool = False) -> tuple[float, list[float]] | None:
-        """(validation error, each held-out image's error (empty unless asked)); None without a split."""
-        held = self.validation_indices
-        if not len(held):
-            return None
-        with torch.no_grad():  # the gains they carry are refitted: the fit is invariant to a scale per image
-            dn = self.volume.delta_n()
-            preds = [self._predict_normalised(stage, dn, torch.as_tensor(held[sl], device=self.device))
-                     for sl in iter_batches(len(held), self.config.batch_size)]
-        idx = torch.as_tensor(held, device=self.device)
-        pred, measured, m = torch.cat(preds), stage.images[idx], None if mask is None else mask[idx]
-        each = per_image_errors(pred, measured, m, fit_gain=True) if per_image else []
-        return relative_image_error(pred, measured, m, fit_gain=True), each
-
-    def _track_validation(self, stage: Stage, mask: torch.Tensor | None, best: BestIterate, it: int) -> float | None:
-        """The validation error now, recorded in ``best`` (with a copy of the state when it is the lowest yet)."""
-        val = self.validation_error(stage, mask)
-        if val is not None and self.config.early_stopping != "off":
-            best.update(it, val, self._capture)
-        return val
-
-    def _end_on_best(self, stage: Stage, mask: torch.Tensor | None, best: BestIterate, it: int, record: StageRecord) -> float | None:
-        """The stage's final validation error; with early stopping, first return to the stage's best iterate when the
-        last one is worse than it by more than the tolerance. Fills the record's validation fields."""
-        val = self._track_validation(stage, mask, best, it)
-        record.best_iteration = it
-        if val is not None and self.config.early_stopping != "off" and val > best.best_error * (1.0 + best.tolerance):
-            self._restore(best.state, keep_bookkeeping=True)
-            val, record.best_iteration = best.best_error, best.best_iteration
-        record.validation_error = val
-        return val
-
-    # -- end of a stage, snapshots ----------------------------------------------------------------
-    def _complete_stage(self, stage: Stage, record: StageRecord, global_it: int, terms: dict, t0: float,
-                        validation_error: float | None, train_error: float | None) -> Snapshot:
-        """Close the stage's record and time, take its snapshot and remember it as the last complete state."""
-        record.seconds = time.perf_counter() - t0
-        snap = self._snapshot(stage, stage.iterations, global_it, terms, t0, True, validation_error, train_error)
-        self.elapsed_s += record.seconds
-        snap.elapsed_s = self.elapsed_s
-        self.completed_stages = stage.index + 1
-        self.last_complete = snap
-        self._last_complete_state = self._capture()
-        self.final_losses = snap.losses
-        return snap
-
-    def _stage_cost(self, factor: int) -> float:
-        """Rough relative cost of an iteration at a stage factor (grid area the model works on)."""
-        from napari_fdt.recon.stages import field_factor
-
-        g = factor if (factor > 1 and self.coarse_model == "envelope") else field_factor(self.acquisition.optics, factor)
-        h, w = self.full_shape
-        return (h / g) * (w / g)
-
-    def _snapshot(self, stage: Stage, it: int, global_it: int, terms: dict, stage_t0: float, complete: bool,
-                  validation_error: float | None = None, train_error: float | None = None, trial: int | None = None) -> Snapshot:
-        """The snapshot now (``trial``: the index in the TV path of the weight the pilot has just tried)."""
-        cfg = self.config
-        rerun_with = self._rerun_parts()
-        phase = TV_CHOICE if self._piloting else (RERUN if rerun_with else RUN)
-        terms = self._gather(terms, optimiser_state=complete)
-        now = time.perf_counter()
-        elapsed = self.elapsed_s + (now - stage_t0)
-        per_it = (now - stage_t0) / max(it, 1)
-        left, later = work_left(cfg, phase, stage.index, it, trial)
-        remaining = left * per_it
-        cur_cost = self._stage_cost(stage.factor)
-        for iterations, factor in later:
-            remaining += iterations * per_it * self._stage_cost(factor) / cur_cost
-        losses = as_floats(terms) if terms else {}
-        snap = Snapshot(
-            stage=stage.index, n_stages=len(cfg.stages), factor=stage.factor, iteration=it,
-            stage_iterations=stage.iterations, global_iteration=global_it, total_iterations=cfg.total_iterations,
-            delta_n=self.volume.delta_n().detach().cpu().numpy().astype(np.float32),
-            sources_um=self.sources_um(), gains=self.gains(),
-            calibration=self.calibration.summary(), losses=losses, elapsed_s=elapsed, eta_s=remaining,
-            stage_complete=complete, full_shape=self.full_shape, validation_error=validation_error, train_error=train_error,
-            rerun_with=rerun_with, phase=phase, tv_weights=None if trial is None else candidate_weights(cfg, TV_PATH[trial]),
-        )
-        snap.phase_iteration, snap.phase_iterations = phase_counts(cfg, phase, global_it, trial)
-        self.history.append({"stage": stage.index, "iteration": it, "global_iteration": global_it,
-                             "elapsed_s": elapsed, **losses, "validation_error": validation_error, "train_error": train_error})
-        return snap
-
-    def _rerun_parts(self) -> tuple[str, ...]:
-        """The parts kept by the data while the stages run again with them (:attr:`Snapshot.rerun_with`)."""
-        choice = self.parts_choice
-        if choice is None or choice.rerun != "stages":
-            return ()
-        return tuple(p for p, on in choice.parts.items() if on and choice.chosen_by.get(p) == "validation")
+        """Relative RMS error of the held-out images at ``stage`` (None without a validation split):
+        :func:`napari_fdt.recon.run_validation.validation_error`."""
+        return validation_error(self, stage, mask)
 
     # -- distributed ----------------------------------------------------------------------------
     def _share_per_source_rows(self, optimiser_state: bool = False) -> None:
@@ -1074,38 +586,8 @@ class Reconstructor:
         rec = cls(acquisition, SolverConfig.from_dict(state["config"]), device=device, initial_sources_um=state["initial_sources_um"],
                   group=group)
         restore_checkpoint(rec, state)
+        rec._make_plan()
         return rec
-
-
-def envelope_stages(config: SolverConfig, coarse_model: str) -> frozenset[int]:
-    """Stages that run the envelope model: factor > 1 with ``coarse_model`` ``"envelope"`` (as :func:`build_stage`)."""
-    if coarse_model != "envelope":
-        return frozenset()
-    return frozenset(i for i, s in enumerate(config.stages) if s.factor > 1)
-
-
-def _envelope_stages_before_multislice(config: SolverConfig, coarse_model: str) -> frozenset[int]:
-    """The envelope stages that a multi-slice stage follows (none when every stage is an envelope one)."""
-    env = envelope_stages(config, coarse_model)
-    return frozenset(i for i in env if not all(j in env for j in range(i, len(config.stages))))
-
-
-def position_frozen_stages(config: SolverConfig, coarse_model: str) -> frozenset[int]:
-    """Stages whose source positions and depth offset stay fixed: with ``calibrate_sources_in_envelope_stages`` off, the
-    envelope stages (factor > 1, ``coarse_model`` ``"envelope"``) that a multi-slice stage follows. Fitted with the volume
-    at the truth, the envelope model pulls the positions off (``docs/solver.md``, "Source positions")."""
-    if config.calibrate_sources_in_envelope_stages:
-        return frozenset()
-    return _envelope_stages_before_multislice(config, coarse_model)
-
-
-def depth_frozen_stages(config: SolverConfig, coarse_model: str) -> frozenset[int]:
-    """Stages whose source depths (each source's own and the common offset) stay fixed while x, y train: with
-    ``calibrate_source_depth_in_envelope_stages`` off, the envelope stages that a multi-slice stage follows."""
-    if config.calibrate_source_depth_in_envelope_stages:
-        return frozenset()
-    return _envelope_stages_before_multislice(config, coarse_model)
-
 
 def reconstruct(acquisition: Acquisition, config: SolverConfig | None = None, *, device: str = "auto", **kwargs) -> Iterator[Snapshot]:
     """Shortcut: ``Reconstructor(acquisition, config, device=device).run(**kwargs)``."""

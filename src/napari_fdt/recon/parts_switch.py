@@ -1,0 +1,104 @@
+"""The switches of the optional model parts in a run (:mod:`napari_fdt.recon.model_parts`): each part's state before
+any choice, a choice applied (made in the run or read from a checkpoint), and the restart of every stage with the parts
+a first choice kept. How "auto" parts are chosen is :mod:`napari_fdt.recon.parts_search`'s.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+from napari_fdt.model.coherence import emission_spectrum
+from napari_fdt.recon.model_parts import PARTS, PartsChoice, requested_parts
+from napari_fdt.recon.stage_roles import set_stage_roles
+from napari_fdt.recon.stages import camera_model_options, stated_pixel_integration
+
+if TYPE_CHECKING:
+    from napari_fdt.recon.solver import Reconstructor
+
+__all__ = ["init_parts", "set_parts", "apply_parts_choice", "restart_with_parts"]
+
+
+def init_parts(rec: Reconstructor) -> None:
+    """Each part's switch before any choice: as set or stated, "auto" ones off; with nothing to choose (or no
+    validation split to choose by) ``rec.parts_choice`` is made at once."""
+    cfg = rec.config
+    requested = requested_parts(cfg)
+    chosen_by = {p: "setting" for p in PARTS}
+    stated = stated_pixel_integration(cfg, rec.acquisition)
+    if cfg.pixel_integration == "auto" and stated is not None:
+        chosen_by["pixel_integration"] = "acquisition"
+    requested["pixel_integration"] = stated
+    extra = getattr(rec.acquisition, "extra", None) or {}
+    if requested["pupil"] is None and "pupil_edge" in extra and cfg.pupil_edge is None:
+        # a pupil the acquisition states (as fdt simulate writes it) is taken as stated, like its pixel integration
+        requested["pupil"] = False
+        chosen_by["pupil"] = "acquisition"
+    #: the parts chosen from the data
+    rec._auto_parts = [p for p in PARTS if requested[p] is None]
+    parts = {p: bool(requested[p]) for p in PARTS}
+    if not rec._auto_parts:
+        rec.apply_parts_choice(PartsChoice(parts, chosen_by))
+    elif not len(rec.validation_indices):
+        for p in rec._auto_parts:
+            chosen_by[p] = "no validation split"
+            if p == "pixel_integration":  # the physical rule stands in for the data (camera_model_options applies it)
+                parts[p] = camera_model_options(cfg, rec.acquisition)["pixel_integration"]
+                chosen_by[p] = "no validation split: physical rule"
+        rec.apply_parts_choice(PartsChoice(parts, chosen_by))
+    else:
+        set_parts(rec, parts)
+    rec._parts_chosen_by = chosen_by
+
+
+def set_parts(rec: Reconstructor, parts: dict[str, bool]) -> None:
+    """Switch the parts: the spectral model's wavelengths and the calibration's pupil and aberration fits (the stage
+    models take ``rec.parts`` when built)."""
+    rec.parts = dict(parts)
+    o, cfg = rec.acquisition.optics, rec.config
+    if parts["spectral"]:
+        lams, ws = emission_spectrum(o.wavelength_um, cfg.bandwidth_um, cfg.n_wavelengths)
+        rec.wavelengths, rec.weights = list(map(float, lams)), list(map(float, ws))
+    else:
+        rec.wavelengths, rec.weights = None, None
+    rec.calibration.fit_pupil = parts["pupil"]
+    rec.calibration.fit_aberrations = parts["aberrations"]
+
+
+def apply_parts_choice(rec: Reconstructor, choice: PartsChoice) -> None:
+    """Take a choice of parts (made here, or read from a checkpoint): switches, and the fitted pupil values when the
+    calibration has not moved them yet. A choice whose stages run again (``rerun`` ``"stages"``) also sets the coarse
+    model they run with and the parts still to choose in the finest stage."""
+    rec.parts_choice = choice
+    set_parts(rec, choice.parts)
+    if choice.rerun == "stages":
+        use_rerun_coarse_model(rec)
+        rec._choose_again = list(choice.pending)
+        if choice.pending:
+            rec._auto_parts = list(choice.pending)
+        rec._parts_chosen_by = dict(choice.chosen_by)
+
+
+def use_rerun_coarse_model(rec: Reconstructor) -> None:
+    """The coarse stages of a run that holds the kept parts: multi-slice when ``coarse_model`` is ``"auto"`` (the
+    envelope model holds none of the parts; a coarse model given by name is kept)."""
+    if rec.config.coarse_model == "auto":
+        rec.coarse_model = "multislice"
+        set_stage_roles(rec.calibration, rec.config, rec.coarse_model)
+
+
+def restart_with_parts(rec: Reconstructor) -> None:
+    """After a first choice that kept parts (``parts_rerun`` ``"stages"``): back to the state before any stage, with
+    the kept parts on from the first stage (their parameters start from the fitted values and train from
+    ``calibration_from_stage`` on) and the coarse stages multi-slice; the finest stage chooses the other auto parts
+    again (now on top of the kept ones, through a volume trained with them)."""
+    choice = rec.parts_choice
+    kept = [p for p in rec._auto_parts if rec.parts[p]]
+    for t in choice.trials:
+        t.setdefault("pass", 1)
+    choice.rerun = "stages"
+    choice.pending = [p for p in rec._auto_parts if p not in kept]
+    rec.apply_parts_choice(choice)
+    fitted = {name: getattr(rec.calibration, name).detach().clone() for name in ("na_scale", "pupil_edge", "zernike")}
+    rec._restart()
+    rec.calibration.restore_values(fitted)  # the kept parts start from their fitted values
+    rec._restart_pending = True

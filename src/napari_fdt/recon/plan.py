@@ -1,0 +1,252 @@
+"""The plan of a run: its phases in order, with their iterations and predicted seconds, known before the first iteration.
+
+A *phase* is a stretch of iterations of one kind at one stage: a stage of the pilot that chooses the ``"auto"`` TV
+weights, the pilot's trials of every weight at its selection stage, a stage of the pass, or a stage run again with
+kept model parts (:mod:`napari_fdt.recon.phases` names the passes). :func:`make_plan` lists them from the
+configuration, the acquisition's geometry and the device, before anything is allocated; the solver counts its
+progress along the plan (``Snapshot.plan_iteration`` of ``plan_iterations``: one count for the whole run, never
+restarted) and :class:`Pace` turns the plan and the times the run measures into one time-left estimate. The command
+line's bar, the widget and the report read them. When the choice of model parts keeps a part and the stages run
+again (``parts_rerun = "stages"``), :meth:`Plan.with_rerun` appends those phases (the count grows; it never restarts).
+
+**One cost model.** An iteration of a stage costs about ``batch · slices · P · log2 P`` units, ``P`` the pixels of the
+grid the model's FFTs run on (the multi-slice window, or the envelope model's padded grid), times a per-model rate of
+the device (:data:`SECONDS_PER_UNIT`) plus a per-iteration overhead (kernel launches on a GPU). The rates were
+measured on the bundled sample (docs/benchmarks.md, "The plan's cost model"); a run corrects them by what it measures.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+from typing import Any, Sequence
+
+import numpy as np
+
+from napari_fdt.physics.optics import Optics
+from napari_fdt.recon.config import SolverConfig
+from napari_fdt.recon.phases import RERUN, RUN, TV_CHOICE, probe_iterations
+from napari_fdt.recon.regularisation import TV_PATH, selection_stages
+
+__all__ = ["SECONDS_PER_UNIT", "OVERHEAD_S", "Phase", "Plan", "Pace", "iteration_units", "envelope_padded_shape", "make_plan"]
+
+#: Seconds per cost unit of one iteration, by (device type, model). CPU: the bundled sample's default run on 2 cores
+#: (x4 and x2 envelope stages 16 and 73 ms per iteration, the x1 multi-slice stage 237 ms; 2026-11-25). CUDA: the
+#: H100 rows of docs/benchmarks.md's suite table (sample, demo and big geometries: 10.0, 19.5 and 99.5 ms per
+#: multi-slice iteration); the envelope model on CUDA (not the default there) is priced like the multi-slice one.
+SECONDS_PER_UNIT: dict[tuple[str, str], float] = {
+    ("cpu", "envelope"): 8.3e-9,
+    ("cpu", "multislice"): 1.09e-9,
+    ("cuda", "envelope"): 4.5e-12,
+    ("cuda", "multislice"): 4.5e-12,
+}
+#: Seconds of one iteration that do not scale with its size (kernel launches), by device type.
+OVERHEAD_S: dict[str, float] = {"cpu": 0.0, "cuda": 9e-3}
+
+
+def iteration_units(batch: int, n_slices: int, fft_shape: tuple[int, int]) -> float:
+    """Cost units of one iteration: ``batch · n_slices · P · log2 P`` with ``P`` the pixels of ``fft_shape``."""
+    p = max(2, int(fft_shape[0]) * int(fft_shape[1]))
+    return float(batch) * float(n_slices) * p * math.log2(p)
+
+
+def envelope_padded_shape(optics: Optics, image_shape: tuple[int, int], factor: int) -> tuple[int, int]:
+    """The padded grid (h, w) the envelope model of a stage of ``factor`` works on (as
+    :class:`~napari_fdt.model.envelope.EnvelopeModel` pads it)."""
+    from napari_fdt.model.envelope import padding_px
+
+    h, w = image_shape[0] // factor, image_shape[1] // factor
+    pad = padding_px(optics, factor)
+    return h + 2 * pad, w + 2 * pad
+
+
+@dataclass(frozen=True)
+class Phase:
+    """One phase of a run. ``pass_name``: the snapshot's ``phase`` ("tv_choice", "run", "rerun"); ``trials``: the
+    pilot's trials of the TV weights (``iterations`` for all of them) rather than a stage; ``model`` "envelope" or
+    "multislice"; ``fft_shape`` (h, w) px the model's FFTs run on; ``seconds_per_iteration`` the prior prediction;
+    ``parts`` the model parts a rerun holds."""
+
+    pass_name: str
+    stage: int
+    n_stages: int
+    factor: int
+    model: str
+    iterations: int
+    fft_shape: tuple[int, int]
+    seconds_per_iteration: float
+    trials: bool = False
+    parts: tuple[str, ...] = ()
+
+    @property
+    def predicted_s(self) -> float:
+        return self.iterations * self.seconds_per_iteration
+
+    @property
+    def name(self) -> str:
+        """The phase in words: "stage 2/3 (x2)", "choosing the TV weight: trials at stage 2/3 (x2)", …"""
+        where = f"stage {self.stage + 1}/{self.n_stages} (x{self.factor})"
+        if self.pass_name == TV_CHOICE:
+            return f"choosing the TV weight: trials at {where}" if self.trials else f"choosing the TV weight: {where}"
+        if self.pass_name == RERUN:
+            return f"{where} again with {'+'.join(self.parts)}" if self.parts else f"{where} again"
+        return where
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"name": self.name, "phase": self.pass_name, "stage": self.stage, "factor": self.factor, "model": self.model,
+                "iterations": self.iterations, "fft_shape": list(self.fft_shape),
+                "seconds_per_iteration": self.seconds_per_iteration, "predicted_s": self.predicted_s}
+
+
+@dataclass(frozen=True)
+class Plan:
+    """The phases of a run, in order (:func:`make_plan`)."""
+
+    phases: tuple[Phase, ...]
+    device_type: str
+
+    @property
+    def iterations(self) -> int:
+        return sum(p.iterations for p in self.phases)
+
+    @property
+    def predicted_s(self) -> float:
+        return sum(p.predicted_s for p in self.phases)
+
+    def index(self, pass_name: str, stage: int, trials: bool = False) -> int:
+        """The index of the phase of ``pass_name`` at ``stage`` (``trials``: the pilot's trials)."""
+        for i, p in enumerate(self.phases):
+            if p.pass_name == pass_name and p.stage == stage and p.trials == trials:
+                return i
+        raise KeyError(f"no phase {pass_name!r} at stage {stage} (trials {trials}) in the plan")
+
+    def iterations_before(self, index: int) -> int:
+        """Iterations of the phases before phase ``index``."""
+        return sum(p.iterations for p in self.phases[:index])
+
+    def with_iterations(self, index: int, iterations: int) -> "Plan":
+        """The plan with phase ``index`` cut to ``iterations`` (the TV trials that ended early)."""
+        phases = list(self.phases)
+        phases[index] = replace(phases[index], iterations=int(iterations))
+        return Plan(tuple(phases), self.device_type)
+
+    def with_rerun(self, reruns: Sequence[Phase]) -> "Plan":
+        """The plan with the phases of the stages run again appended (their ``pass_name`` set to "rerun")."""
+        return Plan(self.phases + tuple(replace(p, pass_name=RERUN) for p in reruns), self.device_type)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"device": self.device_type, "phases": [p.to_dict() for p in self.phases],
+                "iterations": self.iterations, "predicted_total_s": self.predicted_s}
+
+    def summary(self) -> str:
+        """One line per phase with its iterations and predicted seconds, and the total."""
+        lines = [f"  {p.name}: {p.iterations} it, ~{_seconds(p.predicted_s)}" for p in self.phases]
+        return "\n".join([f"plan ({self.device_type}): {len(self.phases)} phases, {self.iterations} iterations, "
+                          f"about {_seconds(self.predicted_s)}", *lines])
+
+
+def _seconds(s: float) -> str:
+    if s < 90:
+        return f"{s:.0f} s"
+    if s < 5400:
+        return f"{s / 60:.0f} min"
+    return f"{s / 3600:.1f} h"
+
+
+def stage_phase(config: SolverConfig, optics: Optics, image_shape: tuple[int, int], sources_um: np.ndarray, stage: int,
+                coarse_model: str, device_type: str, pass_name: str = RUN, parts: tuple[str, ...] = ()) -> Phase:
+    """The phase of stage ``stage`` (its model, FFT grid and predicted seconds per iteration)."""
+    from napari_fdt.recon.stages import multislice_plan
+
+    sc = config.stages[stage]
+    envelope = sc.factor > 1 and coarse_model == "envelope"
+    if envelope:
+        shape = envelope_padded_shape(optics, image_shape, sc.factor)
+    else:
+        shape = tuple(multislice_plan(optics, sc.factor, image_shape, sources_um)[3].padded_shape)
+    model = "envelope" if envelope else "multislice"
+    dev = "cuda" if device_type == "cuda" else "cpu"
+    batch = config.stage_batch(stage)
+    per_it = OVERHEAD_S[dev] + SECONDS_PER_UNIT[(dev, model)] * iteration_units(batch, optics.n_slices, shape)
+    return Phase(pass_name, stage, len(config.stages), sc.factor, model, sc.iterations, shape, per_it, parts=parts)
+
+
+def make_plan(config: SolverConfig, optics: Optics, image_shape: tuple[int, int], sources_um: np.ndarray,
+              coarse_model: str, device_type: str, tv_pilot: bool) -> Plan:
+    """The plan of a run of ``config`` (as run: its stages resolved) on ``device_type`` ("cpu" or "cuda"), with the
+    initial ``sources_um`` (N, 3) µm, ``coarse_model`` resolved for the device; ``tv_pilot``: the ``"auto"`` TV
+    weights are chosen by a pilot first."""
+    src = np.asarray(sources_um, dtype=np.float64)
+    stages = [stage_phase(config, optics, image_shape, src, i, coarse_model, device_type) for i in range(len(config.stages))]
+    phases: list[Phase] = []
+    if tv_pilot:
+        sel = min(selection_stages(config))
+        phases += [replace(p, pass_name=TV_CHOICE) for p in stages[:sel]]
+        probe = probe_iterations(config.stages[sel].iterations)
+        phases.append(replace(stages[sel], pass_name=TV_CHOICE, trials=True, iterations=len(TV_PATH) * probe))
+    phases += stages
+    return Plan(tuple(phases), "cuda" if device_type == "cuda" else "cpu")
+
+
+class Pace:
+    """Time left from a :class:`Plan` and the times a run measures.
+
+    :meth:`observe` takes each snapshot's phase index, the iterations done along the plan and the run's elapsed
+    seconds. A phase's first interval (from the previous snapshot to its first) holds its set-up (building the stage's
+    model) and is kept apart from its steady intervals. The steady seconds measured, over the plan's prediction for the
+    same iterations, is the correction applied to the phases ahead; the current phase's rest goes at its own steady pace
+    once it has one; each phase ahead adds the mean set-up time measured.
+    """
+
+    def __init__(self, plan: Plan) -> None:
+        self.plan = plan
+        self._last: tuple[int, int, float] | None = None  # (phase, done, elapsed)
+        #: phase → [iterations, seconds] of its first interval, and of its steady intervals
+        self._first: dict[int, list[float]] = {}
+        self._steady: dict[int, list[float]] = {}
+
+    def observe(self, phase: int, done: int, elapsed_s: float) -> None:
+        """``done`` iterations along the plan after ``elapsed_s`` seconds of the run, in phase ``phase``."""
+        if self._last is None:
+            prev_done, prev_t = self.plan.iterations_before(phase), 0.0
+        else:
+            prev_done, prev_t = self._last[1], self._last[2]
+        acc = self._first if phase not in self._first else self._steady
+        n, s = acc.setdefault(phase, [0.0, 0.0])
+        acc[phase] = [n + max(0, int(done) - prev_done), s + max(0.0, float(elapsed_s) - prev_t)]
+        self._last = (phase, int(done), float(elapsed_s))
+
+    def _predicted(self, phase: int, iterations: float) -> float:
+        return iterations * self.plan.phases[phase].seconds_per_iteration
+
+    def correction(self) -> float:
+        """Measured over predicted seconds of the steady intervals seen (of the first intervals while there are none;
+        1 before any)."""
+        acc = self._steady if any(n > 0 for n, _ in self._steady.values()) else self._first
+        seen = sum(s for _, s in acc.values())
+        predicted = sum(self._predicted(i, n) for i, (n, _) in acc.items())
+        return seen / predicted if predicted > 0 and seen > 0 else 1.0
+
+    def setup_seconds(self) -> float:
+        """The mean set-up time of a phase: the excess of its first interval over its steady pace."""
+        extra = [max(0.0, first[1] - first[0] * self._steady[i][1] / self._steady[i][0])
+                 for i, first in self._first.items() if i in self._steady and self._steady[i][0] > 0 and first[0] > 0]
+        return sum(extra) / len(extra) if extra else 0.0
+
+    def seconds_left(self) -> float:
+        """Seconds to the end of the plan (its prediction before any observation)."""
+        if self._last is None:
+            return self.plan.predicted_s
+        phase, done, _ = self._last
+        ratio = self.correction()
+        p = self.plan.phases[phase]
+        n, s = self._steady.get(phase, (0, 0.0))
+        per_it = s / n if n > 0 else p.seconds_per_iteration * ratio
+        left_here = max(0, self.plan.iterations_before(phase) + p.iterations - done)
+        ahead = self.plan.phases[phase + 1:]
+        return left_here * per_it + ratio * sum(q.predicted_s for q in ahead) + len(ahead) * self.setup_seconds()
+
+    def measured_seconds(self) -> list[float | None]:
+        """Each phase's measured seconds, set-up included (None for a phase not reached)."""
+        return [None if i not in self._first else self._first[i][1] + self._steady.get(i, (0, 0.0))[1]
+                for i in range(len(self.plan.phases))]

@@ -1,0 +1,66 @@
+"""The validation error during a run: the held-out images predicted through a :class:`~napari_fdt.recon.solver.Reconstructor`'s
+current state, and the stage's best iterate that early stopping returns to (the split and the error measures are
+:mod:`napari_fdt.recon.validation`'s).
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import torch
+
+from napari_fdt.model.render import iter_batches
+from napari_fdt.recon.stages import Stage
+from napari_fdt.recon.validation import BestIterate, per_image_errors, relative_image_error
+
+if TYPE_CHECKING:
+    from napari_fdt.recon.snapshot import StageRecord
+    from napari_fdt.recon.solver import Reconstructor
+
+__all__ = ["validation_error", "validation", "track_validation", "end_on_best"]
+
+
+def validation_error(rec: Reconstructor, stage: Stage, mask: torch.Tensor | None = None) -> float | None:
+    """Relative RMS error of the held-out images at ``stage`` (None without a validation split).
+
+    Predicted through the current volume with their positions as fitted to their own images (a fit that never
+    reaches the volume) and their gains refitted in closed form; ``mask`` (N, h_f, w_f) as the loss's. Every
+    rank computes the same number (no collective; in a distributed run after the rows are shared).
+    """
+    out = validation(rec, stage, mask)
+    return None if out is None else out[0]
+
+
+def validation(rec: Reconstructor, stage: Stage, mask: torch.Tensor | None, per_image: bool = False) -> tuple[float, list[float]] | None:
+    """(validation error, each held-out image's error (empty unless asked)); None without a split."""
+    held = rec.validation_indices
+    if not len(held):
+        return None
+    with torch.no_grad():  # the gains they carry are refitted: the fit is invariant to a scale per image
+        dn = rec.volume.delta_n()
+        preds = [rec._predict_normalised(stage, dn, torch.as_tensor(held[sl], device=rec.device))
+                 for sl in iter_batches(len(held), rec.config.batch_size)]
+    idx = torch.as_tensor(held, device=rec.device)
+    pred, measured, m = torch.cat(preds), stage.images[idx], None if mask is None else mask[idx]
+    each = per_image_errors(pred, measured, m, fit_gain=True) if per_image else []
+    return relative_image_error(pred, measured, m, fit_gain=True), each
+
+
+def track_validation(rec: Reconstructor, stage: Stage, mask: torch.Tensor | None, best: BestIterate, it: int) -> float | None:
+    """The validation error now, recorded in ``best`` (with a copy of the state when it is the lowest yet)."""
+    val = rec.validation_error(stage, mask)  # through the method: a test may script the signal there
+    if val is not None and rec.config.early_stopping != "off":
+        best.update(it, val, rec._capture)
+    return val
+
+
+def end_on_best(rec: Reconstructor, stage: Stage, mask: torch.Tensor | None, best: BestIterate, it: int, record: StageRecord) -> float | None:
+    """The stage's final validation error; with early stopping, first return to the stage's best iterate when the
+    last one is worse than it by more than the tolerance. Fills the record's validation fields."""
+    val = track_validation(rec, stage, mask, best, it)
+    record.best_iteration = it
+    if val is not None and rec.config.early_stopping != "off" and val > best.best_error * (1.0 + best.tolerance):
+        rec._restore(best.state, keep_bookkeeping=True)
+        val, record.best_iteration = best.best_error, best.best_iteration
+    record.validation_error = val
+    return val

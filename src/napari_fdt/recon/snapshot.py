@@ -1,0 +1,188 @@
+"""What a run reports: its :class:`Snapshot` (the state every ``snapshot_every`` iterations and at the end of every
+stage) and each stage's :class:`StageRecord`, and how :class:`~napari_fdt.recon.solver.Reconstructor` takes them.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import torch
+
+from napari_fdt.recon.losses import as_floats
+from napari_fdt.recon.phases import RERUN, RUN, TV_CHOICE, phase_counts, probe_iterations
+from napari_fdt.recon.phases import phase_label as _phase_label
+from napari_fdt.recon.regularisation import TV_PATH, candidate_weights
+from napari_fdt.recon.stages import Stage
+from napari_fdt.recon.volume import upsample_to
+
+if TYPE_CHECKING:
+    from napari_fdt.recon.solver import Reconstructor
+
+__all__ = ["Snapshot", "StageRecord", "take_snapshot", "complete_stage", "rerun_parts"]
+
+
+@dataclass
+class Snapshot:
+    """The state of a running reconstruction.
+
+    ``delta_n`` is Δn on the stage grid (n_slices, h, w) (``delta_n_full()`` upsamples it to the
+    acquisition grid); ``sources_um`` (N, 3) the calibrated positions (acquisition coordinates);
+    ``gains`` (N,); ``calibration`` the global parameters; ``losses`` the loss terms of the last
+    iteration (unweighted); ``validation_error`` / ``train_error`` the relative image errors of the held-out
+    images and of the last batch (:mod:`napari_fdt.recon.validation`); times in seconds.
+    """
+
+    stage: int
+    n_stages: int
+    factor: int
+    iteration: int
+    stage_iterations: int
+    global_iteration: int
+    total_iterations: int
+    delta_n: np.ndarray
+    sources_um: np.ndarray
+    gains: np.ndarray
+    calibration: dict[str, float]
+    losses: dict[str, float]
+    elapsed_s: float
+    eta_s: float
+    stage_complete: bool
+    full_shape: tuple[int, int]
+    #: relative RMS error of the held-out images predicted through the volume (closed-form gains; None: no split)
+    validation_error: float | None = None
+    #: the same error on the last training batch (its trained gains; this rank's part in a distributed run)
+    train_error: float | None = None
+    #: the model parts the data needed when the stages run again with them (``parts_rerun``): the iteration count
+    #: then starts again from the first stage; empty during the first pass
+    rerun_with: tuple[str, ...] = ()
+    #: "tv_choice" for snapshots of the pilot that chooses the TV weight, "run" for the pass, "rerun" for the stages run
+    #: again with kept model parts (:mod:`napari_fdt.recon.phases`: the counts of each)
+    phase: str = RUN
+    #: iterations done in this phase, and in it in all (the pilot: its stages', then the trials'); in "run" and "rerun"
+    #: equal to ``global_iteration`` and ``total_iterations``
+    phase_iteration: int = 0
+    phase_iterations: int = 0
+    #: (τ_xy, τ_z) the pilot has just tried (a trial's snapshot: ``validation_error`` is the trial's); None otherwise
+    tv_weights: tuple[float, float] | None = None
+    #: iterations done along the run's whole plan (:mod:`napari_fdt.recon.plan`: pilot, pass, stages run again), and
+    #: the plan's iterations in all (it grows when a kept part appends phases; the count never starts again)
+    plan_iteration: int = 0
+    plan_iterations: int = 0
+    #: the plan's phase in words ("stage 2/3 (x2)", "choosing the TV weight: trials at stage 2/3 (x2)", ASCII)
+    phase_name: str = ""
+
+    @property
+    def phase_label(self) -> str:
+        """The phase in plain English: "choosing the smoothing (TV) weight", "reconstructing", "reconstructing again with …"."""
+        return _phase_label(self.phase, self.rerun_with, self.tv_weights)
+
+    @property
+    def phase_progress(self) -> float:
+        """The share of this phase done (:attr:`progress` when the phase's count is not given)."""
+        return self.phase_iteration / self.phase_iterations if self.phase_iterations > 0 else self.progress
+
+    def delta_n_full(self) -> np.ndarray:
+        """Δn on the acquisition grid (n_slices, H, W), float32."""
+        t = torch.from_numpy(self.delta_n)
+        return upsample_to(t, self.factor, self.full_shape).numpy()
+
+    @property
+    def progress(self) -> float:
+        """The share of the whole run done (along its plan; of the pass when no plan count is given)."""
+        if self.plan_iterations > 0:
+            return self.plan_iteration / self.plan_iterations
+        return self.global_iteration / max(1, self.total_iterations)
+
+
+@dataclass
+class StageRecord:
+    """What one stage did, for the report."""
+
+    stage: int
+    factor: int
+    field_factor: int
+    grid: tuple[int, int, int]
+    window: tuple[int, int]
+    na: float
+    iterations: int
+    seconds: float = 0.0
+    model: str = "multislice"
+    #: validation error the stage ended on, its iteration (earlier than ``iterations`` when the best iterate was
+    #: kept), and the iteration early stopping ended the stage at (None: it ran to the end)
+    validation_error: float | None = None
+    best_iteration: int | None = None
+    stopped_at: int | None = None
+
+    @property
+    def seconds_per_iteration(self) -> float:
+        ran = self.stopped_at or self.iterations  # early stopping ends a stage before its iterations
+        return self.seconds / ran if ran else 0.0
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"stage": self.stage, "factor": self.factor, "field_factor": self.field_factor, "grid": list(self.grid), "window": list(self.window),
+                "na": self.na, "model": self.model, "iterations": self.iterations, "seconds": self.seconds,
+                "seconds_per_iteration": self.seconds_per_iteration, "validation_error": self.validation_error,
+                "best_iteration": self.best_iteration, "stopped_at": self.stopped_at}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> "StageRecord":
+        """The inverse of :meth:`to_dict`."""
+        return cls(d["stage"], d["factor"], d["field_factor"], tuple(d["grid"]), tuple(d["window"]), d["na"], d["iterations"],
+                   d["seconds"], d["model"], d.get("validation_error"), d.get("best_iteration"), d.get("stopped_at"))
+
+
+def complete_stage(rec: Reconstructor, stage: Stage, record: StageRecord, global_it: int, terms: dict, t0: float,
+                   validation_error: float | None, train_error: float | None) -> Snapshot:
+    """Close the stage's record and time, take its snapshot and remember it as the last complete state."""
+    record.seconds = time.perf_counter() - t0
+    snap = take_snapshot(rec, stage, stage.iterations, global_it, terms, t0, True, validation_error, train_error)
+    rec.elapsed_s += record.seconds
+    snap.elapsed_s = rec.elapsed_s
+    rec.completed_stages = stage.index + 1
+    rec.last_complete = snap
+    rec._last_complete_state = rec._capture()
+    rec.final_losses = snap.losses
+    return snap
+
+
+def take_snapshot(rec: Reconstructor, stage: Stage, it: int, global_it: int, terms: dict, stage_t0: float, complete: bool,
+                  validation_error: float | None = None, train_error: float | None = None, trial: int | None = None) -> Snapshot:
+    """The snapshot now (``trial``: the index in the TV path of the weight the pilot has just tried)."""
+    cfg = rec.config
+    rerun_with = rerun_parts(rec)
+    phase = TV_CHOICE if rec._piloting else (RERUN if rerun_with else RUN)
+    terms = rec._gather(terms, optimiser_state=complete)
+    now = time.perf_counter()
+    elapsed = rec.elapsed_s + (now - stage_t0)
+    # where along the plan: the trials' iterations so far, or the stage's iteration in its phase
+    index = rec._phase_index
+    within = (trial + 1) * probe_iterations(stage.iterations) if trial is not None else it
+    plan_iteration = rec.plan.iterations_before(index) + min(within, rec.plan.phases[index].iterations)
+    rec.pace.observe(index, plan_iteration, elapsed)
+    remaining = 0.0 if complete and index == len(rec.plan.phases) - 1 else rec.pace.seconds_left()
+    losses = as_floats(terms) if terms else {}
+    snap = Snapshot(
+        stage=stage.index, n_stages=len(cfg.stages), factor=stage.factor, iteration=it,
+        stage_iterations=stage.iterations, global_iteration=global_it, total_iterations=cfg.total_iterations,
+        delta_n=rec.volume.delta_n().detach().cpu().numpy().astype(np.float32),
+        sources_um=rec.sources_um(), gains=rec.gains(),
+        calibration=rec.calibration.summary(), losses=losses, elapsed_s=elapsed, eta_s=remaining,
+        stage_complete=complete, full_shape=rec.full_shape, validation_error=validation_error, train_error=train_error,
+        rerun_with=rerun_with, phase=phase, tv_weights=None if trial is None else candidate_weights(cfg, TV_PATH[trial]),
+        plan_iteration=plan_iteration, plan_iterations=rec.plan.iterations, phase_name=rec.plan.phases[index].name,
+    )
+    snap.phase_iteration, snap.phase_iterations = phase_counts(cfg, phase, global_it, trial)
+    rec.history.append({"stage": stage.index, "iteration": it, "global_iteration": global_it,
+                        "elapsed_s": elapsed, **losses, "validation_error": validation_error, "train_error": train_error})
+    return snap
+
+
+def rerun_parts(rec: Reconstructor) -> tuple[str, ...]:
+    """The parts kept by the data while the stages run again with them (:attr:`Snapshot.rerun_with`)."""
+    choice = rec.parts_choice
+    if choice is None or choice.rerun != "stages":
+        return ()
+    return tuple(p for p, on in choice.parts.items() if on and choice.chosen_by.get(p) == "validation")

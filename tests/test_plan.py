@@ -1,0 +1,148 @@
+"""The plan of a run (:mod:`napari_fdt.recon.plan`): its phases match what the solver builds, its prior prediction is
+within a factor 2 of recorded stage times, the time left it gives is within 30 % once a tenth of the run is measured,
+and a run's snapshots count along it without ever starting again."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from napari_fdt.data.io import read_acquisition
+from napari_fdt.model.envelope import EnvelopeModel
+from napari_fdt.recon.config import SolverConfig, StageConfig, resolve_stage_lengths
+from napari_fdt.recon.phases import RUN, TV_CHOICE, probe_iterations
+from napari_fdt.recon.plan import Pace, Plan, make_plan
+from napari_fdt.recon.regularisation import TV_PATH
+from napari_fdt.recon.stages import build_stage
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def sample():
+    return read_acquisition(ROOT / "sample_data" / "letters")
+
+
+def _sources(acq) -> np.ndarray:
+    return np.asarray(acq.sources_um, dtype=np.float64)
+
+
+def test_the_plan_lists_the_pilot_then_the_stages_with_the_grids_the_solver_builds(sample) -> None:
+    cfg = resolve_stage_lengths(SolverConfig(), sample.n_images)
+    plan = make_plan(cfg, sample.optics, sample.image_shape, _sources(sample), "envelope", "cpu", tv_pilot=True)
+    names = [(p.pass_name, p.stage, p.trials) for p in plan.phases]
+    assert names == [(TV_CHOICE, 0, False), (TV_CHOICE, 1, True), (RUN, 0, False), (RUN, 1, False), (RUN, 2, False)]
+    assert plan.phases[1].iterations == len(TV_PATH) * probe_iterations(cfg.stages[1].iterations)
+    assert plan.iterations == cfg.total_iterations + cfg.stages[0].iterations + plan.phases[1].iterations
+    assert [p.model for p in plan.phases[2:]] == ["envelope", "envelope", "multislice"]
+    assert plan.phases[3].name == "stage 2/3 (x2)" and plan.phases[1].name.startswith("choosing the TV weight")
+    assert all(p.name.isascii() for p in plan.phases)
+    # the FFT grids are the ones the stages are built with (envelope: its padded grid; multi-slice: its window)
+    images = torch.zeros((sample.n_images, *sample.image_shape))
+    for p in plan.phases[2:]:
+        stage = build_stage(p.stage, p.factor, 1, sample.optics, images, _sources(sample), device=torch.device("cpu"),
+                            coarse_model="envelope")
+        if p.model == "envelope":
+            assert isinstance(stage.model, EnvelopeModel) and p.fft_shape == stage.model.padded
+        else:
+            assert p.fft_shape == tuple(stage.window)
+    fixed = make_plan(cfg, sample.optics, sample.image_shape, _sources(sample), "envelope", "cpu", tv_pilot=False)
+    assert [p.pass_name for p in fixed.phases] == [RUN] * 3 and fixed.iterations == cfg.total_iterations
+    assert fixed.index(RUN, 2) == 2 and plan.index(TV_CHOICE, 1, trials=True) == 1 and plan.iterations_before(2) == 100 + 180
+    again = fixed.with_rerun(fixed.phases)
+    assert [p.pass_name for p in again.phases] == [RUN] * 3 + ["rerun"] * 3 and again.iterations == 2 * fixed.iterations
+    summary = plan.summary()
+    assert summary.startswith("plan (cpu): 5 phases") and summary.count("\n") == 5
+    d = plan.to_dict()
+    assert d["predicted_total_s"] == pytest.approx(sum(p["predicted_s"] for p in d["phases"]))
+
+
+def _recorded():
+    """Stage times ``benchmarks/results/suite_cpu.json`` recorded on the sample (4x100, 2x100, 1x160; 2 CPU cores)."""
+    return json.loads((ROOT / "benchmarks" / "results" / "suite_cpu.json").read_text())["scenes"][0]["stages"]
+
+
+def _plan_of(recorded, acq) -> Plan:
+    stages = [StageConfig(s["factor"], s["iterations"]) for s in recorded]
+    cfg = SolverConfig(stages=stages, final_stage_min_passes=0)
+    return make_plan(cfg, acq.optics, acq.image_shape, _sources(acq), "envelope", "cpu", tv_pilot=False)
+
+
+def test_the_prior_prediction_is_within_a_factor_2_of_recorded_stage_times(sample) -> None:
+    recorded = _recorded()
+    plan = _plan_of(recorded, sample)
+    for phase, rec in zip(plan.phases, recorded):
+        assert phase.model == rec["model"]
+        assert 0.5 <= phase.predicted_s / rec["seconds"] <= 2.0, (phase.name, phase.predicted_s, rec["seconds"])
+
+
+def test_time_left_on_the_recorded_stage_timings_is_within_30_percent_after_a_tenth(sample) -> None:
+    """Snapshots every 10 iterations at each recorded stage's own pace, plus 0.3 s of set-up per stage."""
+    recorded = _recorded()
+    plan = _plan_of(recorded, sample)
+    seq, t, done = [], 0.0, 0
+    for k, s in enumerate(recorded):
+        t += 0.3
+        pace = s["seconds"] / s["iterations"]
+        for it in range(10, s["iterations"] + 1, 10):
+            seq.append((k, done + it, t + it * pace))
+        t += s["seconds"]
+        done += s["iterations"]
+    est = Pace(plan)
+    assert est.seconds_left() == pytest.approx(plan.predicted_s)  # the prior before any measurement
+    errors = []
+    for phase, at, now in seq:
+        est.observe(phase, at, now)
+        if now >= 0.1 * t and t - now > 0:
+            errors.append(abs(est.seconds_left() - (t - now)) / (t - now))
+    assert errors and max(errors) < 0.3, max(errors)
+    assert est.seconds_left() == pytest.approx(0.0)
+    measured = est.measured_seconds()
+    assert all(m is not None for m in measured) and sum(measured) == pytest.approx(t)
+
+
+def test_time_left_with_noisy_iterations_and_a_slow_machine(sample) -> None:
+    """Iterations ±20 % around the plan's cost on a machine 3× slower than the prior: within 30 % after a tenth."""
+    plan = _plan_of(_recorded(), sample)
+    rng = np.random.default_rng(0)
+    for _ in range(3):
+        est, seq, t, done = Pace(plan), [], 0.0, 0
+        for k, p in enumerate(plan.phases):
+            t += 0.5
+            for i in range(1, p.iterations + 1):
+                t += 3.0 * p.seconds_per_iteration * rng.uniform(0.8, 1.2)
+                if i % 10 == 0 or i == p.iterations:
+                    seq.append((k, done + i, t))
+            done += p.iterations
+        worst = 0.0
+        for phase, at, now in seq:
+            est.observe(phase, at, now)
+            if now >= 0.1 * t and t - now > 0:
+                worst = max(worst, abs(est.seconds_left() - (t - now)) / (t - now))
+        assert worst < 0.3, worst
+
+
+def test_a_run_counts_along_its_plan_and_its_time_table_adds_up(scene16) -> None:
+    from napari_fdt.recon.report import plan_report
+    from napari_fdt.recon.solver import Reconstructor
+
+    cfg = SolverConfig(stages=[StageConfig(4, 4), StageConfig(2, 6), StageConfig(1, 6)], batch_size=4, snapshot_every=2,
+                       validation_fraction=0.2, final_stage_min_passes=0)
+    rec = Reconstructor(scene16.acquisition, cfg, device="cpu")
+    planned = rec.plan.iterations
+    snaps = list(rec.run())
+    done = [s.plan_iteration for s in snaps]
+    assert done == sorted(done) and done[0] > 0  # never back, though the pilot's stages run again in the pass
+    assert snaps[-1].plan_iteration == snaps[-1].plan_iterations == rec.plan.iterations <= planned
+    trials = rec.plan.phases[rec.plan.index(TV_CHOICE, 1, trials=True)]
+    assert trials.iterations == len(rec.tv_choice.trials) * rec.tv_choice.probe_iterations  # cut when it ended early
+    assert all(s.eta_s >= 0 for s in snaps) and snaps[-1].eta_s == 0 and snaps[-1].progress == 1.0
+    assert [s.phase_name for s in snaps if s.stage_complete][-3:] == ["stage 1/3 (x4)", "stage 2/3 (x2)", "stage 3/3 (x1)"]
+    table = plan_report(rec)
+    seconds = [p["seconds"] for p in table["phases"]]
+    assert all(x is not None and x > 0 for x in seconds)
+    assert sum(seconds) == pytest.approx(snaps[-1].elapsed_s, abs=1e-3)  # (the stage-end snapshot re-reads the clock)
