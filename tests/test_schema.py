@@ -32,7 +32,7 @@ def test_docs_settings_table_is_the_generated_one() -> None:
     # every field is in it, with its bounds and its choices
     for name in schema_fields(SolverConfig):
         assert f"| `{name}` |" in text
-    assert "| `batch_size` | int ≥ 1 | 16 | images per iteration |" in settings_markdown()
+    assert "| `batch_size` | basic | int ≥ 1 | 16 | images per iteration |" in settings_markdown()
     assert '`"auto"` \\| `"envelope"` \\| `"multislice"`' in settings_markdown()
 
 
@@ -106,3 +106,28 @@ def test_optics_schema_keeps_its_checks() -> None:
 def test_loss_weights_come_from_the_config() -> None:
     cfg = SolverConfig(l1_l2_total=2.0, ssim_weight=0.1, tv_xy_weight=1e-3, tv_z_weight=2e-3, l1_ramp_start=0.2, l1_ramp_end=0.7)
     assert LossWeights.from_config(cfg) == LossWeights(2.0, 0.1, 1e-3, 2e-3, 0.2, 0.7)
+
+
+def test_settings_come_in_tiers_and_the_help_lists_them_in_order() -> None:
+    """The few a user sets first, the experimental ones apart (issue 24's list), each flag in its tier's group."""
+    from napari_fdt.cli import build_parser
+    from napari_fdt.schema import TIERS, tier
+
+    fields = schema_fields(SolverConfig)
+    by_tier = {t: [n for n, info in fields.items() if tier(info) == t] for t in TIERS}
+    assert by_tier["basic"] == ["stages", "batch_size", "tv_xy_weight", "tv_z_weight", "calibrate_sources", "seed",
+                                "validation_fraction"]
+    assert set(by_tier["experimental"]) == {"source_step", "calibrate_sources_in_envelope_stages",
+                                            "calibrate_source_depth_in_envelope_stages", "restart_source_moments",
+                                            "multislice_source_step_scale", "source_step_schedule", "lr_ri_final_ratio",
+                                            "parts_rerun", "parts_test_images"}
+    assert sum(map(len, by_tier.values())) == len(fields)
+    rows = [line for line in settings_markdown().splitlines() if line.startswith("| `")]
+    tiers_in_table = [line.split("|")[2].strip() for line in rows[: len(fields)]]
+    assert tiers_in_table == sorted(tiers_in_table, key=TIERS.index)  # basic rows first, experimental last
+    help_text = build_parser().parse_args.__self__._subparsers._group_actions[0].choices["reconstruct"].format_help()
+    first, advanced, experimental = (help_text.index(h) for h in ("solver settings (", "advanced solver settings",
+                                                                  "experimental solver settings"))
+    flag = lambda name: help_text.index("\n  --" + name)  # noqa: E731  (its line in the groups, not in the usage)
+    assert first < flag("batch-size") < advanced < flag("coarse-model") < experimental < flag("source-step ")
+    assert flag("parts-rerun") > experimental

@@ -39,15 +39,16 @@ def _number_or_auto(kind: type):
     return parse
 
 
-def _add_schema_args(group, model, defaults: dict | None = None) -> None:
+def _add_schema_args(group, model, defaults: dict | None = None, tiers: tuple[str, ...] | None = None) -> None:
     """One flag per scalar field of a settings class (``--tv-xy-weight``; booleans as ``--x/--no-x``), typed,
     with the ``Literal`` choices and the description as help. With ``defaults`` None every flag defaults to
-    None (unset: it overrides nothing); else the flag's default is ``defaults[name]``."""
-    from napari_fdt.schema import accepts_auto, choices, scalar_type, schema_fields
+    None (unset: it overrides nothing); else the flag's default is ``defaults[name]``. ``tiers``: only the fields of
+    these tiers (:data:`napari_fdt.schema.TIERS`; None: all)."""
+    from napari_fdt.schema import accepts_auto, choices, scalar_type, schema_fields, tier
 
     for name, info in schema_fields(model).items():
         kind, _ = scalar_type(info)
-        if kind is None:
+        if kind is None or (tiers is not None and tier(info) not in tiers):
             continue
         default = None if defaults is None else defaults[name]
         shown = info.get_default(call_default_factory=True) if defaults is None else default
@@ -135,7 +136,10 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--dist-backend", choices=("auto", "nccl", "gloo"), default="auto",
                      help="under torchrun: the torch.distributed backend (default auto: NCCL when each rank has a GPU "
                           "of its own, else gloo; env FDT_DIST_BACKEND); docs/distributed.md")
-    _add_schema_args(rec.add_argument_group("solver settings (docs/solver.md; each overrides the --config file's value)"), SolverConfig)
+    for tier_name, title in (("basic", "solver settings (docs/solver.md; each overrides the --config file's value)"),
+                             ("advanced", "advanced solver settings"),
+                             ("experimental", "experimental solver settings (kept while they are measured: docs/solver.md)")):
+        _add_schema_args(rec.add_argument_group(title), SolverConfig, tiers=(tier_name,))
 
     fwd = sub.add_parser("forward", help="predict an acquisition's images from an RI volume and report the residual")
     fwd.add_argument("acquisition", type=Path)

@@ -32,6 +32,8 @@ __all__ = [
     "example",
     "input_error",
     "markdown_table",
+    "TIERS",
+    "tier",
     "scalar_type",
     "schema_dataclass",
     "schema_fields",
@@ -44,13 +46,24 @@ T = TypeVar("T")
 SCHEMA_CONFIG = ConfigDict(extra="forbid", allow_inf_nan=False)
 
 
+#: The tiers of settings, in the order ``--help`` and the docs show them: the few a user sets, the advanced ones, and
+#: the experimental ones (kept while they are measured; docs/solver.md, "Settings").
+TIERS = ("basic", "advanced", "experimental")
+
+
 def setting(default: Any = dataclasses.MISSING, *, description: str, fix: str = "", example: Any = None,
-            default_factory: Callable[[], Any] | None = None, strict: bool = True, **constraints: Any) -> Any:
+            default_factory: Callable[[], Any] | None = None, strict: bool = True, tier: str = "advanced",
+            **constraints: Any) -> Any:
     """A settings field: ``description`` (shown in docs, ``--help`` and tooltips), bounds (``ge``, ``gt``, ``le``,
-    ``lt``), ``fix``, the hint appended to its error messages, and ``example``, a typical value for a required
-    field (prefilled in forms). Strict: no strings for numbers, no booleans for numbers, no fractional values
-    for integers."""
-    extra = {k: v for k, v in (("fix", fix), ("example", example)) if v not in ("", None)} or None
+    ``lt``), ``fix``, the hint appended to its error messages, ``example``, a typical value for a required
+    field (prefilled in forms), and ``tier`` (:data:`TIERS`). Strict: no strings for numbers, no booleans for numbers,
+    no fractional values for integers."""
+    if tier not in TIERS:
+        raise ValueError(f"tier must be one of {TIERS}, got {tier!r}")
+    extra = {k: v for k, v in (("fix", fix), ("example", example)) if v not in ("", None)}
+    if tier != "advanced":
+        extra["tier"] = tier
+    extra = extra or None
     kwargs: dict[str, Any] = dict(description=description, json_schema_extra=extra, **constraints)
     if strict:
         kwargs["strict"] = True
@@ -85,6 +98,12 @@ def schema_dataclass(cls: type[T] | None = None, *, frozen: bool = False, root: 
         return built
 
     return wrap if cls is None else wrap(cls)
+
+
+def tier(info: FieldInfo) -> str:
+    """The field's tier (:data:`TIERS`; "advanced" unless set)."""
+    extra = info.json_schema_extra if isinstance(info.json_schema_extra, dict) else {}
+    return str(extra.get("tier", "advanced"))
 
 
 def schema_fields(model: type) -> dict[str, FieldInfo]:
@@ -298,9 +317,10 @@ def _markdown_type(info: FieldInfo) -> str:
 
 def markdown_table(model: type) -> str:
     """The Markdown table of a settings class: one row per field with its type and bounds, default and meaning."""
-    rows = ["| setting | type | default | meaning |", "|---|---|---|---|"]
-    for name, info in schema_fields(model).items():
+    rows = ["| setting | tier | type | default | meaning |", "|---|---|---|---|---|"]
+    fields = schema_fields(model)
+    for name, info in sorted(fields.items(), key=lambda kv: TIERS.index(tier(kv[1]))):  # stable: declaration order within a tier
         default = info.get_default(call_default_factory=True)
         meaning = (info.description or "").replace("|", "\\|")
-        rows.append(f"| `{name}` | {_markdown_type(info)} | {_markdown_value(default)} | {meaning} |")
+        rows.append(f"| `{name}` | {tier(info)} | {_markdown_type(info)} | {_markdown_value(default)} | {meaning} |")
     return "\n".join(rows) + "\n"

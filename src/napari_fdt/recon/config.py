@@ -95,12 +95,12 @@ class SolverConfig:
     stages: list[StageConfig] = setting(
         default_factory=_default_stages, strict=False,
         description="coarse-to-fine stages; each factor must divide the previous one; a stage may carry its own `\"batch_size\"`",
-        fix='e.g. [{"factor": 2, "iterations": 50}, {"factor": 1, "iterations": 100}]')
+        fix='e.g. [{"factor": 2, "iterations": 50}, {"factor": 1, "iterations": 100}]', tier="basic")
     coarse_model: CoarseModel = setting(
         "auto", strict=False, description="model of stages with factor > 1: `\"envelope\"` (cheap on CPU; on CUDA all sources and slices "
         "in one batch), `\"multislice\"` (exact, the cost of the fine stage when the camera samples the pupil near Nyquist), `\"auto\"`: "
         "envelope on CPU, multi-slice on CUDA, where it was the more accurate on the demo ([benchmarks.md](benchmarks.md))")
-    batch_size: int = setting(16, ge=1, description="images per iteration")
+    batch_size: int = setting(16, ge=1, description="images per iteration", tier="basic")
     final_stage_min_passes: float = setting(
         24.0, ge=0, description="the finest stage runs at least this many passes over the images (iterations × batch / "
         "images; a pass visits every source once): acquisitions with many images get more iterations, since each source's "
@@ -113,7 +113,7 @@ class SolverConfig:
     lr_ri_final_ratio: float = setting(
         1.0, gt=0, le=1, description="the RI step at the end of the finest stage over `lr_ri`: the step falls along that stage "
         "as ½(1 + cos(π·t))·(1 − r) + r (t from 0 to 1); 1 (the default) keeps it constant: a fall to 0.1 fitted the held-out "
-        "images better but gave a larger Δn error on each of three seeds of letters_clean (docs/solver.md, \"Run-to-run spread\")")
+        "images better but gave a larger Δn error on each of three seeds of letters_clean (docs/solver.md, \"Run-to-run spread\")", tier="experimental")
     # losses
     l1_l2_total: float = setting(1.0, ge=0, description="α + β", fix="0 switches the term off")
     l1_ramp_start: float = setting(0.0, ge=0, le=1, description="fraction of the run where α starts rising from 0 (≤ `l1_ramp_end`)",
@@ -123,12 +123,12 @@ class SolverConfig:
     ssim_weight: float = setting(0.0, ge=0, description="γ, weight of 1 − SSIM", fix="0 switches the term off")
     tv_xy_weight: AutoWeight = setting(
         "auto", strict=False, description="τ_xy, weight of the lateral total variation; `\"auto\"`: chosen by the validation error "
-        "(docs/solver.md, needs a validation split; 0 without one)", fix='give a number >= 0 (0 switches the term off) or "auto"')
+        "(docs/solver.md, needs a validation split; 0 without one)", fix='give a number >= 0 (0 switches the term off) or "auto"', tier="basic")
     tv_z_weight: AutoWeight = setting(
         "auto", strict=False, description="τ_z, weight of the axial total variation; `\"auto\"`: chosen with τ_xy (τ_z = τ_xy / 2)",
-        fix='give a number >= 0 (0 switches the term off) or "auto"')
+        fix='give a number >= 0 (0 switches the term off) or "auto"', tier="basic")
     # self-calibration
-    calibrate_sources: bool = setting(True, description="fit each source's lateral position")
+    calibrate_sources: bool = setting(True, description="fit each source's lateral position", tier="basic")
     calibrate_gain: bool = setting(True, description="fit each image's gain")
     calibrate_source_depth: bool = setting(True, description="fit a common offset of the source depths")
     calibrate_pixel_size: bool = setting(False, description="fit a global scale of the pixel size")
@@ -151,7 +151,7 @@ class SolverConfig:
     bandwidth_um: float = setting(0.03, ge=0, description="emission FWHM for the spectral model, µm")
     n_wavelengths: int = setting(3, ge=1, description="wavelengths of the spectral model")
     # run
-    seed: int = setting(0, description="batch order; a fixed seed gives the same result twice on CPU")
+    seed: int = setting(0, description="batch order; a fixed seed gives the same result twice on CPU", tier="basic")
     snapshot_every: int = setting(10, ge=1, description="iterations between progress snapshots")
     backward_mode: BackwardMode = setting(
         "auto", strict=False, description="how the multi-slice model forms gradients (`napari_fdt.model.slice_loop`): `\"stored\"` (one field per slice and "
@@ -169,7 +169,7 @@ class SolverConfig:
         "0: none). Their error, predicted through the volume with closed-form gains, is the validation error of every snapshot and of "
         "RI.json: how far to trust the volume without ground truth, and what `\"auto\"` weights and early stopping are chosen by. "
         "Held-out images still fit their own position and gain, never the volume",
-        fix="0.1 holds out 10 %; 0 turns validation off")
+        fix="0.1 holds out 10 %; 0 turns validation off", tier="basic")
     early_stopping: EarlyStopping = setting(
         "best", strict=False, description="`\"best\"`: each stage ends on its iterate of lowest validation error (when the last is worse "
         "by more than `early_stopping_tolerance`); `\"stop\"`: also ends a stage once the error has stayed above its best for "
@@ -187,29 +187,29 @@ class SolverConfig:
         "the image alike); `\"per_visit\"`: the same step with one scalar scale per source; `\"dense\"`: plain Adam on every "
         "row (it moves a row about `lr_sources_um·√(N/B)` per visit). No per-visit step is longer than λ/(4·NA) "
         "(× `multislice_source_step_scale` in multi-slice stages)",
-        fix="choose whitened, per_visit or dense")
+        fix="choose whitened, per_visit or dense", tier="experimental")
     calibrate_sources_in_envelope_stages: bool = setting(
         True, description="fit the source positions and the depth offset in the coarse envelope stages too (from "
         "`calibration_from_stage`); false: they train from the first multi-slice stage on (the envelope model alone biases "
-        "them, docs/solver.md; measured worse on cells and the 128² scene with the default schedule)")
+        "them, docs/solver.md; measured worse on cells and the 128² scene with the default schedule)", tier="experimental")
     calibrate_source_depth_in_envelope_stages: bool = setting(
         True, description="with the positions calibrated in envelope stages, fit their depths (each source's own and the common "
         "offset) there too; false: only x, y move there, the depths from the first multi-slice stage on (the envelope model "
-        "pulls the common depth offset off, docs/solver.md)")
+        "pulls the common depth offset off, docs/solver.md)", tier="experimental")
     restart_source_moments: bool = setting(
         True, description="restart the optimiser moments of the source positions and of the depth offset at the start of "
         "every stage: the gradients of the previous stage's model and grid (an envelope stage's, biased and of another "
-        "scale) no longer steer or scale the steps (docs/solver.md, \"Source positions on deep, wide scenes\")")
+        "scale) no longer steer or scale the steps (docs/solver.md, \"Source positions on deep, wide scenes\")", tier="experimental")
     multislice_source_step_scale: float = setting(
         2.0, gt=0, description="scale of the per-visit step of the source positions and of its cap (λ/(4·NA)) in multi-slice "
         "stages (`source_step` `\"whitened\"` or `\"per_visit\"`; envelope stages keep 1): seen from 50 µm below a volume "
         "15 µm thick, a source's shift moves the volume's shadow on the camera by a fraction of itself, so its image's loss "
-        "stays smooth over more than a quarter of the resolution (docs/solver.md, \"Source positions on deep, wide scenes\")")
+        "stays smooth over more than a quarter of the resolution (docs/solver.md, \"Source positions on deep, wide scenes\")", tier="experimental")
     source_step_schedule: SourceStepSchedule = setting(
         "constant", strict=False, description="per-visit step of the source positions along a multi-slice stage (`\"whitened\"`, "
         "`\"per_visit\"`): `\"constant\"`; `\"cosine\"`: each source's step falls as ½(1 + cos(π·v/V)) from its first to its "
         "V-th visit (V = iterations·B/N, the visits the stage gives it), long early steps and short late ones",
-        fix="choose constant or cosine")
+        fix="choose constant or cosine", tier="experimental")
     lr_depth_offset_um: float = setting(0.02, gt=0, description="Adam step of the common depth offset of the sources, µm per iteration")
     # camera and objective (docs/physics.md §3; issue 13)
     pixel_integration: PixelIntegration = setting(
@@ -234,13 +234,13 @@ class SolverConfig:
         "the first with the kept parts on (coarse stages multi-slice when `coarse_model` is `\"auto\"`, since the envelope "
         "model holds none of the parts) and chooses the other auto parts again in the finest stage; `\"finest\"` runs only "
         "the finest stage again (cheaper; the coarse volume keeps what it absorbed of the parts; docs/solver.md, \"Model parts\")",
-        fix="use \"stages\" or \"finest\"")
+        fix="use \"stages\" or \"finest\"", tier="experimental")
     parts_test_images: PartsTestImages = setting(
         "held_out+training", strict=False, description="images the paired test of the \"auto\" model parts runs on: `\"held_out\"` "
         "(the validation split) or `\"held_out+training\"` (also the training images a part's parameters are not fitted to: "
         "more images, more power; biased against a part, since the volume was trained without it; the default: with the held-out images alone "
         "beads_real missed its aberration and beads_clean kept a spectral model it does not have; docs/solver.md, \"Model parts\")",
-        fix="use \"held_out\" or \"held_out+training\"")
+        fix="use \"held_out\" or \"held_out+training\"", tier="experimental")
     lr_pupil: float = setting(1e-3, gt=0, description="Adam step of the NA scale (relative) and the pupil edge width")
     lr_aberrations: float = setting(0.02, gt=0, description="Adam step of the Zernike coefficients, radians")
 
