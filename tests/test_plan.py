@@ -146,3 +146,22 @@ def test_a_run_counts_along_its_plan_and_its_time_table_adds_up(scene16) -> None
     seconds = [p["seconds"] for p in table["phases"]]
     assert all(x is not None and x > 0 for x in seconds)
     assert sum(seconds) == pytest.approx(snaps[-1].elapsed_s, abs=1e-3)  # (the stage-end snapshot re-reads the clock)
+
+
+def test_fdt_plan_prints_the_plan_the_solver_makes(sample, capsys) -> None:
+    """``fdt plan --json``: the phases (each with its name and predicted seconds), their total and the peak memory of
+    the finest stage, before any iteration; the phases are the ones a Reconstructor of the same settings plans."""
+    from napari_fdt.cli import main
+    from napari_fdt.recon.solver import Reconstructor
+
+    assert main(["plan", str(ROOT / "sample_data" / "letters"), "--device", "cpu", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    rec = Reconstructor(sample, SolverConfig(), device="cpu")
+    assert [p["name"] for p in out["phases"]] == [p.name for p in rec.plan.phases]
+    assert [p["predicted_s"] for p in out["phases"]] == pytest.approx([p.predicted_s for p in rec.plan.phases])
+    assert out["predicted_total_s"] == pytest.approx(sum(p["predicted_s"] for p in out["phases"]))
+    images = 4 * sample.n_images * sample.image_shape[0] * sample.image_shape[1]
+    assert out["peak_memory_bytes"] > images
+    assert main(["plan", str(ROOT / "sample_data" / "letters"), "--device", "cpu", "--tv-xy-weight", "1", "--tv-z-weight", "0.5"]) == 0
+    text = capsys.readouterr().out
+    assert text.startswith("plan (cpu): 3 phases") and "TV" not in text and "peak memory: about" in text

@@ -141,6 +141,15 @@ def build_parser() -> argparse.ArgumentParser:
                              ("experimental", "experimental solver settings (kept while they are measured: docs/solver.md)")):
         _add_schema_args(rec.add_argument_group(title), SolverConfig, tiers=(tier_name,))
 
+    pl = sub.add_parser("plan", help="what a reconstruction would do: its phases, predicted seconds and peak memory, "
+                                     "before any long computation")
+    pl.add_argument("acquisition", type=Path)
+    pl.add_argument("--config", type=Path, default=None, help="solver settings, as fdt reconstruct --config reads them")
+    pl.add_argument("--device", default="auto", help="auto, cpu or cuda (default auto): the device the prediction is for")
+    pl.add_argument("--json", action="store_true", help="print one JSON object (phases, predicted_total_s, peak_memory_bytes)")
+    _add_schema_args(pl.add_argument_group("solver settings (each overrides the --config file's value)"), SolverConfig,
+                     tiers=("basic",))
+
     fwd = sub.add_parser("forward", help="predict an acquisition's images from an RI volume and report the residual")
     fwd.add_argument("acquisition", type=Path)
     fwd.add_argument("--ri", type=Path, required=True, help="RI volume TIFF, absolute index, (n_slices, H, W)")
@@ -277,6 +286,29 @@ def _cmd_info(args: argparse.Namespace) -> int:
     hp, wp = plan.padded_shape
     print(f"forward window: {hp}x{wp} px ({plan.padding_factor:.2f}x the image area), light-cone margin {plan.margin_um:.1f} µm, "
           f"band limit {plan.f_lo_per_um:.3f}..{plan.f_hi_per_um:.3f} cycles/µm")
+    return 0
+
+
+def _cmd_plan(args: argparse.Namespace) -> int:
+    import json
+
+    from napari_fdt.data.io import read_acquisition
+    from napari_fdt.device import resolve_device
+    from napari_fdt.recon.config import resolve_stage_lengths
+    from napari_fdt.recon.plan import plan_for
+    from napari_fdt.recon.preflight import finest_stage_bytes
+
+    config = _config_from_args(args)
+    acq = read_acquisition(args.acquisition)
+    device = resolve_device(args.device)
+    plan, src = plan_for(acq, config, device.type)
+    k = config.n_wavelengths if config.coherence in ("spectral", "mask+spectral") else 1
+    peak, _, _, _ = finest_stage_bytes(acq, resolve_stage_lengths(config, acq.n_images), src, k)
+    if args.json:
+        print(json.dumps({**plan.to_dict(), "peak_memory_bytes": int(peak)}))
+        return 0
+    print(plan.summary())
+    print(f"peak memory: about {peak / 2.0**30:.2f} GiB on {device} (the finest stage's batch and the images)")
     return 0
 
 
@@ -548,7 +580,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(warnings.formatwarning(message, category, filename, lineno, line), file=sys.stderr, end="")
 
     warnings.showwarning = show_warning
-    commands = {"simulate": _cmd_simulate, "info": _cmd_info, "forward": _cmd_forward, "reconstruct": _cmd_reconstruct}
+    commands = {"simulate": _cmd_simulate, "info": _cmd_info, "plan": _cmd_plan, "forward": _cmd_forward,
+                "reconstruct": _cmd_reconstruct}
     try:
         return commands[args.command](args)
     except FDTInputError as exc:

@@ -28,7 +28,8 @@ from napari_fdt.recon.config import SolverConfig
 from napari_fdt.recon.phases import RERUN, RUN, TV_CHOICE, probe_iterations
 from napari_fdt.recon.regularisation import TV_PATH, selection_stages
 
-__all__ = ["SECONDS_PER_UNIT", "OVERHEAD_S", "Phase", "Plan", "Pace", "iteration_units", "envelope_padded_shape", "make_plan"]
+__all__ = ["SECONDS_PER_UNIT", "OVERHEAD_S", "Phase", "Plan", "Pace", "iteration_units", "envelope_padded_shape", "stage_phase",
+           "make_plan", "plan_for"]
 
 #: Seconds per cost unit of one iteration, by (device type, model). CPU: the bundled sample's default run on 2 cores
 #: (x4 and x2 envelope stages 16 and 73 ms per iteration, the x1 multi-slice stage 237 ms; 2026-11-25). CUDA: the
@@ -186,6 +187,28 @@ def make_plan(config: SolverConfig, optics: Optics, image_shape: tuple[int, int]
         phases.append(replace(stages[sel], pass_name=TV_CHOICE, trials=True, iterations=len(TV_PATH) * probe))
     phases += stages
     return Plan(tuple(phases), "cuda" if device_type == "cuda" else "cpu")
+
+
+def plan_for(acquisition, config: SolverConfig, device_type: str, sources_um: np.ndarray | None = None) -> tuple[Plan, np.ndarray]:
+    """The plan a reconstruction of ``acquisition`` with ``config`` would run on ``device_type``, before anything is
+    allocated (as :class:`~napari_fdt.recon.solver.Reconstructor` makes it), and the initial sources (N, 3) µm it used:
+    ``sources_um``, else the acquisition's, else the 2D-Gaussian fit of the images (a few seconds)."""
+    from napari_fdt.recon.config import resolve_coarse_model, resolve_stage_lengths
+    from napari_fdt.recon.regularisation import tv_is_auto
+    from napari_fdt.recon.validation import holdout_indices
+
+    cfg = resolve_stage_lengths(config, acquisition.n_images)
+    if sources_um is None:
+        sources_um = acquisition.sources_um
+    if sources_um is None:
+        from napari_fdt.recon.source_fit import initial_sources
+
+        sources_um, _ = initial_sources(acquisition, depth_um=cfg.source_depth_um, device="cpu")
+    src = np.asarray(sources_um, dtype=np.float64)
+    pilot = tv_is_auto(cfg) and len(holdout_indices(src, cfg.validation_fraction)) > 0
+    plan = make_plan(cfg, acquisition.optics, acquisition.image_shape, src, resolve_coarse_model(cfg.coarse_model, device_type),
+                     device_type, pilot)
+    return plan, src
 
 
 class Pace:

@@ -20,7 +20,7 @@ from napari_fdt.errors import FDTInputError, FDTWarning
 from napari_fdt.physics.grid import plan_for_sources
 from napari_fdt.recon.config import SolverConfig
 
-__all__ = ["warn_about_images", "warn_about_sampling", "check_backward_mode", "check_memory"]
+__all__ = ["warn_about_images", "warn_about_sampling", "check_backward_mode", "finest_stage_bytes", "check_memory"]
 
 
 def warn_about_images(acquisition: Acquisition, stacklevel: int = 3) -> None:
@@ -66,6 +66,25 @@ def check_backward_mode(acquisition: Acquisition, config: SolverConfig, sources_
                                 "use 'auto' (the fused kernels need CUDA with Triton and power-of-two windows of at least 256)")
 
 
+def finest_stage_bytes(acquisition: Acquisition, config: SolverConfig, sources_um: np.ndarray, n_wavelengths: int = 1):
+    """Bytes the finest multi-slice stage needs on its device (a training step of one batch, and every image, float32),
+    with its window plan, batch and backward mode: ``(bytes, plan, batch, mode)``. ``sources_um`` (N, 3) µm set the
+    window."""
+    from napari_fdt.model.memory import grid_is_unitary, leanest_mode, training_bytes
+    from napari_fdt.recon.stages import multislice_plan
+
+    cfg, o, full_shape = config, acquisition.optics, acquisition.image_shape
+    finest_index = min(range(len(cfg.stages)), key=lambda i: cfg.stages[i].factor)
+    _, opt, _, plan = multislice_plan(o, cfg.stages[finest_index].factor, full_shape, sources_um)
+    batch = min(cfg.stage_batch(finest_index), acquisition.n_images)
+    mode = cfg.backward_mode
+    if mode == "auto":  # auto falls back to the leanest mode when one field per slice does not fit
+        mode = leanest_mode(grid_is_unitary(opt.pixel_size_um, o.n_background, o.wavelength_um))
+    # the finest stage's images live on the device too (float32, all of them)
+    images = 4 * acquisition.n_images * full_shape[0] * full_shape[1]
+    return training_bytes(plan.padded_shape, o.n_slices, batch, n_wavelengths, mode) + images, plan, batch, mode
+
+
 def check_memory(acquisition: Acquisition, config: SolverConfig, sources_um: np.ndarray, device: torch.device,
                  n_wavelengths: int) -> None:
     """Refuse, before any allocation, a batch whose finest multi-slice stage would not fit in memory.
@@ -74,25 +93,14 @@ def check_memory(acquisition: Acquisition, config: SolverConfig, sources_um: np.
     Raises :class:`~napari_fdt.errors.FDTInputError` (field ``batch_size``) with the batch size that would fit.
     """
     from napari_fdt.device import available_bytes
-    from napari_fdt.model.memory import grid_is_unitary, leanest_mode, training_bytes
-    from napari_fdt.recon.stages import multislice_plan
+    from napari_fdt.model.memory import training_bytes
 
-    cfg = config
-    o = acquisition.optics
-    full_shape = acquisition.image_shape
     free = available_bytes(device)
     if free is None:
         return
-    finest_index = min(range(len(cfg.stages)), key=lambda i: cfg.stages[i].factor)
-    _, opt, _, plan = multislice_plan(o, cfg.stages[finest_index].factor, full_shape, sources_um)
-    k = n_wavelengths
-    batch = min(cfg.stage_batch(finest_index), acquisition.n_images)
-    mode = cfg.backward_mode
-    if mode == "auto":  # auto falls back to the leanest mode when one field per slice does not fit
-        mode = leanest_mode(grid_is_unitary(opt.pixel_size_um, o.n_background, o.wavelength_um))
-    # the finest stage's images live on the device too (float32, all of them)
-    images = 4 * acquisition.n_images * full_shape[0] * full_shape[1]
-    need = training_bytes(plan.padded_shape, o.n_slices, batch, k, mode) + images
+    need, plan, batch, mode = finest_stage_bytes(acquisition, config, sources_um, n_wavelengths)
+    o, k = acquisition.optics, n_wavelengths
+    images = 4 * acquisition.n_images * acquisition.image_shape[0] * acquisition.image_shape[1]
     if need <= 0.9 * free:
         return
     fits = int((0.9 * free - images) // max(1, training_bytes(plan.padded_shape, o.n_slices, 1, k, mode)))

@@ -79,7 +79,8 @@ def choose_tv(rec: Reconstructor, stage: Stage, mask: torch.Tensor | None, batch
             terms, train_error = rec._step(stage, mask, vol_opt, batch_size, data_range,
                                            (global_it + it) / max(1, cfg.total_iterations), it == n_probe - 1)
         err, each = validation(rec, stage, mask, per_image=True)
-        trials.append({"tau": tau, "tv_xy_weight": xy, "tv_z_weight": z, "validation_error": err, "image_errors": each})
+        trials.append({"tau": tau, "tv_xy_weight": xy, "tv_z_weight": z, "validation_error": err, "image_errors": each,
+                       "seconds": time.perf_counter() - t1})
         snap = take_snapshot(rec, stage, n_probe, global_it + n_probe, terms, t1, False, err, train_error, trial=k)
         rec.elapsed_s += time.perf_counter() - t1  # (the pilot sets the run's time when it ends)
         yield snap

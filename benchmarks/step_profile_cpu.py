@@ -1,0 +1,81 @@
+"""The sample's finest step against the naive step on the CPU, and where the step's time goes (docs/benchmarks.md,
+"The finest step against the naive step on the CPU").
+
+    python benchmarks/step_profile_cpu.py [--repeats 10] [--profile]
+
+Times ``Reconstructor._step`` on the bundled sample's finest stage (factor 1, TV 1/0.5, parts off, the default
+validation split: held-out images in a batch run through the model separately) and ``benchmarks/naive_step.py`` on the
+same window, batch and slices, in one process (host clock, after warm-up). ``--profile`` prints torch.profiler's
+operator table of 5 steps. Nothing is asserted; this reports.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).parent))
+from naive_step import naive_step  # noqa: E402
+from napari_fdt.data.io import read_acquisition  # noqa: E402
+from napari_fdt.recon.config import SolverConfig  # noqa: E402
+from napari_fdt.recon.solver import Reconstructor  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--repeats", type=int, default=10)
+    ap.add_argument("--profile", action="store_true")
+    args = ap.parse_args()
+    acq = read_acquisition(ROOT / "sample_data" / "letters")
+    cfg = SolverConfig.from_dict({**SolverConfig().to_dict(), "tv_xy_weight": 1.0, "tv_z_weight": 0.5,
+                                  "stages": [{"factor": 1, "iterations": 1000, "batch_size": None}], "final_stage_min_passes": 0,
+                                  "early_stopping": "off", "calibrate_pupil": False, "calibrate_aberrations": False,
+                                  "pixel_integration": False, "obliquity_correction": False, "coherence": "mask"})
+    rec = Reconstructor(acq, cfg, device="cpu")
+    stage = rec._build_stage(0)
+    rec._carry_volume_to(stage)
+    mask = rec._loss_mask(stage)
+    rec._init_gains(stage, mask)
+    rec.calibration.set_trainable(0)
+    opt = torch.optim.Adam([rec.volume.x], lr=cfg.lr_ri)
+
+    def step() -> None:
+        rec._step(stage, mask, opt, cfg.batch_size, 1.0, 0.5)
+
+    h, w = stage.window
+    b, n = cfg.batch_size, acq.optics.n_slices
+    v0 = torch.randn(b, h, w, dtype=torch.complex64)
+    dn = torch.zeros(n, h, w, requires_grad=True)
+    kernel = torch.exp(1j * torch.rand(h, w)).to(torch.complex64)
+    target = torch.rand(b, h, w)
+
+    def naive() -> None:
+        naive_step(v0, dn, kernel, kernel, target, 10.0).backward()
+
+    times = {}
+    for name, fn in (("package", step), ("naive", naive)):
+        for _ in range(3):
+            fn()
+        t0 = time.perf_counter()
+        for _ in range(args.repeats):
+            fn()
+        times[name] = (time.perf_counter() - t0) / args.repeats
+    print(f"window {h}x{w}, {n} slices, batch {b}, {torch.get_num_threads()} threads: package {1e3 * times['package']:.1f} ms, "
+          f"naive {1e3 * times['naive']:.1f} ms, package {times['naive'] / times['package']:.2f}x faster")
+    if args.profile:
+        from torch.profiler import ProfilerActivity, profile
+
+        with profile(activities=[ProfilerActivity.CPU], record_shapes=True) as prof:
+            for _ in range(5):
+                step()
+        print(prof.key_averages(group_by_input_shape=True).table(sort_by="self_cpu_time_total", row_limit=20))
+
+
+if __name__ == "__main__":
+    main()
