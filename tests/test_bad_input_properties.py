@@ -219,8 +219,10 @@ def _run_cli(capsys, args: list[str]) -> tuple[int, str, str]:
 
 
 def _check_refusal(rc: int, err: str, expect: str | None) -> str | None:
-    """The refusal line (exit 2, one ``error: field: …`` line, warnings aside, no traceback), or None if accepted."""
-    lines = err.strip().splitlines()
+    """The refusal line (exit 2, one ``error: field: …`` line, warnings and the run's plan aside, no traceback), or None if
+    accepted."""
+    plan = re.search(r"^plan \(\w+\): .*(\n  .*)*", err, flags=re.M)  # fdt reconstruct's plan (printed when it runs)
+    lines = (err if plan is None else err.replace(plan.group(0), "")).strip().splitlines()
     assert "Traceback" not in err
     assert all(line.startswith(("error: ", "warning: ")) for line in lines), err
     errors = [line for line in lines if line.startswith("error: ")]

@@ -5,6 +5,7 @@ and a run's snapshots count along it without ever starting again."""
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -165,3 +166,28 @@ def test_fdt_plan_prints_the_plan_the_solver_makes(sample, capsys) -> None:
     assert main(["plan", str(ROOT / "sample_data" / "letters"), "--device", "cpu", "--tv-xy-weight", "1", "--tv-z-weight", "0.5"]) == 0
     text = capsys.readouterr().out
     assert text.startswith("plan (cpu): 3 phases") and "TV" not in text and "peak memory: about" in text
+
+
+def test_fdt_reconstruct_prints_its_plan_even_when_quiet_and_warns_about_a_long_cpu_run(scene16, tmp_path, capsys) -> None:
+    import warnings
+
+    from napari_fdt.cli import LONG_CPU_RUN_S, _warn_about_a_long_cpu_run, main
+    from napari_fdt.data.io import write_acquisition
+    from napari_fdt.errors import FDTWarning
+
+    acq_dir = write_acquisition(scene16.acquisition, tmp_path / "acq")
+    cfg = tmp_path / "cfg.json"
+    SolverConfig(stages=[StageConfig(2, 2), StageConfig(1, 2)], tv_xy_weight=1.0, tv_z_weight=0.5, final_stage_min_passes=0).save(cfg)
+    assert main(["reconstruct", str(acq_dir), "--out", str(tmp_path / "RI.tif"), "--config", str(cfg), "--quiet",
+                 "--device", "cpu"]) == 0
+    captured = capsys.readouterr()
+    assert "plan (cpu): 2 phases, 4 iterations" in captured.err and "stage 2/2 (x1): 2 it" in captured.err
+    assert "time by phase" in captured.out
+    long = Plan((replace(_plan_of(_recorded(), read_acquisition(ROOT / "sample_data" / "letters")).phases[2],
+                         iterations=100_000),), "cpu")
+    assert long.predicted_s > LONG_CPU_RUN_S
+    with pytest.warns(FDTWarning, match=r"^device: this CPU run is predicted to take about .* --device cuda"):
+        _warn_about_a_long_cpu_run(long, "cpu")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        _warn_about_a_long_cpu_run(long, "cuda")  # a GPU run: no warning

@@ -131,7 +131,7 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--checkpoint-dir", type=Path, default=None, help="write a checkpoint at the end of every stage here")
     rec.add_argument("--resume", type=Path, default=None, help="continue from a checkpoint written by --checkpoint-dir")
     rec.add_argument("--overwrite", action="store_true", help="replace existing output files")
-    rec.add_argument("--quiet", action="store_true", help="no progress bar")
+    rec.add_argument("--quiet", action="store_true", help="no progress bar (the plan is still printed at the start)")
     rec.add_argument("--save-config", type=Path, default=None, help="write the full configuration used to this file and exit")
     rec.add_argument("--dist-backend", choices=("auto", "nccl", "gloo"), default="auto",
                      help="under torchrun: the torch.distributed backend (default auto: NCCL when each rank has a GPU "
@@ -491,6 +491,18 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
         distributed.teardown(group)
 
 
+#: A CPU run predicted to take longer than this (seconds) gets a warning that names the GPU option.
+LONG_CPU_RUN_S = 1800.0
+
+
+def _warn_about_a_long_cpu_run(plan, device_type: str) -> None:
+    """Warn (FDTWarning) when a CPU run's plan predicts more than :data:`LONG_CPU_RUN_S`."""
+    if device_type == "cpu" and plan.predicted_s > LONG_CPU_RUN_S:
+        warnings.warn(f"device: this CPU run is predicted to take about {plan.predicted_s / 3600:.1f} h (the plan above); "
+                      "on a machine with an NVIDIA GPU, --device cuda runs it far faster (README, \"Installing on your "
+                      "machine\": the CUDA build of torch), or give fewer or shorter stages", FDTWarning, stacklevel=2)
+
+
 def _run_and_write(args, config, acq, out: Path, json_out: Path, truth, truth_src, group) -> int:
     from napari_fdt.recon.report import build_report, describe_parts, describe_plan, write_result
     from napari_fdt.recon.solver import Reconstructor
@@ -502,8 +514,9 @@ def _run_and_write(args, config, acq, out: Path, json_out: Path, truth, truth_sr
         rec = Reconstructor(acq, config, device=device, group=group)
     writer = group is None or group.is_writer
     cancelled = False
-    if writer and not args.quiet:
+    if writer:  # what the run will do and cost, before it starts (also with --quiet: a batch log shows it)
         print(rec.plan.summary(), file=sys.stderr)
+        _warn_about_a_long_cpu_run(rec.plan, rec.device.type)
     bar = _progress_bar(rec.plan.iterations, disable=args.quiet or not writer)
     snapshots = rec.run(checkpoint_dir=args.checkpoint_dir)
     try:
