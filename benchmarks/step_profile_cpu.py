@@ -1,10 +1,10 @@
 """The sample's finest step against the naive step on the CPU, and where the step's time goes (docs/benchmarks.md,
 "The finest step against the naive step on the CPU").
 
-    python benchmarks/step_profile_cpu.py [--repeats 10] [--profile]
+    python benchmarks/step_profile_cpu.py [--acquisition DIR] [--pixel-integration] [--repeats 10] [--profile]
 
-Times ``Reconstructor._step`` on the bundled sample's finest stage (factor 1, TV 1/0.5, parts off, the default
-validation split: held-out images in a batch run through the model separately) and ``benchmarks/naive_step.py`` on the
+Times ``Reconstructor._step`` on an acquisition's (default the bundled sample's) finest stage (factor 1, TV 1/0.5,
+parts off, the default validation split: held-out images in a batch run through the model separately) and ``benchmarks/naive_step.py`` on the
 same window, batch and slices, in one process (host clock, after warm-up). ``--profile`` prints torch.profiler's
 operator table of 5 steps. Nothing is asserted; this reports.
 """
@@ -31,12 +31,14 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeats", type=int, default=10)
     ap.add_argument("--profile", action="store_true")
+    ap.add_argument("--acquisition", default=str(ROOT / "sample_data" / "letters"), help="default: the bundled sample")
+    ap.add_argument("--pixel-integration", action="store_true", help="the camera's pixel integration on")
     args = ap.parse_args()
-    acq = read_acquisition(ROOT / "sample_data" / "letters")
+    acq = read_acquisition(args.acquisition)
     cfg = SolverConfig.from_dict({**SolverConfig().to_dict(), "tv_xy_weight": 1.0, "tv_z_weight": 0.5,
                                   "stages": [{"factor": 1, "iterations": 1000, "batch_size": None}], "final_stage_min_passes": 0,
                                   "early_stopping": "off", "calibrate_pupil": False, "calibrate_aberrations": False,
-                                  "pixel_integration": False, "obliquity_correction": False, "coherence": "mask"})
+                                  "pixel_integration": args.pixel_integration, "obliquity_correction": False, "coherence": "mask"})
     rec = Reconstructor(acq, cfg, device="cpu")
     stage = rec._build_stage(0)
     rec._carry_volume_to(stage)

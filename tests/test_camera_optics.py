@@ -152,3 +152,36 @@ def test_pupil_and_aberration_gradients_match_finite_differences() -> None:
     assert float(na.grad) == pytest.approx(float(fd_na), rel=2e-3)
     assert float(edge.grad) == pytest.approx(float(fd_edge), rel=2e-3)
     assert float(z.grad[5]) == pytest.approx(float(fd_sph), rel=2e-3)
+
+
+def _padded_by_zero_padding_the_centred_spectrum(spec: torch.Tensor) -> torch.Tensor:
+    """An independent reference of the fine grid's spectrum: shift to centred, zero-pad symmetrically (the Nyquist row
+    and column split in halves to both ends), shift back."""
+    h, w = spec.shape[-2:]
+    c = torch.fft.fftshift(spec, dim=(-2, -1))  # index 0 is the Nyquist frequency −n/2
+    big = spec.new_zeros((*spec.shape[:-2], 2 * h, 2 * w))
+    big[..., h // 2 : h // 2 + h, w // 2 : w // 2 + w] = c
+    # the Nyquist row/column sits at index h//2 (resp. w//2) of big: split it between −n/2 and +n/2
+    ny_r, ny_c = h // 2, w // 2
+    big[..., ny_r + h, :] += 0.5 * big[..., ny_r, :]
+    big[..., ny_r, :] *= 0.5
+    big[..., :, ny_c + w] += 0.5 * big[..., :, ny_c]
+    big[..., :, ny_c] *= 0.5
+    return torch.fft.ifftshift(big, dim=(-2, -1))
+
+
+def test_fine_grid_padding_and_folding_have_their_adjoints_as_gradients() -> None:
+    """The zero-padding onto the twice-finer grid and the quadrant fold are linear maps with hand-written backward
+    passes (their adjoints, one allocation each): both pass torch's gradcheck, and the padding equals an independent
+    centred zero-padding away from the dropped Nyquist corner."""
+    from napari_fdt.physics.camera import _FoldQuadrants, _pad_spectrum
+
+    g = torch.Generator().manual_seed(0)
+    spec = torch.randn(2, 6, 8, dtype=torch.complex128, generator=g)
+    spec[..., 3, 4] = 0  # the Nyquist corner (both frequencies at Nyquist) is dropped by design
+    ref = _padded_by_zero_padding_the_centred_spectrum(spec)
+    assert torch.allclose(_pad_spectrum(spec), ref, atol=1e-12)
+    x = spec.clone().requires_grad_()
+    assert torch.autograd.gradcheck(_pad_spectrum, (x,))
+    y = torch.randn(2, 12, 16, dtype=torch.complex128, generator=g).requires_grad_()
+    assert torch.autograd.gradcheck(_FoldQuadrants.apply, (y,))
