@@ -191,3 +191,18 @@ def test_fdt_reconstruct_prints_its_plan_even_when_quiet_and_warns_about_a_long_
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         _warn_about_a_long_cpu_run(long, "cuda")  # a GPU run: no warning
+
+
+def test_pixel_integration_costs_what_its_fine_grid_ffts_cost(sample) -> None:
+    """The camera's pixel integration adds 4 FFTs on a twice-finer grid to a multi-slice iteration (envelope stages do
+    not model it): at 256², 6 slices the model says 1.75×, measured 1.77× (189.3 / 106.7 ms, 2 cores, 2026-11-25,
+    benchmarks/step_profile_cpu.py on cells_pupil)."""
+    from napari_fdt.recon.plan import iteration_units
+
+    ratio = iteration_units(16, 6, (256, 256), True) / iteration_units(16, 6, (256, 256))
+    assert ratio == pytest.approx(189.3 / 106.7, rel=0.05)
+    cfg = resolve_stage_lengths(SolverConfig(), sample.n_images)
+    off = make_plan(cfg, sample.optics, sample.image_shape, _sources(sample), "envelope", "cpu", tv_pilot=False)
+    on = make_plan(cfg, sample.optics, sample.image_shape, _sources(sample), "envelope", "cpu", tv_pilot=False, pixel_integration=True)
+    assert [a.seconds_per_iteration for a in off.phases[:2]] == [b.seconds_per_iteration for b in on.phases[:2]]  # envelope
+    assert on.phases[2].seconds_per_iteration > 1.4 * off.phases[2].seconds_per_iteration

@@ -178,7 +178,7 @@ class Reconstructor:
         pilot_first = self.tv_choice is None and tv_is_auto(self.config) and self.completed_stages == 0
         #: the phases of the run, known before its first iteration (revised when a choice adds or shortens phases)
         self.plan = make_plan(self.config, self.acquisition.optics, self.full_shape, self.initial_sources_um, self.coarse_model,
-                              self.device.type, pilot_first)
+                              self.device.type, pilot_first, pixel_integration=self.parts["pixel_integration"])
         #: the time-left estimate from the plan and the measured times
         self.pace = Pace(self.plan)
         #: the index in :attr:`plan` of the phase now running
@@ -197,7 +197,7 @@ class Reconstructor:
             return
         parts = tuple(p for p in PARTS if self.parts.get(p) and p in self._auto_parts) or rerun_parts(self)
         again = [stage_phase(self.config, self.acquisition.optics, self.full_shape, self.initial_sources_um, i, self.coarse_model,
-                             self.device.type, RERUN, parts) for i in range(len(self.config.stages))]
+                             self.device.type, RERUN, parts, self.parts["pixel_integration"]) for i in range(len(self.config.stages))]
         self._revise_plan(self.plan.with_rerun(again))
 
     def _enter_stage_phase(self, stage_index: int) -> None:
