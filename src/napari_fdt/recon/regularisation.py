@@ -61,40 +61,36 @@ def candidate_weights(config: SolverConfig, tau_xy: float) -> tuple[float, float
     return xy, z
 
 
+def _as_good(trial: dict[str, Any], best: dict[str, Any], standard_errors: float) -> bool:
+    """Whether ``trial`` is not significantly worse than ``best``: the mean of its per-image errors minus ``best``'s
+    is at most ``standard_errors`` standard errors of that mean (with fewer than 2 images: its error is not larger)."""
+    if trial is best:
+        return True
+    d = np.asarray(trial.get("image_errors", []), dtype=np.float64) - np.asarray(best.get("image_errors", []), dtype=np.float64)
+    if d.size < 2:
+        return trial["validation_error"] <= best["validation_error"]
+    return bool(d.mean() <= standard_errors * d.std(ddof=1) / np.sqrt(d.size))
+
+
 def pick(trials: list[dict[str, Any]], standard_errors: float = STANDARD_ERRORS) -> dict[str, Any]:
     """The winning trial. The reference is the lowest ``validation_error``; a trial with a larger weight (``tau``) is
     as good when the mean of its per-image errors (``image_errors``) minus the reference's, over the same images, is
     at most ``standard_errors`` standard errors of that mean. The largest such weight wins."""
     best = min(trials, key=lambda t: t["validation_error"])
-    ref = np.asarray(best.get("image_errors", []), dtype=np.float64)
-
-    def as_good(t: dict[str, Any]) -> bool:
-        d = np.asarray(t.get("image_errors", []), dtype=np.float64) - ref
-        if t is best:
-            return True
-        if d.size < 2:
-            return t["validation_error"] <= best["validation_error"]
-        return d.mean() <= standard_errors * d.std(ddof=1) / np.sqrt(d.size)
-
-    return max((t for t in trials if t["tau"] >= best["tau"] and as_good(t)), key=lambda t: t["tau"])
+    return max((t for t in trials if t["tau"] >= best["tau"] and _as_good(t, best, standard_errors)), key=lambda t: t["tau"])
 
 
 def tried_enough(trials: list[dict[str, Any]], standard_errors: float = STANDARD_ERRORS) -> bool:
     """Whether the trials so far (in increasing weight) decide :func:`pick`: the last one has a larger weight than the
-    lowest-error one and is significantly worse than it (its mean paired difference above ``standard_errors``
-    standard errors). The held-out error rises with the weight past its minimum, so a larger weight would not be
-    picked either: on the 29 recorded choices of ``benchmarks/results/regularisation_cpu.jsonl`` stopping there picks
-    the same weight every time and tries 43 % fewer weights (docs/solver.md)."""
+    lowest-error one and is significantly worse than it (not :func:`pick`'s "as good"). The held-out error rises with
+    the weight past its minimum, so a larger weight would not be picked either: on the 29 recorded choices of
+    ``benchmarks/results/regularisation_cpu.jsonl`` stopping there picks the same weight every time and tries 43 %
+    fewer weights (docs/solver.md)."""
     if len(trials) < 2:
         return False
     best = min(trials, key=lambda t: t["validation_error"])
     last = trials[-1]
-    if last is best or last["tau"] <= best["tau"]:
-        return False
-    d = np.asarray(last.get("image_errors", []), dtype=np.float64) - np.asarray(best.get("image_errors", []), dtype=np.float64)
-    if d.size < 2:
-        return last["validation_error"] > best["validation_error"]
-    return bool(d.mean() > standard_errors * d.std(ddof=1) / np.sqrt(d.size))
+    return last["tau"] > best["tau"] and not _as_good(last, best, standard_errors)
 
 
 def selection_stages(config: SolverConfig) -> list[int]:

@@ -183,7 +183,7 @@ class Reconstructor:
         self.pace = Pace(self.plan)
         #: the index in :attr:`plan` of the phase now running
         self._phase_index = 0
-        if self._restart_pending or rerun_parts(self):
+        if rerun_parts(self):  # (resumed in the stages run again with kept parts)
             self._add_rerun_phases()
 
     def _revise_plan(self, plan: Plan) -> None:
@@ -195,16 +195,14 @@ class Reconstructor:
         """Append every stage again, as the kept parts make them run (with their coarse model); once."""
         if any(p.pass_name == RERUN and p.stage == 0 for p in self.plan.phases):
             return
-        parts = tuple(p for p in PARTS if self.parts.get(p) and p in self._auto_parts) or rerun_parts(self)
         again = [stage_phase(self.config, self.acquisition.optics, self.full_shape, self.initial_sources_um, i, self.coarse_model,
-                             self.device.type, RERUN, parts, self.parts["pixel_integration"]) for i in range(len(self.config.stages))]
+                             self.device.type, RERUN, rerun_parts(self), self.parts["pixel_integration"])
+                 for i in range(len(self.config.stages))]
         self._revise_plan(self.plan.with_rerun(again))
 
     def _enter_stage_phase(self, stage_index: int) -> None:
         """Make the phase of stage ``stage_index`` in this pass (pilot, run or rerun) the current one."""
         pass_name = TV_CHOICE if self._piloting else (RERUN if rerun_parts(self) else RUN)
-        if pass_name == RERUN:  # (a choice of parts applied from outside the run, as a checkpoint's)
-            self._add_rerun_phases()
         self._phase_index = self.plan.index(pass_name, stage_index)
 
     # -- the algorithm --------------------------------------------------------------------------
@@ -252,6 +250,8 @@ class Reconstructor:
     def apply_parts_choice(self, choice: PartsChoice) -> None:
         """Take a choice of parts (made here, or read from a checkpoint): :func:`napari_fdt.recon.parts_switch.apply_parts_choice`."""
         apply_parts_choice(self, choice)
+        if choice.rerun == "stages" and getattr(self, "plan", None) is not None:  # the plan holds the stages run again
+            self._add_rerun_phases()
 
     def _choice_errors(self, stage: Stage, mask: torch.Tensor | None) -> tuple[float, list[float]]:
         """The parts' paired test's errors: :func:`napari_fdt.recon.parts_search.choice_errors`."""
@@ -339,8 +339,7 @@ class Reconstructor:
                 if cfg.parts_rerun == "stages" and self.parts_choice.rerun is None:
                     # Parts the data needs: every stage again from the first with them on (run() goes on).
                     self.elapsed_s += time.perf_counter() - t0
-                    restart_with_parts(self)
-                    self._add_rerun_phases()
+                    restart_with_parts(self)  # (its choice appends the stages run again to the plan)
                     return
                 # Parts the data needs: the stage again from its start, with them on from the fitted values (a phase
                 # of its own in the plan).
