@@ -44,7 +44,7 @@ def main() -> None:
     c = rec.tv_choice
     print(json.dumps({"scene": args.scene, "seed": args.seed, "plain": args.plain, "wall_s": round(wall, 1),
                       "tau": c.tv_xy_weight if c else None, "trials": len(c.trials) if c else 0,
-                      "pilot_s": round(c.seconds, 1) if c else 0, "parts": [p for p, on in rec.parts.items() if on],
+                      "trials_s": round(c.seconds, 1) if c else 0, "parts": [p for p, on in rec.parts.items() if on],
                       "dn_error": round(float(relative_delta_n_error(rec.delta_n_full(), truth - acq.optics.n_background)), 4),
                       "validation": rec.stages[-1].validation_error}), flush=True)
 

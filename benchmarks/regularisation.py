@@ -97,7 +97,7 @@ def run_one(scene: str, setting: str, device: str, base: dict | None = None, on_
     rec = Reconstructor(acq, cfg, device=device)
     stages = []
     for snap in rec.run():
-        if snap.phase == "tv_choice":  # the pilot's trials, not the run's stages
+        if snap.phase == "tv_choice":  # the TV choice (its stages before the trials, the trials), not the run's stages
             continue
         if on_snapshot is not None:
             on_snapshot(rec, snap, truth_src, t0)

@@ -96,7 +96,7 @@ def run_scene(name, acq, truth, cfg, device, eval_every):
             t_solver += time.perf_counter() - t1
             break
         t_solver += time.perf_counter() - t1
-        if snap.phase == "tv_choice":  # the pilot's trials (their time counts; their volumes are not the run's)
+        if snap.phase == "tv_choice":  # the TV choice (its time counts; its volumes are not the run's)
             continue
         if snap.stage_complete or snap.global_iteration - last_eval >= eval_every:
             last_eval = snap.global_iteration

@@ -75,7 +75,7 @@ def main() -> None:
             solver_s += time.perf_counter() - t1
             break
         solver_s += time.perf_counter() - t1
-        if snap.phase == "tv_choice":  # the pilot's trials (their time counts; their volumes are not the run's)
+        if snap.phase == "tv_choice":  # the TV choice (its time counts; its volumes are not the run's)
             continue
         if snap.global_iteration - last >= args.eval_every or snap.stage_complete:
             last = snap.global_iteration

@@ -1,4 +1,4 @@
-"""The automatic TV weight for several batch-order seeds: the pilot alone (no full run), its held-out error per weight.
+"""The automatic TV weight for several batch-order seeds: the run up to its choice (no full run), each weight's held-out error.
 
 Usage (repository root; a scene folder of ``benchmarks/model_parts.py``)::
 
@@ -16,7 +16,6 @@ import torch
 from napari_fdt import read_acquisition
 from napari_fdt.recon.config import SolverConfig
 from napari_fdt.recon.solver import Reconstructor
-from napari_fdt.recon.tv_search import pilot
 
 
 def main(argv: list[str]) -> None:
@@ -24,8 +23,11 @@ def main(argv: list[str]) -> None:
     acq = read_acquisition(argv[0])
     for seed in map(int, argv[1:]):
         rec = Reconstructor(acq, SolverConfig(seed=seed), device="cpu")
-        for _ in pilot(rec, None):  # the pilot alone: it chooses the weights and returns to the initial state
-            pass
+        run = rec.run()
+        for _ in run:  # up to the choice: the first snapshot after it
+            if rec.tv_choice is not None:
+                break
+        run.close()
         c = rec.tv_choice
         trials = ", ".join(f"τ {t['tau']:g}: {t['validation_error']:.5f}" for t in c.trials)
         print(f"{argv[0]} seed {seed}: τ_xy {c.tv_xy_weight:g} ({trials})", flush=True)

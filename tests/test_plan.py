@@ -32,28 +32,42 @@ def _sources(acq) -> np.ndarray:
     return np.asarray(acq.sources_um, dtype=np.float64)
 
 
-def test_the_plan_lists_the_pilot_then_the_stages_with_the_grids_the_solver_builds(sample) -> None:
+def test_the_plan_lists_the_choice_then_the_stages_with_the_grids_the_solver_builds(sample) -> None:
     cfg = resolve_stage_lengths(SolverConfig(), sample.n_images)
-    plan = make_plan(cfg, sample.optics, sample.image_shape, _sources(sample), "envelope", "cpu", tv_pilot=True)
+    plan = make_plan(cfg, sample.optics, sample.image_shape, _sources(sample), "envelope", "cpu", choose_tv_at=1)
     names = [(p.pass_name, p.stage, p.trials) for p in plan.phases]
     assert names == [(TV_CHOICE, 0, False), (TV_CHOICE, 1, True), (RUN, 0, False), (RUN, 1, False), (RUN, 2, False)]
-    assert plan.phases[1].iterations == len(TV_PATH) * probe_iterations(cfg.stages[1].iterations)
+    probe = probe_iterations(cfg.stages[1].iterations)
+    assert plan.phases[1].iterations == len(TV_PATH) * probe
     assert plan.iterations == cfg.total_iterations + cfg.stages[0].iterations + plan.phases[1].iterations
-    assert [p.model for p in plan.phases[2:]] == ["envelope", "envelope", "multislice"]
-    assert plan.phases[3].name == "stage 2/3 (x2)" and plan.phases[1].name.startswith("choosing the TV weight")
+    assert [p.model for p in plan.phases] == ["envelope", "envelope", "envelope", "envelope", "multislice"]
+    assert plan.phases[3].name == "stage 2/3 (x2)" and plan.phases[1].name == "choosing the TV weight at stage 2/3 (x2)"
+    assert plan.phases[0].name == "choosing the TV weight: stage 1/3 (x4)"
     assert all(p.name.isascii() for p in plan.phases)
+    # where no TV wins, the run's stage 0 is the one before the trials and stage 1 goes on after the winner's probe
+    kept = plan.keeping_the_stages_before(1, probe)
+    assert [(p.pass_name, p.stage, p.iterations, p.first_iteration) for p in kept.phases[2:]] == \
+           [(RUN, 1, cfg.stages[1].iterations - probe, probe), (RUN, 2, cfg.stages[2].iterations, 0)]
+    assert kept.iterations == cfg.total_iterations + (len(TV_PATH) - 1) * probe  # only the losers' iterations extra
+    # chosen at the first stage: no stage before, the stage goes on from the winner
+    first = make_plan(cfg, sample.optics, sample.image_shape, _sources(sample), "envelope", "cpu", choose_tv_at=0)
+    probe0 = probe_iterations(cfg.stages[0].iterations)
+    assert [(p.pass_name, p.stage, p.first_iteration) for p in first.phases] == \
+           [(TV_CHOICE, 0, 0), (RUN, 0, probe0), (RUN, 1, 0), (RUN, 2, 0)]
+    assert first.keeping_the_stages_before(0, probe0) == first
     # the FFT grids are the ones the stages are built with (envelope: its padded grid; multi-slice: its window)
     images = torch.zeros((sample.n_images, *sample.image_shape))
-    for p in plan.phases[2:]:
+    for p in plan.phases:
         stage = build_stage(p.stage, p.factor, 1, sample.optics, images, _sources(sample), device=torch.device("cpu"),
                             coarse_model="envelope")
         if p.model == "envelope":
             assert isinstance(stage.model, EnvelopeModel) and p.fft_shape == stage.model.padded
         else:
             assert p.fft_shape == tuple(stage.window)
-    fixed = make_plan(cfg, sample.optics, sample.image_shape, _sources(sample), "envelope", "cpu", tv_pilot=False)
+    fixed = make_plan(cfg, sample.optics, sample.image_shape, _sources(sample), "envelope", "cpu", choose_tv_at=None)
     assert [p.pass_name for p in fixed.phases] == [RUN] * 3 and fixed.iterations == cfg.total_iterations
-    assert fixed.index(RUN, 2) == 2 and plan.index(TV_CHOICE, 1, trials=True) == 1 and plan.iterations_before(2) == 100 + 180
+    assert fixed.index(RUN, 2) == 2 and plan.index(TV_CHOICE, 1, trials=True) == 1
+    assert plan.iterations_before(2) == cfg.stages[0].iterations + len(TV_PATH) * probe
     again = fixed.with_rerun(fixed.phases)
     assert [p.pass_name for p in again.phases] == [RUN] * 3 + ["rerun"] * 3 and again.iterations == 2 * fixed.iterations
     summary = plan.summary()
@@ -70,7 +84,7 @@ def _recorded():
 def _plan_of(recorded, acq) -> Plan:
     stages = [StageConfig(s["factor"], s["iterations"]) for s in recorded]
     cfg = SolverConfig(stages=stages, final_stage_min_passes=0)
-    return make_plan(cfg, acq.optics, acq.image_shape, _sources(acq), "envelope", "cpu", tv_pilot=False)
+    return make_plan(cfg, acq.optics, acq.image_shape, _sources(acq), "envelope", "cpu", choose_tv_at=None)
 
 
 def test_the_prior_prediction_is_within_a_factor_2_of_recorded_stage_times(sample) -> None:
@@ -137,7 +151,7 @@ def test_a_run_counts_along_its_plan_and_its_time_table_adds_up(scene16) -> None
     planned = rec.plan.iterations
     snaps = list(rec.run())
     done = [s.plan_iteration for s in snaps]
-    assert done == sorted(done) and done[0] > 0  # never back, though the pilot's stages run again in the pass
+    assert done == sorted(done) and done[0] > 0  # never back
     assert snaps[-1].plan_iteration == snaps[-1].plan_iterations == rec.plan.iterations <= planned
     trials = rec.plan.phases[rec.plan.index(TV_CHOICE, 1, trials=True)]
     assert trials.iterations == len(rec.tv_choice.trials) * rec.tv_choice.probe_iterations  # cut when it ended early
@@ -202,7 +216,7 @@ def test_pixel_integration_costs_what_its_fine_grid_ffts_cost(sample) -> None:
     ratio = iteration_units(16, 6, (256, 256), True) / iteration_units(16, 6, (256, 256))
     assert ratio == pytest.approx(189.3 / 106.7, rel=0.05)
     cfg = resolve_stage_lengths(SolverConfig(), sample.n_images)
-    off = make_plan(cfg, sample.optics, sample.image_shape, _sources(sample), "envelope", "cpu", tv_pilot=False)
-    on = make_plan(cfg, sample.optics, sample.image_shape, _sources(sample), "envelope", "cpu", tv_pilot=False, pixel_integration=True)
+    off = make_plan(cfg, sample.optics, sample.image_shape, _sources(sample), "envelope", "cpu", choose_tv_at=None)
+    on = make_plan(cfg, sample.optics, sample.image_shape, _sources(sample), "envelope", "cpu", choose_tv_at=None, pixel_integration=True)
     assert [a.seconds_per_iteration for a in off.phases[:2]] == [b.seconds_per_iteration for b in on.phases[:2]]  # envelope
     assert on.phases[2].seconds_per_iteration > 1.4 * off.phases[2].seconds_per_iteration

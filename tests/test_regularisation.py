@@ -6,6 +6,7 @@ import warnings
 
 import numpy as np
 import pytest
+import torch
 
 from napari_fdt.cli import build_parser
 from napari_fdt.errors import FDTInputError, FDTWarning
@@ -113,11 +114,14 @@ def test_a_resumed_run_keeps_the_choice(scene16, tmp_path) -> None:
     assert np.array_equal(again.delta_n_full(), rec.delta_n_full())
 
 
-def test_cancelling_the_pilot_stops_before_the_first_stage(scene16) -> None:
-    """A cancel during the trials ends the run with nothing completed and no choice (the next run chooses again); the
-    snapshots were the pilot's (the two weights it had tried)."""
+def test_cancelling_the_trials_of_the_first_stage_leaves_its_start(scene16) -> None:
+    """A cancel during the trials (here at the first stage's start) ends the run with nothing completed and no choice
+    (the next run chooses again); the snapshots were the trials' (the two weights tried); the volume is the start's."""
     rec = Reconstructor(scene16.acquisition, _config(), device="cpu")
     polls = iter(range(1000))
     snaps = list(rec.run(should_stop=lambda: next(polls) >= 4))  # stage 0 has 6 iterations: stopped inside the trials
     assert [s.phase for s in snaps] == ["tv_choice"] * 2 and [s.tv_weights[0] for s in snaps] == list(TV_PATH[:2])
-    assert rec.completed_stages == 0 and rec.tv_choice is None and rec.volume is None
+    assert rec.completed_stages == 0 and rec.tv_choice is None and rec.last_complete is None
+    at_start = Reconstructor(scene16.acquisition, _config(), device="cpu")
+    assert list(at_start.run(should_stop=lambda: True)) == []  # stopped before its first step
+    assert torch.equal(rec.volume.x, at_start.volume.x)  # the trials' volumes are gone: the stage's start

@@ -392,8 +392,8 @@ def _progress_bar(total: int, *, disable: bool, stream=None):
 def _show_progress(bar, snap) -> None:
     """Advance the bar to a snapshot: the plan's phase in words, loss, validation error and the solver's time-left.
 
-    The bar counts the iterations of the whole plan (:mod:`napari_fdt.recon.plan`: the TV pilot's stages and trials,
-    the pass, and the stages run again with kept model parts), so it never starts again; it grows when a choice of
+    The bar counts the iterations of the whole plan (:mod:`napari_fdt.recon.plan`: the stages, the trials of the TV
+    weights, and the stages run again with kept model parts), so it never starts again; it grows when a choice of
     model parts appends the stages run again. A line is written after each TV weight tried and each stage's end.
     """
     weights = snap.tv_weights
@@ -523,7 +523,7 @@ def _run_and_write(args, config, acq, out: Path, json_out: Path, truth, truth_sr
         for snap in snapshots:
             _show_progress(bar, snap)
     except KeyboardInterrupt:
-        snapshots.close()  # interrupted in the TV pilot between two snapshots: back to no stage complete (not the pilot's)
+        snapshots.close()  # interrupted between two snapshots (maybe during the TV trials): the last complete stage stays
         cancelled = True
         bar.close()
         if not writer:

@@ -78,7 +78,7 @@ def reconstruction_job(
         for snap in rec.run(should_stop=stop.is_set):
             now = time.perf_counter()
             ri = None
-            # the pilot's volumes (phase "tv_choice") are trials, not the result: no RI for them
+            # a TV trial's volume (phase "tv_choice") is a candidate, not the run's: no RI for it
             if snap.phase != TV_CHOICE and (snap.stage_complete or now - last >= min_interval_s):
                 ri = n_b + snap.delta_n_full()
                 last = time.perf_counter()

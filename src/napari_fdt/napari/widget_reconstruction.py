@@ -80,7 +80,7 @@ _FIELDS = ("stages", "coarse_model", "batch_size", "l1_l2_total", "ssim_weight",
            "calibrate_sources", "calibrate_gain", "calibrate_source_depth", "calibrate_pixel_size",
            "calibrate_slice_spacing", "calibration_from_stage", "coherence", "mask_threshold", "seed", "snapshot_every",
            "validation_fraction", "early_stopping", "pixel_integration", "obliquity_correction", "calibrate_pupil",
-           "calibrate_aberrations", "parts_rerun", "parts_test_images")
+           "calibrate_aberrations")  # (no experimental setting: a loaded settings file keeps them)
 #: Settings the widget numbers from 1 (as the status line does) while the configuration counts from 0.
 _ONE_BASED = ("calibration_from_stage",)
 
@@ -124,8 +124,6 @@ class ReconstructionWidget(ResultActions, Container):
         self.obliquity_correction = f("obliquity_correction", "tilted-ray correction", "obliquity correction")
         self.calibrate_pupil = f("calibrate_pupil", "fit pupil (NA, edge)")
         self.calibrate_aberrations = f("calibrate_aberrations", "fit aberrations")
-        self.parts_rerun = f("parts_rerun", "rerun with kept parts")
-        self.parts_test_images = f("parts_test_images", "parts tested on")
         #: which optional parts the last run needed, and why (RI.json's model_parts)
         self.parts_info = Label(value="")
         self.coherence = f("coherence", "coherent-light model", "partial coherence model")
@@ -162,7 +160,7 @@ class ReconstructionWidget(ResultActions, Container):
                                          self.calibrate_pixel_size, self.calibrate_slice_spacing, self.calibration_from_stage])
         coherence = Container(widgets=[self.coherence, self.mask_threshold, self.masks_button])
         parts = Container(widgets=[self.pixel_integration, self.obliquity_correction, self.calibrate_pupil,
-                                   self.calibrate_aberrations, self.parts_rerun, self.parts_test_images, self.parts_info])
+                                   self.calibrate_aberrations, self.parts_info])
         run = Container(widgets=[
             self.device, self.seed, self.snapshot_every, self.validation_fraction, self.early_stopping,
             Container(widgets=[self.save_settings_button, self.load_settings_button], layout="horizontal", labels=False)])
@@ -442,7 +440,7 @@ class ReconstructionWidget(ResultActions, Container):
             self.status.value = "evaluating the fit of every image…"
             return
         snap = update.snapshot
-        # one bar for the whole plan (the TV pilot, the pass, the stages run again with kept parts): it never restarts
+        # one bar for the whole plan (the stages, the TV trials, the stages run again with kept parts): it never restarts
         self.progress.max = max(1, int(snap.plan_iterations))
         self.progress.value = min(int(snap.plan_iteration), self.progress.max)
         left_txt = f", about {_duration(snap.eta_s)} left" if snap.eta_s and snap.eta_s > 0 else ""
@@ -451,7 +449,7 @@ class ReconstructionWidget(ResultActions, Container):
         self.status.value = (f"run #{self._runs}: {snap.phase_name}{tried}{where}; "
                              f"{_duration(snap.elapsed_s)} elapsed{left_txt}")
         self.losses.value = "loss: " + ", ".join(f"{k} {v:.4g}" for k, v in snap.losses.items())
-        if snap.phase == TV_CHOICE:  # the pilot's volumes are trials: no volume, no curve point
+        if snap.phase == TV_CHOICE:  # a TV trial's volume is a candidate: no volume, no curve point
             return
         if snap.stage_complete:
             self._complete_at = int(snap.plan_iteration)

@@ -1,72 +1,34 @@
-"""The phases of a run, as its snapshots name them (:attr:`napari_fdt.recon.snapshot.Snapshot.phase`).
+"""The kinds of phase a run's snapshots name (:attr:`napari_fdt.recon.snapshot.Snapshot.phase`).
 
-A run yields snapshots in up to three phases, in this order:
-
-``"tv_choice"``
-    The pilot that chooses the ``"auto"`` TV weights (:mod:`napari_fdt.recon.regularisation`): the stages before the
-    selection stage, then one snapshot per weight tried at the selection stage (``tv_weights`` set, its
-    ``validation_error`` the trial's). Its stages are run again by the pass: what it yields is progress, not a result.
 ``"run"``
-    The pass: every stage from the first, with the chosen weights.
+    The pass: every stage from the first. With ``"auto"`` TV weights the stages before the selection stage run
+    without TV (the weight is not known yet) and the selection stage goes on from the winning trial's state.
+``"tv_choice"``
+    The trials of the ``"auto"`` TV weights at the selection stage (:mod:`napari_fdt.recon.tv_search`): one snapshot
+    per weight tried (``tv_weights`` set, its ``validation_error`` the trial's). A trial's volume is a candidate, not
+    the run's state (the losers' are dropped).
 ``"rerun"``
     The stages run again from the first with the model parts the data needed (``rerun_with``; ``parts_rerun``
     ``"stages"``).
 
-``global_iteration`` / ``total_iterations`` number the stage iterations as the pass does in every phase (in the pilot,
-a trial snapshot sits at its selection stage's start plus the trial's iterations), so the count starts again with each
-phase. ``phase_iteration`` / ``phase_iterations`` count the phase's own work: in the pilot the iterations of the
-stages before the selection stage, then :func:`probe_iterations` per weight tried (:class:`PilotPlan`); in the pass and
-the rerun they equal ``global_iteration`` / ``total_iterations``.
+Where the run stands is counted along its plan (:mod:`napari_fdt.recon.plan`): ``plan_iteration`` of
+``plan_iterations`` for the whole run, ``phase_iteration`` of ``phase_iterations`` within the phase;
+``global_iteration`` / ``total_iterations`` number the stages' iterations as a run without choices would.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from napari_fdt.recon.regularisation import PROBE_SHARE
 
-from napari_fdt.recon.config import SolverConfig
-from napari_fdt.recon.regularisation import PROBE_SHARE, TV_PATH, selection_stages
-
-__all__ = ["TV_CHOICE", "RUN", "RERUN", "PHASES", "PilotPlan", "phase_label", "phase_counts", "pilot_plan", "probe_iterations"]
+__all__ = ["TV_CHOICE", "RUN", "RERUN", "PHASES", "phase_label", "probe_iterations"]
 
 TV_CHOICE, RUN, RERUN = "tv_choice", "run", "rerun"
-PHASES = (TV_CHOICE, RUN, RERUN)
+PHASES = (RUN, TV_CHOICE, RERUN)
 
 
 def probe_iterations(stage_iterations: int) -> int:
     """Iterations each TV weight trains for at the selection stage (:data:`~napari_fdt.recon.regularisation.PROBE_SHARE`)."""
     return max(1, int(round(PROBE_SHARE * stage_iterations)))
-
-
-@dataclass(frozen=True)
-class PilotPlan:
-    """The pilot's work: the stages before the selection stage ``stage`` (``before`` iterations), then ``probe``
-    iterations for each of ``n_trials`` weights."""
-
-    stage: int
-    before: int
-    probe: int
-    n_trials: int
-
-    @property
-    def iterations(self) -> int:
-        return self.before + self.n_trials * self.probe
-
-
-def pilot_plan(config: SolverConfig) -> PilotPlan:
-    """The pilot of ``config`` (the configuration as run, its stages resolved)."""
-    sel = min(selection_stages(config))
-    return PilotPlan(sel, sum(s.iterations for s in config.stages[:sel]), probe_iterations(config.stages[sel].iterations),
-                     len(TV_PATH))
-
-
-def phase_counts(config: SolverConfig, phase: str, global_iteration: int, trial: int | None = None) -> tuple[int, int]:
-    """(``phase_iteration``, ``phase_iterations``) of a snapshot at ``global_iteration``; ``trial``: the index of the TV
-    weight a pilot's trial snapshot has just tried."""
-    if phase != TV_CHOICE:
-        return global_iteration, config.total_iterations
-    plan = pilot_plan(config)
-    done = global_iteration if trial is None else plan.before + (trial + 1) * plan.probe
-    return done, plan.iterations
 
 
 def phase_label(phase: str, rerun_with: tuple[str, ...] = (), tv_weights: tuple[float, float] | None = None) -> str:

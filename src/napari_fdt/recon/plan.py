@@ -1,13 +1,13 @@
 """The plan of a run: its phases in order, with their iterations and predicted seconds, known before the first iteration.
 
-A *phase* is a stretch of iterations of one kind at one stage: a stage of the pilot that chooses the ``"auto"`` TV
-weights, the pilot's trials of every weight at its selection stage, a stage of the pass, or a stage run again with
-kept model parts (:mod:`napari_fdt.recon.phases` names the passes). :func:`make_plan` lists them from the
-configuration, the acquisition's geometry and the device, before anything is allocated; the solver counts its
-progress along the plan (``Snapshot.plan_iteration`` of ``plan_iterations``: one count for the whole run, never
-restarted) and :class:`Pace` turns the plan and the times the run measures into one time-left estimate. The command
-line's bar, the widget and the report read them. When the choice of model parts keeps a part and the stages run
-again (``parts_rerun = "stages"``), :meth:`Plan.with_rerun` appends those phases (the count grows; it never restarts).
+A *phase* is a stretch of iterations of one kind at one stage: a stage of the pass, the trials of the ``"auto"`` TV
+weights at the selection stage (the stages before them marked as part of the choice), or a stage run again with kept model parts
+(:mod:`napari_fdt.recon.phases` names the kinds). :func:`make_plan` lists them from the configuration, the
+acquisition's geometry and the device, before anything is allocated; the solver counts its progress along the plan
+(``Snapshot.plan_iteration`` of ``plan_iterations``: one count for the whole run, never restarted) and :class:`Pace`
+turns the plan and the times the run measures into one time-left estimate. The command line's bar, the widget and the
+report read them. When the choice of model parts keeps a part and the stages run again (``parts_rerun = "stages"``),
+:meth:`Plan.with_rerun` appends those phases (the count grows; it never restarts).
 
 **One cost model.** An iteration of a stage costs about ``batch · slices · P · log2 P`` units, ``P`` the pixels of the
 grid the model's FFTs run on (the multi-slice window, or the envelope model's padded grid), times a per-model rate of
@@ -69,9 +69,10 @@ def envelope_padded_shape(optics: Optics, image_shape: tuple[int, int], factor: 
 @dataclass(frozen=True)
 class Phase:
     """One phase of a run. ``pass_name``: the snapshot's ``phase`` ("tv_choice", "run", "rerun"); ``trials``: the
-    pilot's trials of the TV weights (``iterations`` for all of them) rather than a stage; ``model`` "envelope" or
+    trials of the TV weights (``iterations`` for all of them) rather than a stage; ``model`` "envelope" or
     "multislice"; ``fft_shape`` (h, w) px the model's FFTs run on; ``seconds_per_iteration`` the prior prediction;
-    ``parts`` the model parts a rerun holds."""
+    ``parts`` the model parts a rerun holds; ``first_iteration`` the stage iterations done before the phase starts
+    (the selection stage's rest starts after the winning trial's)."""
 
     pass_name: str
     stage: int
@@ -83,6 +84,7 @@ class Phase:
     seconds_per_iteration: float
     trials: bool = False
     parts: tuple[str, ...] = ()
+    first_iteration: int = 0
 
     @property
     def predicted_s(self) -> float:
@@ -90,10 +92,11 @@ class Phase:
 
     @property
     def name(self) -> str:
-        """The phase in words: "stage 2/3 (x2)", "choosing the TV weight: trials at stage 2/3 (x2)", …"""
+        """The phase in words: "stage 2/3 (x2)", "choosing the TV weight: stage 1/3 (x4)" (a stage before the trials),
+        "choosing the TV weight at stage 2/3 (x2)" (the trials), …"""
         where = f"stage {self.stage + 1}/{self.n_stages} (x{self.factor})"
         if self.pass_name == TV_CHOICE:
-            return f"choosing the TV weight: trials at {where}" if self.trials else f"choosing the TV weight: {where}"
+            return f"choosing the TV weight at {where}" if self.trials else f"choosing the TV weight: {where}"
         if self.pass_name == RERUN:
             return f"{where} again with {'+'.join(self.parts)}" if self.parts else f"{where} again"
         return where
@@ -120,7 +123,7 @@ class Plan:
         return sum(p.predicted_s for p in self.phases)
 
     def index(self, pass_name: str, stage: int, trials: bool = False) -> int:
-        """The index of the phase of ``pass_name`` at ``stage`` (``trials``: the pilot's trials)."""
+        """The index of the phase of ``pass_name`` at ``stage`` (``trials``: the TV trials)."""
         for i, p in enumerate(self.phases):
             if p.pass_name == pass_name and p.stage == stage and p.trials == trials:
                 return i
@@ -134,6 +137,22 @@ class Plan:
         """The plan with phase ``index`` cut to ``iterations`` (the TV trials that ended early)."""
         phases = list(self.phases)
         phases[index] = replace(phases[index], iterations=int(iterations))
+        return Plan(tuple(phases), self.device_type)
+
+    def has(self, pass_name: str, stage: int, trials: bool = False) -> bool:
+        """Whether the plan holds the phase of ``pass_name`` at ``stage``."""
+        return any(p.pass_name == pass_name and p.stage == stage and p.trials == trials for p in self.phases)
+
+    def keeping_the_stages_before(self, stage: int, probe: int) -> "Plan":
+        """The plan when the TV choice at ``stage`` keeps what the stages before it did (the weight they ran with won):
+        the run's phases of those stages are dropped and ``stage``'s goes on after the winner's ``probe`` iterations."""
+        phases = []
+        for p in self.phases:
+            if p.pass_name == RUN and p.stage < stage:
+                continue
+            if p.pass_name == RUN and p.stage == stage and p.first_iteration == 0:
+                p = replace(p, iterations=p.iterations - probe, first_iteration=probe)
+            phases.append(p)
         return Plan(tuple(phases), self.device_type)
 
     def with_rerun(self, reruns: Sequence[Phase]) -> "Plan":
@@ -181,19 +200,23 @@ def stage_phase(config: SolverConfig, optics: Optics, image_shape: tuple[int, in
 
 
 def make_plan(config: SolverConfig, optics: Optics, image_shape: tuple[int, int], sources_um: np.ndarray,
-              coarse_model: str, device_type: str, tv_pilot: bool, pixel_integration: bool = False) -> Plan:
+              coarse_model: str, device_type: str, choose_tv_at: int | None, pixel_integration: bool = False) -> Plan:
     """The plan of a run of ``config`` (as run: its stages resolved) on ``device_type`` ("cpu" or "cuda"), with the
-    initial ``sources_um`` (N, 3) µm, ``coarse_model`` resolved for the device; ``tv_pilot``: the ``"auto"`` TV
-    weights are chosen by a pilot first; ``pixel_integration``: the camera model's (as the first pass runs it)."""
+    initial ``sources_um`` (N, 3) µm, ``coarse_model`` resolved for the device; ``choose_tv_at``: the stage at whose
+    start the ``"auto"`` TV weights are tried (None: no choice), every weight for :func:`probe_iterations` of its
+    iterations, after the stages before it without TV; the run's stages follow in full (the stages before run again
+    with the chosen weight: :meth:`Plan.keeping_the_stages_before` drops them where the choice is no TV);
+    ``pixel_integration``: the camera model's (as the first pass runs it)."""
     src = np.asarray(sources_um, dtype=np.float64)
     stages = [stage_phase(config, optics, image_shape, src, i, coarse_model, device_type, pixel_integration=pixel_integration)
               for i in range(len(config.stages))]
     phases: list[Phase] = []
-    if tv_pilot:
-        sel = min(selection_stages(config))
-        phases += [replace(p, pass_name=TV_CHOICE) for p in stages[:sel]]
-        probe = probe_iterations(config.stages[sel].iterations)
-        phases.append(replace(stages[sel], pass_name=TV_CHOICE, trials=True, iterations=len(TV_PATH) * probe))
+    if choose_tv_at is not None:
+        probe = probe_iterations(config.stages[choose_tv_at].iterations)
+        phases += [replace(p, pass_name=TV_CHOICE) for p in stages[:choose_tv_at]]
+        phases.append(replace(stages[choose_tv_at], pass_name=TV_CHOICE, trials=True, iterations=len(TV_PATH) * probe))
+        if choose_tv_at == 0:  # no stage before: the stage goes on from the winner's trial
+            stages[0] = replace(stages[0], iterations=stages[0].iterations - probe, first_iteration=probe)
     phases += stages
     return Plan(tuple(phases), "cuda" if device_type == "cuda" else "cpu")
 
@@ -217,14 +240,14 @@ def plan_for(acquisition, config: SolverConfig, device_type: str, sources_um: np
         sources_um, _ = initial_sources(acquisition, depth_um=cfg.source_depth_um, device="cpu")
     src = np.asarray(sources_um, dtype=np.float64)
     split = len(holdout_indices(src, cfg.validation_fraction)) > 0
-    pilot = tv_is_auto(cfg) and split
+    choose_tv_at = min(selection_stages(cfg)) if tv_is_auto(cfg) and split else None
     # the camera model as the first pass runs it: as stated, else off until the data choose it (the physical rule
     # without a validation split)
     o = acquisition.optics
     stated = stated_pixel_integration(cfg, acquisition)
     integrate = stated if stated is not None else (not split and needs_pixel_integration(o.na, o.wavelength_um, o.pixel_size_um))
     plan = make_plan(cfg, o, acquisition.image_shape, src, resolve_coarse_model(cfg.coarse_model, device_type),
-                     device_type, pilot, pixel_integration=integrate)
+                     device_type, choose_tv_at, pixel_integration=integrate)
     return plan, src
 
 

@@ -1,12 +1,12 @@
 """Automatic regularisation: the TV weights chosen from the data by the validation error.
 
-With ``tv_xy_weight = "auto"`` (the default; ``tv_z_weight`` likewise) a pilot chooses the weights before the run
-(:meth:`napari_fdt.recon.solver.Reconstructor.run`; the rule and its measured cost are in ``docs/solver.md``):
+With ``tv_xy_weight = "auto"`` (the default; ``tv_z_weight`` likewise) the weights are chosen inside the run
+(:mod:`napari_fdt.recon.tv_search`; the rule and its measured cost are in ``docs/solver.md``):
 
-1. The stages before the *selection stage* (:func:`selection_stages`) run as the run would, without TV; there every
-   candidate of :data:`TV_PATH` trains from the same state (volume, calibration and their optimisers, batch order:
-   common random numbers, so that the candidates differ only by their weight) for :data:`PROBE_SHARE` of the stage's
-   iterations, and ends with the validation error of each held-out image (:mod:`napari_fdt.recon.validation`).
+1. The stages before the *selection stage* (:func:`selection_stages`) run without TV; at the selection stage's start
+   every candidate of :data:`TV_PATH` trains from the same state (volume, calibration and their optimisers, batch
+   order: common random numbers, so that the candidates differ only by their weight) for :data:`PROBE_SHARE` of the
+   stage's iterations, and ends with the validation error of each held-out image (:mod:`napari_fdt.recon.validation`).
 2. The weight of lowest validation error is the reference; a larger weight wins if it is not significantly worse
    than it, image by image (:func:`pick`): the mean over the held-out images of its error minus the reference's is at
    most one standard error of that mean (a paired one-standard-error rule: the candidates are compared on the same
@@ -14,8 +14,11 @@ With ``tv_xy_weight = "auto"`` (the default; ``tv_z_weight`` likewise) a pilot c
    volumes the smoother one is the one that has not filled with what the data cannot constrain; measured, the plain
    lowest error regularised less than the RI error wanted on beads, cells and deep sources, and the unpaired rule
    (the spread of each error over the images) more than it wanted on the sample and cells.
-3. The run starts again from its first stage with the chosen weights (an "auto" run equals the fixed-weight run at
-   its choice).
+3. Where the winner is what the stages before ran with (no TV), or there were none, the stage goes on from the
+   winning trial's state (volume, calibration, both optimisers, batch order): only the losing trials' iterations are
+   extra work. Otherwise the weight changes what the stages before did, and they run again with it from the start,
+   the selection stage in full: an "auto" run always ends as the run given its chosen weights as numbers. (Keeping the
+   TV-free first stage, or a first stage at τ 1 whatever the choice, measurably raised the Δn error: docs/solver.md.)
 
 τ_z follows τ_xy at the ratio :data:`TV_Z_RATIO` when both are ``"auto"``; a weight given as a number stays fixed
 while the other is chosen. Without a validation split "auto" means 0 (no TV), with a warning.

@@ -12,7 +12,7 @@ import numpy as np
 import torch
 
 from napari_fdt.recon.losses import as_floats
-from napari_fdt.recon.phases import RERUN, RUN, TV_CHOICE, phase_counts, probe_iterations
+from napari_fdt.recon.phases import RUN, probe_iterations
 from napari_fdt.recon.phases import phase_label as _phase_label
 from napari_fdt.recon.regularisation import TV_PATH, candidate_weights
 from napari_fdt.recon.stages import Stage
@@ -58,20 +58,19 @@ class Snapshot:
     #: the model parts the data needed when the stages run again with them (``parts_rerun``): the iteration count
     #: then starts again from the first stage; empty during the first pass
     rerun_with: tuple[str, ...] = ()
-    #: "tv_choice" for snapshots of the pilot that chooses the TV weight, "run" for the pass, "rerun" for the stages run
-    #: again with kept model parts (:mod:`napari_fdt.recon.phases`: the counts of each)
+    #: "run" for the pass, "tv_choice" for the trials of the TV weights, "rerun" for the stages run again with kept
+    #: model parts (:mod:`napari_fdt.recon.phases`)
     phase: str = RUN
-    #: iterations done in this phase, and in it in all (the pilot: its stages', then the trials'); in "run" and "rerun"
-    #: equal to ``global_iteration`` and ``total_iterations``
+    #: iterations done in the plan's current phase, and its iterations in all
     phase_iteration: int = 0
     phase_iterations: int = 0
-    #: (τ_xy, τ_z) the pilot has just tried (a trial's snapshot: ``validation_error`` is the trial's); None otherwise
+    #: (τ_xy, τ_z) a trial has just tried (its snapshot: ``validation_error`` is the trial's); None otherwise
     tv_weights: tuple[float, float] | None = None
-    #: iterations done along the run's whole plan (:mod:`napari_fdt.recon.plan`: pilot, pass, stages run again), and
+    #: iterations done along the run's whole plan (:mod:`napari_fdt.recon.plan`: stages, TV trials, stages run again), and
     #: the plan's iterations in all (it grows when a kept part appends phases; the count never starts again)
     plan_iteration: int = 0
     plan_iterations: int = 0
-    #: the plan's phase in words ("stage 2/3 (x2)", "choosing the TV weight: trials at stage 2/3 (x2)", ASCII)
+    #: the plan's phase in words ("stage 2/3 (x2)", "choosing the TV weight at stage 2/3 (x2)", ASCII)
     phase_name: str = ""
 
     @property
@@ -110,6 +109,8 @@ class StageRecord:
     iterations: int
     seconds: float = 0.0
     model: str = "multislice"
+    #: seconds of the TV trials that lost (tried at this stage's start and dropped): not the stage's own iterations
+    choice_s: float = 0.0
     #: validation error the stage ended on, its iteration (earlier than ``iterations`` when the best iterate was
     #: kept), and the iteration early stopping ended the stage at (None: it ran to the end)
     validation_error: float | None = None
@@ -119,19 +120,20 @@ class StageRecord:
     @property
     def seconds_per_iteration(self) -> float:
         ran = self.stopped_at or self.iterations  # early stopping ends a stage before its iterations
-        return self.seconds / ran if ran else 0.0
+        return (self.seconds - self.choice_s) / ran if ran else 0.0
 
     def to_dict(self) -> dict[str, Any]:
         return {"stage": self.stage, "factor": self.factor, "field_factor": self.field_factor, "grid": list(self.grid), "window": list(self.window),
                 "na": self.na, "model": self.model, "iterations": self.iterations, "seconds": self.seconds,
                 "seconds_per_iteration": self.seconds_per_iteration, "validation_error": self.validation_error,
-                "best_iteration": self.best_iteration, "stopped_at": self.stopped_at}
+                "best_iteration": self.best_iteration, "stopped_at": self.stopped_at, "choice_s": self.choice_s}
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "StageRecord":
         """The inverse of :meth:`to_dict`."""
         return cls(d["stage"], d["factor"], d["field_factor"], tuple(d["grid"]), tuple(d["window"]), d["na"], d["iterations"],
-                   d["seconds"], d["model"], d.get("validation_error"), d.get("best_iteration"), d.get("stopped_at"))
+                   d["seconds"], d["model"], d.get("choice_s", 0.0), d.get("validation_error"), d.get("best_iteration"),
+                   d.get("stopped_at"))
 
 
 def complete_stage(rec: Reconstructor, stage: Stage, record: StageRecord, global_it: int, terms: dict, t0: float,
@@ -150,17 +152,18 @@ def complete_stage(rec: Reconstructor, stage: Stage, record: StageRecord, global
 
 def take_snapshot(rec: Reconstructor, stage: Stage, it: int, global_it: int, terms: dict, stage_t0: float, complete: bool,
                   validation_error: float | None = None, train_error: float | None = None, trial: int | None = None) -> Snapshot:
-    """The snapshot now (``trial``: the index in the TV path of the weight the pilot has just tried)."""
+    """The snapshot now (``trial``: the index in the TV path of the weight just tried)."""
     cfg = rec.config
     rerun_with = rerun_parts(rec)
-    phase = TV_CHOICE if rec._piloting else (RERUN if rerun_with else RUN)
     terms = rec._gather(terms, optimiser_state=complete)
     now = time.perf_counter()
     elapsed = rec.elapsed_s + (now - stage_t0)
     # where along the plan: the trials' iterations so far, or the stage's iteration in its phase
     index = rec._phase_index
-    within = (trial + 1) * probe_iterations(stage.iterations) if trial is not None else it
-    plan_iteration = rec.plan.iterations_before(index) + min(within, rec.plan.phases[index].iterations)
+    current = rec.plan.phases[index]
+    within = (trial + 1) * probe_iterations(stage.iterations) if trial is not None else it - current.first_iteration
+    within = min(max(0, within), current.iterations)
+    plan_iteration = rec.plan.iterations_before(index) + within
     rec.pace.observe(index, plan_iteration, elapsed)
     remaining = 0.0 if complete and index == len(rec.plan.phases) - 1 else rec.pace.seconds_left()
     losses = as_floats(terms) if terms else {}
@@ -171,12 +174,13 @@ def take_snapshot(rec: Reconstructor, stage: Stage, it: int, global_it: int, ter
         sources_um=rec.sources_um(), gains=rec.gains(),
         calibration=rec.calibration.summary(), losses=losses, elapsed_s=elapsed, eta_s=remaining,
         stage_complete=complete, full_shape=rec.full_shape, validation_error=validation_error, train_error=train_error,
-        rerun_with=rerun_with, phase=phase, tv_weights=None if trial is None else candidate_weights(cfg, TV_PATH[trial]),
-        plan_iteration=plan_iteration, plan_iterations=rec.plan.iterations, phase_name=rec.plan.phases[index].name,
+        rerun_with=rerun_with, phase=current.pass_name, tv_weights=None if trial is None else candidate_weights(cfg, TV_PATH[trial]),
+        phase_iteration=within, phase_iterations=current.iterations,
+        plan_iteration=plan_iteration, plan_iterations=rec.plan.iterations, phase_name=current.name,
     )
-    snap.phase_iteration, snap.phase_iterations = phase_counts(cfg, phase, global_it, trial)
-    rec.history.append({"stage": stage.index, "iteration": it, "global_iteration": global_it,
-                        "elapsed_s": elapsed, **losses, "validation_error": validation_error, "train_error": train_error})
+    if trial is None:  # (a trial's losses are a candidate's, not the run's)
+        rec.history.append({"stage": stage.index, "iteration": it, "global_iteration": global_it,
+                            "elapsed_s": elapsed, **losses, "validation_error": validation_error, "train_error": train_error})
     return snap
 
 

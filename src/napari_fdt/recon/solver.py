@@ -54,7 +54,7 @@ from napari_fdt.recon.schedule import final_step_scale
 from napari_fdt.recon.snapshot import Snapshot, StageRecord, complete_stage, rerun_parts, take_snapshot
 from napari_fdt.recon.stage_roles import depth_frozen_stages, envelope_stages, position_frozen_stages, set_stage_roles
 from napari_fdt.recon.stages import Stage, build_stage, camera_model_options
-from napari_fdt.recon.tv_search import capture_branch, choose_tv, pilot, restore_branch
+from napari_fdt.recon.tv_search import capture_branch, choose_tv, restore_branch
 from napari_fdt.recon.validation import BestIterate, holdout_indices, relative_image_error
 from napari_fdt.recon.volume import RIVolume
 
@@ -155,8 +155,6 @@ class Reconstructor:
         self._choose_again: list[str] = []
         #: whether :meth:`run` must run the stages again from the first (set by the first choice that keeps a part)
         self._restart_pending = False
-        #: whether the pilot is running (its snapshots are phase "tv_choice")
-        self._piloting = False
         init_parts(self)
         self.loss_weights = LossWeights.from_config(cfg)
         #: the TV weights chosen from the data ("auto"; :mod:`napari_fdt.recon.regularisation`), None until chosen
@@ -173,12 +171,15 @@ class Reconstructor:
 
     # -- the plan ---------------------------------------------------------------------------------
     def _make_plan(self) -> None:
-        """The run's plan (:mod:`napari_fdt.recon.plan`) from where it stands: the TV pilot first while the weights are
-        still to choose, the stages again when a kept part makes them run again. Sets :attr:`plan` and :attr:`pace`."""
-        pilot_first = self.tv_choice is None and tv_is_auto(self.config) and self.completed_stages == 0
+        """The run's plan (:mod:`napari_fdt.recon.plan`) from where it stands: the TV trials in the selection stage while
+        the weights are still to choose, the stages again when a kept part makes them run again. Sets :attr:`plan` and
+        :attr:`pace`."""
+        choose_tv_at = None
+        if self.tv_choice is None and tv_is_auto(self.config) and min(selection_stages(self.config)) >= self.completed_stages:
+            choose_tv_at = min(selection_stages(self.config))
         #: the phases of the run, known before its first iteration (revised when a choice adds or shortens phases)
         self.plan = make_plan(self.config, self.acquisition.optics, self.full_shape, self.initial_sources_um, self.coarse_model,
-                              self.device.type, pilot_first, pixel_integration=self.parts["pixel_integration"])
+                              self.device.type, choose_tv_at, pixel_integration=self.parts["pixel_integration"])
         #: the time-left estimate from the plan and the measured times
         self.pace = Pace(self.plan)
         #: the index in :attr:`plan` of the phase now running
@@ -201,9 +202,12 @@ class Reconstructor:
         self._revise_plan(self.plan.with_rerun(again))
 
     def _enter_stage_phase(self, stage_index: int) -> None:
-        """Make the phase of stage ``stage_index`` in this pass (pilot, run or rerun) the current one."""
-        pass_name = TV_CHOICE if self._piloting else (RERUN if rerun_parts(self) else RUN)
-        self._phase_index = self.plan.index(pass_name, stage_index)
+        """Make the phase of stage ``stage_index`` in this pass the current one: a stage before the TV trials (while the
+        weights are to choose), of the run, or of the stages run again with kept parts."""
+        if self.tv_choice is None and self.plan.has(TV_CHOICE, stage_index):
+            self._phase_index = self.plan.index(TV_CHOICE, stage_index)
+        else:
+            self._phase_index = self.plan.index(RERUN if rerun_parts(self) else RUN, stage_index)
 
     # -- the algorithm --------------------------------------------------------------------------
     def run(self, should_stop: Callable[[], bool] | None = None, checkpoint_dir: str | Path | None = None) -> Iterator[Snapshot]:
@@ -214,28 +218,28 @@ class Reconstructor:
         (batch, predict, loss, step; a snapshot every ``snapshot_every``), and end with a snapshot and a
         checkpoint (``checkpoint_dir/stage_<i>.pt``).
 
-        With ``"auto"`` TV weights, a pilot first runs the stages up to the selection stage and tries the weights there
-        (:func:`~napari_fdt.recon.tv_search.pilot`; its snapshots are :attr:`Snapshot.phase` "tv_choice"); the run then starts from the beginning
-        with the chosen weights (phase "run"; "rerun" when the stages run again with model parts).
+        With ``"auto"`` TV weights the stages before the selection stage run without TV; there every weight tries from
+        the stage's start (:func:`~napari_fdt.recon.tv_search.choose_tv`; their snapshots are :attr:`Snapshot.phase`
+        "tv_choice") and the stage goes on from the winner's state (phase "run"; "rerun" when the stages run again with
+        model parts).
         """
-        if self.tv_choice is None and tv_is_auto(self.config) and self.completed_stages == 0:
-            ok = yield from pilot(self, should_stop)
-            if not ok:
-                return
         yield from self._run_stages(should_stop, checkpoint_dir)
         if self._restart_pending:  # the choice kept a part: every stage again with it (parts_rerun "stages")
             self._restart_pending = False
             yield from self._run_stages(should_stop, checkpoint_dir)
 
-    def _restart(self) -> None:
-        """Back to the state before any stage ran (volume, calibration and its optimiser, batch order, records)."""
+    def _restart(self, keep_last_complete: bool = False) -> None:
+        """Back to the state before any stage ran (volume, calibration and its optimiser, batch order, records); with
+        ``keep_last_complete`` the last complete stage stays what a cancel returns to until a stage completes again."""
         cfg = self.config
         self.calibration = self._new_calibration()
         self.batches = BatchOrder(self.acquisition.n_images, cfg.seed, self.device)
         self.volume, self.volume_factor = None, None
         self.completed_stages, self.stages, self.history = 0, [], []
-        self.last_complete, self.final_losses = None, {}
-        self.__dict__.pop("_last_complete_state", None)
+        self.final_losses = {}
+        if not keep_last_complete:
+            self.last_complete = None
+            self.__dict__.pop("_last_complete_state", None)
 
     def _new_calibration(self) -> Calibration:
         """The calibration parameters at their start (the initial sources, the acquisition's optics)."""
@@ -281,10 +285,6 @@ class Reconstructor:
             record = self._record(stage)
             best = BestIterate(tolerance=cfg.early_stopping_tolerance)
             t0 = time.perf_counter()
-            if self.tv_choice is None and tv_is_auto(cfg) and si in selection_stages(cfg):
-                yield from choose_tv(self, stage, mask, batch_size, data_range, global_it, should_stop)
-                return  # the pilot (run) ends here and starts the run again with the choice
-            self._enter_stage_phase(si)
             choose = False  # whether the "auto" parts are chosen at the end of this stage
             if (self.parts_choice is None or self._choose_again) and si == parts_stage(cfg):
                 if stage.envelope:  # the parts belong to the multi-slice model: nothing to choose on this run's stages
@@ -293,23 +293,36 @@ class Reconstructor:
                 else:
                     choose = True
                     stage_start = capture_branch(self), global_it
+            first_it = 0  # the stage's iterations already done (by the winning TV trial)
+            self._enter_stage_phase(si)
             while True:  # a second pass when the choice of parts switched some on
                 if len(self.validation_indices) and cfg.early_stopping != "off":
                     # The stage's starting volume is a candidate too: a stage that only makes the held-out images worse
                     # ends where it began (from stage 0 on: never a volume that explains them worse than no object).
                     track_validation(self, stage, mask, best, 0)
+                if self.tv_choice is None and tv_is_auto(cfg) and si in selection_stages(cfg):
+                    # the TV weights are chosen here, from the data; the stage goes on from the winner's state
+                    outcome = yield from choose_tv(self, stage, mask, batch_size, data_range, global_it, t0, best, should_stop)
+                    if outcome is None or outcome.redo:
+                        self.elapsed_s += time.perf_counter() - (t0 if outcome is None else outcome.t0)
+                        if outcome is not None:  # the weight changes what the stages before did: they run again with it
+                            self._restart(keep_last_complete=True)
+                            yield from self._run_stages(should_stop, checkpoint_dir)
+                        return
+                    vol_opt, first_it, t0 = outcome.optimiser, outcome.iterations, outcome.t0
+                    record.choice_s = outcome.losers_s
+                    global_it += first_it
+                    self._enter_stage_phase(si)  # (the stage's phase after the trials' one)
                 terms: dict = {}
                 train_error = None
-                it = 0
-                for it in range(1, stage.iterations + 1):
+                it = first_it
+                for it in range(first_it + 1, stage.iterations + 1):
                     if self._stop_requested(should_stop):
                         self.elapsed_s += time.perf_counter() - t0
                         return
                     progress = global_it / max(1, cfg.total_iterations)
                     snapshot_due = it == stage.iterations or it % cfg.snapshot_every == 0
-                    if si == len(cfg.stages) - 1:
-                        for group in vol_opt.param_groups:
-                            group["lr"] = cfg.lr_ri * final_step_scale(it, stage.iterations, cfg.lr_ri_final_ratio)
+                    self._set_step_size(vol_opt, stage, it)
                     terms, err = self._step(stage, mask, vol_opt, batch_size, data_range, progress, snapshot_due)
                     train_error = err if snapshot_due else train_error
                     global_it += 1
@@ -349,7 +362,7 @@ class Reconstructor:
                 fitted = {name: getattr(self.calibration, name).detach().clone() for name in ("na_scale", "pupil_edge", "zernike")}
                 restore_branch(self, stage_start[0])
                 self.calibration.restore_values(fitted)
-                global_it = stage_start[1]
+                global_it, first_it = stage_start[1], 0
                 stage, mask = chosen, self._loss_mask(chosen)
                 self.calibration.set_trainable(si)
                 vol_opt = torch.optim.Adam([self.volume.x], lr=cfg.lr_ri, betas=(0.9, 0.99))
@@ -420,6 +433,13 @@ class Reconstructor:
         if should_stop is None:
             return False
         return self.group.any(should_stop()) if self.group else should_stop()
+
+    def _set_step_size(self, vol_opt: torch.optim.Optimizer, stage: Stage, it: int) -> None:
+        """The RI step of iteration ``it`` (1-based) of ``stage``: ``lr_ri``, in the finest stage decaying to
+        ``lr_ri_final_ratio`` of it (:func:`napari_fdt.recon.schedule.final_step_scale`)."""
+        if stage.index == len(self.config.stages) - 1:
+            for group in vol_opt.param_groups:
+                group["lr"] = self.config.lr_ri * final_step_scale(it, stage.iterations, self.config.lr_ri_final_ratio)
 
     def _step(self, stage: Stage, mask: torch.Tensor | None, vol_opt: torch.optim.Optimizer, batch_size: int,
               data_range: float, progress: float, with_error: bool = False) -> tuple[dict[str, torch.Tensor], float | None]:

@@ -1,6 +1,8 @@
-"""The choice of the "auto" TV weights in a run: the pilot that runs the stages up to the selection stage, the trial of
-every weight of the TV path there from one state, and the copies of the training state the trials start from (the
-rule that picks the weight is :mod:`napari_fdt.recon.regularisation`'s).
+"""The choice of the "auto" TV weights inside the run: at the selection stage every weight of the TV path trains from
+the stage's starting state and the held-out images pick one (the rule is :mod:`napari_fdt.recon.regularisation`'s).
+The stages before the selection stage run without TV (the weight is not known yet). Where the winner is no TV, the run
+goes on from the winner's state (only the losing trials' iterations were extra); otherwise the stages before run again
+with the chosen weight, what the choice changed.
 """
 
 from __future__ import annotations
@@ -8,7 +10,8 @@ from __future__ import annotations
 import copy
 import dataclasses
 import time
-from typing import TYPE_CHECKING, Any, Callable, Generator, Iterator
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, Callable, Generator
 
 import torch
 
@@ -17,76 +20,90 @@ from napari_fdt.recon.regularisation import TV_PATH, TVChoice, candidate_weights
 from napari_fdt.recon.run_validation import validation
 from napari_fdt.recon.snapshot import Snapshot, take_snapshot
 from napari_fdt.recon.stages import Stage
+from napari_fdt.recon.validation import BestIterate
 
 if TYPE_CHECKING:
     from napari_fdt.recon.solver import Reconstructor
 
-__all__ = ["pilot", "choose_tv", "capture_branch", "restore_branch"]
+__all__ = ["TrialsOutcome", "choose_tv", "capture_branch", "restore_branch"]
 
 
-def pilot(rec: Reconstructor, should_stop: Callable[[], bool] | None) -> Generator[Snapshot, None, bool]:
-    """Choose the "auto" TV weights: run the stages before the selection stage as the run would (TV off), try the
-    weights at the selection stage (:func:`choose_tv`), then return to the initial state with the weights set, so
-    that the run equals one given them as numbers from its first stage on. Yields the snapshots meanwhile (phase
-    "tv_choice"); returns False when cancelled meanwhile (closed or failed: back to the initial state too)."""
-    t0 = time.perf_counter()
-    rec._piloting, finished = True, False
-    try:
-        for snap in rec._run_stages(should_stop, None):  # ends at the selection stage, once the weights are tried
-            paused = time.perf_counter()
-            yield snap
-            t0 += time.perf_counter() - paused  # the consumer's time is not the pilot's
-        finished = True
-    finally:
-        rec._piloting = False
-        if not finished:
-            rec._restart()
-    choice = rec.tv_choice
-    rec._restart()
-    if choice is None:  # cancelled
-        return False
-    choice.seconds = time.perf_counter() - t0
-    rec.tv_choice = choice
-    rec.loss_weights = dataclasses.replace(rec.loss_weights, tv_xy=choice.tv_xy_weight, tv_z=choice.tv_z_weight)
-    rec.elapsed_s = choice.seconds  # the pilot's time is the run's
-    return True
+@dataclass
+class TrialsOutcome:
+    """What follows the TV trials: ``redo`` (the stages before run again with the chosen weights: the state is then
+    a trial's), else the stage goes on from the winner's state with its volume ``optimiser`` after ``iterations``
+    (the probe). ``t0``: the stage's clock start moved past the consumer's pauses; ``losers_s``: the losing trials'
+    seconds."""
+
+    redo: bool
+    optimiser: torch.optim.Optimizer | None
+    iterations: int
+    t0: float
+    losers_s: float
 
 
 def choose_tv(rec: Reconstructor, stage: Stage, mask: torch.Tensor | None, batch_size: int, data_range: float, global_it: int,
-              should_stop: Callable[[], bool] | None) -> Iterator[Snapshot]:
-    """Try every weight of the TV path from the stage's starting state and set ``rec.tv_choice`` to the one the
-    held-out images prefer (:mod:`napari_fdt.recon.regularisation`); left None when stopped (cancelled) meanwhile.
-    Yields a snapshot after each weight; stops trying larger weights once :func:`tried_enough` (the plan's trial phase
-    is then cut to the weights tried). The state is then a trial's: the pilot (:func:`pilot`) starts the run again."""
+              t0: float, best: BestIterate, should_stop: Callable[[], bool] | None) -> Generator[Snapshot, None, TrialsOutcome | None]:
+    """Try the weights of the TV path from the stage's starting state (volume, calibration and its optimiser, batch
+    order: the trials differ only by their weight), each for :func:`probe_iterations` of the stage's iterations; set
+    ``rec.tv_choice`` and the loss weights to the one the held-out images prefer. Where the stages before ran with
+    that weight (or there were none) the state is left at the end of the winner's trial and the plan's stages before
+    are dropped; otherwise the outcome asks for the stages before again (:attr:`TrialsOutcome.redo`). Yields a
+    snapshot after each weight (phase "tv_choice"); stops trying larger weights once :func:`tried_enough` (the plan's
+    trial phase is then cut to the weights tried). ``t0``: the stage's clock start.
+    Returns None when stopped (cancelled) meanwhile; stopped or closed, the state is the stage's start again."""
     cfg = rec.config
-    t0 = time.perf_counter()
     n_probe = probe_iterations(stage.iterations)
     start = capture_branch(rec)
+    weights = rec.loss_weights
     trials: list[dict] = []
+    ends: list[dict[str, Any]] = []
     rec._phase_index = rec.plan.index(TV_CHOICE, stage.index, trials=True)
-    for k, tau in enumerate(TV_PATH):
-        if tried_enough(trials):  # past the minimum the error only rises: the larger weights would not be picked
-            rec._revise_plan(rec.plan.with_iterations(rec._phase_index, len(trials) * n_probe))
-            break
-        t1 = time.perf_counter()
-        restore_branch(rec, start)
-        xy, z = candidate_weights(cfg, tau)
-        rec.loss_weights = dataclasses.replace(rec.loss_weights, tv_xy=xy, tv_z=z)
-        vol_opt = torch.optim.Adam([rec.volume.x], lr=cfg.lr_ri, betas=(0.9, 0.99))
-        for it in range(n_probe):
-            if rec._stop_requested(should_stop):
-                return
-            terms, train_error = rec._step(stage, mask, vol_opt, batch_size, data_range,
-                                           (global_it + it) / max(1, cfg.total_iterations), it == n_probe - 1)
-        err, each = validation(rec, stage, mask, per_image=True)
-        trials.append({"tau": tau, "tv_xy_weight": xy, "tv_z_weight": z, "validation_error": err, "image_errors": each,
-                       "seconds": time.perf_counter() - t1})
-        snap = take_snapshot(rec, stage, n_probe, global_it + n_probe, terms, t1, False, err, train_error, trial=k)
-        rec.elapsed_s += time.perf_counter() - t1  # (the pilot sets the run's time when it ends)
-        yield snap
+    finished = False
+    try:
+        for k, tau in enumerate(TV_PATH):
+            if tried_enough(trials):  # past the minimum the error only rises: the larger weights would not be picked
+                rec._revise_plan(rec.plan.with_iterations(rec._phase_index, len(trials) * n_probe))
+                break
+            t1 = time.perf_counter()
+            restore_branch(rec, start)
+            xy, z = candidate_weights(cfg, tau)
+            rec.loss_weights = dataclasses.replace(weights, tv_xy=xy, tv_z=z)
+            vol_opt = torch.optim.Adam([rec.volume.x], lr=cfg.lr_ri, betas=(0.9, 0.99))
+            for it in range(1, n_probe + 1):
+                if rec._stop_requested(should_stop):
+                    return None
+                rec._set_step_size(vol_opt, stage, it)
+                terms, train_error = rec._step(stage, mask, vol_opt, batch_size, data_range,
+                                               (global_it + it - 1) / max(1, cfg.total_iterations), it == n_probe)
+            err, each = validation(rec, stage, mask, per_image=True)
+            ends.append({**capture_branch(rec), "vol_opt": copy.deepcopy(vol_opt.state_dict())})
+            trials.append({"tau": tau, "tv_xy_weight": xy, "tv_z_weight": z, "validation_error": err, "image_errors": each,
+                           "seconds": time.perf_counter() - t1})
+            snap = take_snapshot(rec, stage, n_probe, global_it + n_probe, terms, t0, False, err, train_error, trial=k)
+            paused = time.perf_counter()
+            yield snap
+            t0 += time.perf_counter() - paused  # time spent by the consumer is not the solver's
+        finished = True
+    finally:
+        if not finished:  # stopped or closed: back to the stage's start, nothing chosen (a new run chooses again)
+            restore_branch(rec, start)
+            rec.loss_weights = weights
     win = pick(trials)
+    k = trials.index(win)
+    rec.loss_weights = dataclasses.replace(weights, tv_xy=win["tv_xy_weight"], tv_z=win["tv_z_weight"])
+    losers_s = sum(t["seconds"] for j, t in enumerate(trials) if j != k)
     rec.tv_choice = TVChoice(win["tv_xy_weight"], win["tv_z_weight"], stage=stage.index, probe_iterations=n_probe,
-                             trials=trials, seconds=time.perf_counter() - t0)
+                             trials=trials, seconds=sum(t["seconds"] for t in trials))
+    if stage.index > 0 and (win["tv_xy_weight"], win["tv_z_weight"]) != (weights.tv_xy, weights.tv_z):
+        return TrialsOutcome(True, None, 0, t0, losers_s)
+    restore_branch(rec, ends[k])
+    vol_opt = torch.optim.Adam([rec.volume.x], lr=cfg.lr_ri, betas=(0.9, 0.99))
+    vol_opt.load_state_dict(ends[k]["vol_opt"])
+    rec._revise_plan(rec.plan.keeping_the_stages_before(stage.index, n_probe))
+    if cfg.early_stopping != "off" and win["validation_error"] is not None:  # the winner's end is a candidate iterate
+        best.update(n_probe, win["validation_error"], rec._capture)
+    return TrialsOutcome(False, vol_opt, n_probe, t0, losers_s)
 
 
 def capture_branch(rec: Reconstructor) -> dict[str, Any]:
