@@ -101,4 +101,3 @@ def restart_with_parts(rec: Reconstructor) -> None:
     fitted = {name: getattr(rec.calibration, name).detach().clone() for name in ("na_scale", "pupil_edge", "zernike")}
     rec._restart()
     rec.calibration.restore_values(fitted)  # the kept parts start from their fitted values
-    rec._restart_pending = True

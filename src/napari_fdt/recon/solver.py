@@ -10,8 +10,9 @@ log-gain per image, and (from ``calibration_from_stage``) the lateral position o
 offset of the source plane's depth, and optionally the pixel size and slice spacing as global scales.
 The RI grid has its own Adam optimiser, rebuilt at each stage (its moments belong to voxels that the
 resampling replaces); the calibration parameters (:class:`~napari_fdt.recon.calibration.Calibration`) keep
-one Adam optimiser for the whole run. Checkpoints are :mod:`napari_fdt.recon.checkpoint`'s, the checks
-before a run :mod:`napari_fdt.recon.preflight`'s; the snapshots :mod:`~napari_fdt.recon.snapshot`'s, the choice of the TV
+one Adam optimiser for the whole run. One stage's training is :mod:`napari_fdt.recon.stage_loop`'s, the choices
+plugged into it :mod:`napari_fdt.recon.choices`'. Checkpoints are :mod:`napari_fdt.recon.checkpoint`'s, the checks
+before a run :mod:`napari_fdt.recon.preflight`'s; the snapshots :mod:`~napari_fdt.recon.snapshot`'s, the trials of the TV
 weights :mod:`~napari_fdt.recon.tv_search`'s, the model parts :mod:`~napari_fdt.recon.parts_switch`'s and
 :mod:`~napari_fdt.recon.parts_search`'s, the validation error :mod:`~napari_fdt.recon.run_validation`'s.
 
@@ -22,7 +23,6 @@ gradients of the shared parameters are summed over ranks, and the result equals 
 
 from __future__ import annotations
 
-import dataclasses
 import time
 import warnings
 from pathlib import Path
@@ -40,21 +40,22 @@ from napari_fdt.model.render import iter_batches
 from napari_fdt.recon.batches import BatchOrder
 from napari_fdt.recon.calibration import Calibration
 from napari_fdt.recon.checkpoint import checkpoint_path, checkpoint_state, read_checkpoint, restore_checkpoint, write_checkpoint
+from napari_fdt.recon.choices import default_choices
 from napari_fdt.recon.config import SolverConfig, resolve_coarse_model, resolve_stage_lengths
 from napari_fdt.recon.losses import BatchShare, LossWeights, total_loss
-from napari_fdt.recon.model_parts import PARTS, PartsChoice, parts_stage
-from napari_fdt.recon.parts_search import choice_errors, choose_parts, fit_images
-from napari_fdt.recon.parts_switch import apply_parts_choice, init_parts, restart_with_parts
+from napari_fdt.recon.model_parts import PartsChoice
+from napari_fdt.recon.parts_search import choice_errors, fit_images
+from napari_fdt.recon.parts_switch import apply_parts_choice, init_parts
 from napari_fdt.recon.phases import RERUN, RUN, TV_CHOICE
 from napari_fdt.recon.plan import Pace, Plan, make_plan, stage_phase
 from napari_fdt.recon.preflight import check_backward_mode, check_memory, warn_about_images, warn_about_sampling
 from napari_fdt.recon.regularisation import TVChoice, candidate_weights, selection_stages, tv_is_auto
-from napari_fdt.recon.run_validation import end_on_best, track_validation, validation_error
+from napari_fdt.recon.run_validation import validation_error
 from napari_fdt.recon.schedule import final_step_scale
-from napari_fdt.recon.snapshot import Snapshot, StageRecord, complete_stage, rerun_parts, take_snapshot
+from napari_fdt.recon.snapshot import Snapshot, StageRecord, complete_stage, rerun_parts
+from napari_fdt.recon.stage_loop import StageWork, Verdict, new_optimiser, train_stage
 from napari_fdt.recon.stage_roles import depth_frozen_stages, envelope_stages, position_frozen_stages, set_stage_roles
 from napari_fdt.recon.stages import Stage, build_stage, camera_model_options
-from napari_fdt.recon.tv_search import capture_branch, choose_tv, restore_branch
 from napari_fdt.recon.validation import BestIterate, holdout_indices, relative_image_error
 from napari_fdt.recon.volume import RIVolume
 
@@ -153,8 +154,8 @@ class Reconstructor:
         self.wavelengths, self.weights = None, None
         #: auto parts the finest stage chooses again after every stage ran again with the kept ones (``parts_rerun``)
         self._choose_again: list[str] = []
-        #: whether :meth:`run` must run the stages again from the first (set by the first choice that keeps a part)
-        self._restart_pending = False
+        #: the choices plugged into every stage (:mod:`napari_fdt.recon.choices`)
+        self.choices = default_choices()
         init_parts(self)
         self.loss_weights = LossWeights.from_config(cfg)
         #: the TV weights chosen from the data ("auto"; :mod:`napari_fdt.recon.regularisation`), None until chosen
@@ -213,20 +214,31 @@ class Reconstructor:
     def run(self, should_stop: Callable[[], bool] | None = None, checkpoint_dir: str | Path | None = None) -> Iterator[Snapshot]:
         """Run the remaining stages, yielding snapshots. ``should_stop()`` is polled between iterations.
 
-        Per stage: build the stage's model and images for the current sources, carry the volume to its
-        grid, make the loss mask, start the gains (once), switch the calibration on or off; then iterate
-        (batch, predict, loss, step; a snapshot every ``snapshot_every``), and end with a snapshot and a
-        checkpoint (``checkpoint_dir/stage_<i>.pt``).
-
-        With ``"auto"`` TV weights the stages before the selection stage run without TV; there every weight tries from
-        the stage's start (:func:`~napari_fdt.recon.tv_search.choose_tv`; their snapshots are :attr:`Snapshot.phase`
-        "tv_choice") and the stage goes on from the winner's state (phase "run"; "rerun" when the stages run again with
-        model parts).
+        Per stage (:mod:`napari_fdt.recon.stage_loop`): build the stage's model and images for the current sources,
+        carry the volume to its grid, make the loss mask, start the gains (once), switch the calibration on or off;
+        then the choices at its start, its iterations (batch, predict, loss, step; a snapshot every
+        ``snapshot_every``), the choices at its end; it ends with a snapshot and a checkpoint
+        (``checkpoint_dir/stage_<i>.pt``). The choices (:mod:`napari_fdt.recon.choices`: the ``"auto"`` TV weights at
+        the selection stage, the ``"auto"`` model parts after the first multi-slice stage) may send the run back to
+        its first stage where what they chose changes what the stages before did.
         """
-        yield from self._run_stages(should_stop, checkpoint_dir)
-        if self._restart_pending:  # the choice kept a part: every stage again with it (parts_rerun "stages")
-            self._restart_pending = False
-            yield from self._run_stages(should_stop, checkpoint_dir)
+        self._start_pass()
+        while self.completed_stages < len(self.config.stages):
+            work = self._begin_stage(self.completed_stages)
+            verdict = yield from train_stage(self, work, self.choices, should_stop)
+            if verdict is not Verdict.GO_ON:
+                self.elapsed_s += time.perf_counter() - work.t0
+                if verdict is Verdict.STOPPED:
+                    return
+                self._start_pass()  # FROM_FIRST_STAGE: the choice has set the state back
+                continue
+            yield self._end_stage(work, checkpoint_dir)
+
+    def _start_pass(self) -> None:
+        """Before the stages run from the first not completed: the seed (as a run from there would set it) and, in a
+        distributed run, every image's rows from its owner."""
+        torch.manual_seed(self.config.seed + self.completed_stages)
+        self._share_per_source_rows()
 
     def _restart(self, keep_last_complete: bool = False) -> None:
         """Back to the state before any stage ran (volume, calibration and its optimiser, batch order, records); with
@@ -265,114 +277,29 @@ class Reconstructor:
         """The training images the pupil parts are fitted to: :func:`napari_fdt.recon.parts_search.fit_images`."""
         return fit_images(self)
 
-    # -- the stages -----------------------------------------------------------------------------
-    def _run_stages(self, should_stop: Callable[[], bool] | None, checkpoint_dir: str | Path | None) -> Iterator[Snapshot]:
-        """The stages from the first not yet completed (the body of :meth:`run`)."""
+    # -- a stage's start and end -------------------------------------------------------------------
+    def _begin_stage(self, stage_index: int) -> StageWork:
+        """Stage ``stage_index``'s model and images, the volume on its grid, its loss mask, the gains (once), the
+        calibration's switches, a new RI optimiser; its record and its phase in the plan."""
         cfg = self.config
-        torch.manual_seed(cfg.seed + self.completed_stages)
-        global_it = sum(s.iterations for s in cfg.stages[: self.completed_stages])
-        self._share_per_source_rows()
-        for si in range(self.completed_stages, len(cfg.stages)):
-            stage = self._build_stage(si)
-            self._carry_volume_to(stage)
-            mask = self._loss_mask(stage)
-            if not self.calibration.gain_initialised:
-                self._init_gains(stage, mask)
-            self.calibration.set_trainable(si)
-            vol_opt = torch.optim.Adam([self.volume.x], lr=cfg.lr_ri, betas=(0.9, 0.99))
-            batch_size = cfg.stage_batch(si)
-            data_range = float(stage.images.max())
-            record = self._record(stage)
-            best = BestIterate(tolerance=cfg.early_stopping_tolerance)
-            t0 = time.perf_counter()
-            choose = False  # whether the "auto" parts are chosen at the end of this stage
-            if (self.parts_choice is None or self._choose_again) and si == parts_stage(cfg):
-                if stage.envelope:  # the parts belong to the multi-slice model: nothing to choose on this run's stages
-                    self.apply_parts_choice(PartsChoice(dict(self.parts), {p: "not chosen: no multi-slice stage" if p in self._auto_parts
-                                                                        else self._parts_chosen_by[p] for p in PARTS}))
-                else:
-                    choose = True
-                    stage_start = capture_branch(self), global_it
-            first_it = 0  # the stage's iterations already done (by the winning TV trial)
-            self._enter_stage_phase(si)
-            while True:  # a second pass when the choice of parts switched some on
-                if len(self.validation_indices) and cfg.early_stopping != "off":
-                    # The stage's starting volume is a candidate too: a stage that only makes the held-out images worse
-                    # ends where it began (from stage 0 on: never a volume that explains them worse than no object).
-                    track_validation(self, stage, mask, best, 0)
-                if self.tv_choice is None and tv_is_auto(cfg) and si in selection_stages(cfg):
-                    # the TV weights are chosen here, from the data; the stage goes on from the winner's state
-                    outcome = yield from choose_tv(self, stage, mask, batch_size, data_range, global_it, t0, best, should_stop)
-                    if outcome is None or outcome.redo:
-                        self.elapsed_s += time.perf_counter() - (t0 if outcome is None else outcome.t0)
-                        if outcome is not None:  # the weight changes what the stages before did: they run again with it
-                            self._restart(keep_last_complete=True)
-                            yield from self._run_stages(should_stop, checkpoint_dir)
-                        return
-                    vol_opt, first_it, t0 = outcome.optimiser, outcome.iterations, outcome.t0
-                    record.choice_s = outcome.losers_s
-                    global_it += first_it
-                    self._enter_stage_phase(si)  # (the stage's phase after the trials' one)
-                terms: dict = {}
-                train_error = None
-                it = first_it
-                for it in range(first_it + 1, stage.iterations + 1):
-                    if self._stop_requested(should_stop):
-                        self.elapsed_s += time.perf_counter() - t0
-                        return
-                    progress = global_it / max(1, cfg.total_iterations)
-                    snapshot_due = it == stage.iterations or it % cfg.snapshot_every == 0
-                    self._set_step_size(vol_opt, stage, it)
-                    terms, err = self._step(stage, mask, vol_opt, batch_size, data_range, progress, snapshot_due)
-                    train_error = err if snapshot_due else train_error
-                    global_it += 1
-                    if it == stage.iterations:
-                        break
-                    if it % cfg.snapshot_every == 0:
-                        val = track_validation(self, stage, mask, best, it)
-                        snap = take_snapshot(self, stage, it, global_it, terms, t0, False, val, train_error)
-                        paused = time.perf_counter()
-                        yield snap
-                        t0 += time.perf_counter() - paused  # time spent by the consumer is not the solver's
-                        if cfg.early_stopping == "stop" and best.stalled(cfg.early_stopping_patience):
-                            record.stopped_at = it
-                            global_it += stage.iterations - it  # progress and later stages' numbering as if it had run
-                            break
-                val = end_on_best(self, stage, mask, best, it, record)
-                if not choose:
-                    break
-                choose = False
-                chosen = choose_parts(self, stage, mask, should_stop)
-                if chosen is None:
-                    self.elapsed_s += time.perf_counter() - t0
-                    return
-                self.parts_choice.iteration = it
-                if not any(self.parts[p] for p in self._auto_parts):
-                    break
-                if cfg.parts_rerun == "stages" and self.parts_choice.rerun is None:
-                    # Parts the data needs: every stage again from the first with them on (run() goes on).
-                    self.elapsed_s += time.perf_counter() - t0
-                    restart_with_parts(self)  # (its choice appends the stages run again to the plan)
-                    return
-                # Parts the data needs: the stage again from its start, with them on from the fitted values (a phase
-                # of its own in the plan).
-                kept = tuple(p for p in self._auto_parts if self.parts[p])
-                self._revise_plan(self.plan.with_rerun([dataclasses.replace(self.plan.phases[self._phase_index], parts=kept)]))
-                self._phase_index = len(self.plan.phases) - 1
-                fitted = {name: getattr(self.calibration, name).detach().clone() for name in ("na_scale", "pupil_edge", "zernike")}
-                restore_branch(self, stage_start[0])
-                self.calibration.restore_values(fitted)
-                global_it, first_it = stage_start[1], 0
-                stage, mask = chosen, self._loss_mask(chosen)
-                self.calibration.set_trainable(si)
-                vol_opt = torch.optim.Adam([self.volume.x], lr=cfg.lr_ri, betas=(0.9, 0.99))
-                data_range = float(stage.images.max())
-                best = BestIterate(tolerance=cfg.early_stopping_tolerance)
-                record.stopped_at = None
-            snap = complete_stage(self, stage, record, global_it, terms, t0, val, train_error)
-            if checkpoint_dir is not None and (self.group is None or self.group.is_writer):
-                self.save_checkpoint(checkpoint_path(checkpoint_dir, si))
-            yield snap
+        stage = self._build_stage(stage_index)
+        self._carry_volume_to(stage)
+        mask = self._loss_mask(stage)
+        if not self.calibration.gain_initialised:
+            self._init_gains(stage, mask)
+        self.calibration.set_trainable(stage_index)
+        self._enter_stage_phase(stage_index)
+        return StageWork(stage, mask, new_optimiser(self), cfg.stage_batch(stage_index), float(stage.images.max()),
+                         self._record(stage), BestIterate(tolerance=cfg.early_stopping_tolerance),
+                         base_iteration=sum(s.iterations for s in cfg.stages[:stage_index]))
+
+    def _end_stage(self, work: StageWork, checkpoint_dir: str | Path | None) -> Snapshot:
+        """The stage's snapshot (the last complete state from now on) and its checkpoint."""
+        snap = complete_stage(self, work.stage, work.record, work.base_iteration + work.stage.iterations, work.terms, work.t0,
+                              work.validation_error, work.train_error)
+        if checkpoint_dir is not None and (self.group is None or self.group.is_writer):
+            self.save_checkpoint(checkpoint_path(checkpoint_dir, work.stage.index))
+        return snap
 
     # -- per-stage set-up -----------------------------------------------------------------------
     def _build_stage(self, stage_index: int) -> Stage:

@@ -1,0 +1,102 @@
+"""The choices a run makes from its data, as phases plugged into the stage loop (:class:`~napari_fdt.recon.stage_loop.Choice`).
+
+:class:`ChooseTVWeights`
+    At the selection stage's start (``"auto"`` TV weights): the trials of :mod:`napari_fdt.recon.tv_search`; the stage
+    goes on from the winner, or every stage runs again with it where it changes what the stages before did.
+:class:`ChooseModelParts`
+    At the end of the first multi-slice stage (``"auto"`` model parts): the paired test of
+    :mod:`napari_fdt.recon.parts_search`; where a part is kept, every stage runs again with it (``parts_rerun``
+    ``"stages"``) or the stage again from its start (``"finest"``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import TYPE_CHECKING, Callable, Generator
+
+from napari_fdt.recon.model_parts import PARTS, PartsChoice, parts_stage
+from napari_fdt.recon.parts_search import choose_parts
+from napari_fdt.recon.parts_switch import restart_with_parts
+from napari_fdt.recon.regularisation import selection_stages, tv_is_auto
+from napari_fdt.recon.snapshot import Snapshot
+from napari_fdt.recon.stage_loop import StageWork, Verdict, capture_branch, new_optimiser, restore_branch
+from napari_fdt.recon.tv_search import choose_tv
+from napari_fdt.recon.validation import BestIterate
+
+if TYPE_CHECKING:
+    from napari_fdt.recon.solver import Reconstructor
+
+__all__ = ["ChooseTVWeights", "ChooseModelParts", "default_choices"]
+
+
+class ChooseTVWeights:
+    """The ``"auto"`` TV weights, chosen at the start of the selection stage (:func:`~napari_fdt.recon.tv_search.choose_tv`)."""
+
+    def at_start(self, rec: Reconstructor, work: StageWork, again: int,
+                 should_stop: Callable[[], bool] | None) -> Generator[Snapshot, None, Verdict]:
+        cfg = rec.config
+        if rec.tv_choice is not None or not tv_is_auto(cfg) or work.stage.index not in selection_stages(cfg):
+            return Verdict.GO_ON
+        verdict = yield from choose_tv(rec, work, should_stop)
+        if verdict is Verdict.FROM_FIRST_STAGE:  # the weight changes what the stages before did: again with it
+            rec._restart(keep_last_complete=True)
+        elif verdict is Verdict.GO_ON:
+            rec._enter_stage_phase(work.stage.index)  # the stage's own phase after the trials'
+        return verdict
+
+    def at_end(self, rec: Reconstructor, work: StageWork, should_stop: Callable[[], bool] | None) -> Generator[Snapshot, None, Verdict]:
+        return Verdict.GO_ON
+        yield  # (a generator)
+
+
+class ChooseModelParts:
+    """The ``"auto"`` model parts, chosen at the end of the first multi-slice stage
+    (:func:`~napari_fdt.recon.parts_search.choose_parts`)."""
+
+    def at_start(self, rec: Reconstructor, work: StageWork, again: int,
+                 should_stop: Callable[[], bool] | None) -> Generator[Snapshot, None, Verdict]:
+        cfg = rec.config
+        due = (rec.parts_choice is None or rec._choose_again) and work.stage.index == parts_stage(cfg)
+        if again or not due:
+            return Verdict.GO_ON
+        if work.stage.envelope:  # the parts belong to the multi-slice model: nothing to choose on this run's stages
+            rec.apply_parts_choice(PartsChoice(dict(rec.parts), {p: "not chosen: no multi-slice stage" if p in rec._auto_parts
+                                                                else rec._parts_chosen_by[p] for p in PARTS}))
+        else:  # chosen at the stage's end; the stage may run again from here
+            work.choosing["parts_from"] = capture_branch(rec)
+        return Verdict.GO_ON
+        yield  # (a generator)
+
+    def at_end(self, rec: Reconstructor, work: StageWork, should_stop: Callable[[], bool] | None) -> Generator[Snapshot, None, Verdict]:
+        start = work.choosing.pop("parts_from", None)
+        if start is None:
+            return Verdict.GO_ON
+        chosen = choose_parts(rec, work.stage, work.mask, should_stop)
+        if chosen is None:
+            return Verdict.STOPPED
+        rec.parts_choice.iteration = work.done
+        if not any(rec.parts[p] for p in rec._auto_parts):
+            return Verdict.GO_ON
+        if rec.config.parts_rerun == "stages" and rec.parts_choice.rerun is None:
+            restart_with_parts(rec)  # every stage again from the first with the kept parts (the plan appends them)
+            return Verdict.FROM_FIRST_STAGE
+        # the stage again from its start, with the kept parts on from their fitted values (a phase of its own)
+        kept = tuple(p for p in rec._auto_parts if rec.parts[p])
+        rec._revise_plan(rec.plan.with_rerun([dataclasses.replace(rec.plan.phases[rec._phase_index], parts=kept)]))
+        rec._phase_index = len(rec.plan.phases) - 1
+        fitted = {name: getattr(rec.calibration, name).detach().clone() for name in ("na_scale", "pupil_edge", "zernike")}
+        restore_branch(rec, start)
+        rec.calibration.restore_values(fitted)
+        rec.calibration.set_trainable(chosen.index)
+        work.stage, work.mask, work.done = chosen, rec._loss_mask(chosen), 0
+        work.optimiser, work.data_range = new_optimiser(rec), float(chosen.images.max())
+        work.best = BestIterate(tolerance=rec.config.early_stopping_tolerance)
+        work.record.stopped_at = None
+        return Verdict.STAGE_AGAIN
+        yield  # (a generator)
+
+
+def default_choices() -> tuple[ChooseModelParts, ChooseTVWeights]:
+    """The choices of every run, in the order they are called (the parts' start state is taken before the TV trials
+    of a stage that holds both)."""
+    return ChooseModelParts(), ChooseTVWeights()
