@@ -42,7 +42,7 @@ def test_the_trials_report_their_progress_and_the_run_is_the_fixed_weights_run(s
     before, trials, run = snaps[:2], snaps[2:2 + n], snaps[2 + n:]
     assert [s.phase for s in before + trials] == [TV_CHOICE] * (2 + n) and {s.phase for s in run} == {"run"}
     assert [(s.stage, s.iteration, s.global_iteration, s.stage_complete) for s in before] == [(0, 2, 2, False), (0, 4, 4, True)]
-    assert before[0].phase_name == "choosing the TV weight: stage 1/3 (x4)" and before[0].tv_weights is None
+    assert before[0].phase_name == "choosing the TV weight: stage 1/3 (x4) without TV" and before[0].tv_weights is None
     assert [s.tv_weights for s in trials] == [(t["tv_xy_weight"], t["tv_z_weight"]) for t in choice.trials]
     assert [s.validation_error for s in trials] == [t["validation_error"] for t in choice.trials]
     assert all((s.stage, s.iteration, s.global_iteration, s.stage_complete) == (1, 2, 6, False) for s in trials)

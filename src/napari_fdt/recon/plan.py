@@ -92,11 +92,12 @@ class Phase:
 
     @property
     def name(self) -> str:
-        """The phase in words: "stage 2/3 (x2)", "choosing the TV weight: stage 1/3 (x4)" (a stage before the trials),
+        """The phase in words: "stage 2/3 (x2)", "choosing the TV weight: stage 1/3 (x4) without TV" (a stage before the
+        trials),
         "choosing the TV weight at stage 2/3 (x2)" (the trials), …"""
         where = f"stage {self.stage + 1}/{self.n_stages} (x{self.factor})"
         if self.pass_name == TV_CHOICE:
-            return f"choosing the TV weight at {where}" if self.trials else f"choosing the TV weight: {where}"
+            return f"choosing the TV weight at {where}" if self.trials else f"choosing the TV weight: {where} without TV"
         if self.pass_name == RERUN:
             return f"{where} again with {'+'.join(self.parts)}" if self.parts else f"{where} again"
         return where
