@@ -1,5 +1,5 @@
 """One default run, or one plain pass, of a suite scene: wall time, the TV choice, the parts kept, the Δn error and the
-validation error, as one JSON line (docs/solver.md, "Measured: the default run against a plain pass").
+validation error, as one JSON line (docs/decisions/one-pass-default-vs-plain.md).
 
     python benchmarks/default_vs_plain.py SCENE [--seed 0]                         # the defaults
     python benchmarks/default_vs_plain.py SCENE --plain 1 [--set '{"calibrate_pupil": true}']   # τ_xy 1, τ_z 0.5 given

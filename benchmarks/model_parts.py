@@ -4,7 +4,7 @@ Usage (repository root)::
 
     python benchmarks/model_parts.py make-scenes
     python benchmarks/model_parts.py run --scenes letters_clean,letters_effects --settings auto,off
-    python benchmarks/model_parts.py table --write      # docs/solver.md's "Model parts" table
+    python benchmarks/model_parts.py table --write      # docs/decisions/model-parts.md's table
 
 Scenes (``fdt simulate``, seed 0): ``letters`` is the bundled sample's geometry (96², 8 slices, 64 sources 40 µm deep,
 NA 0.8), ``beads`` 64²×8 with 49 sources 30 µm deep. Each in three versions: ``_clean`` (point samples, the default
@@ -35,7 +35,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 SCENE_DIR = ROOT / "out" / "parts"
 RESULTS = ROOT / "benchmarks" / "results"
-DOC = ROOT / "docs" / "solver.md"
+DOC = ROOT / "docs" / "decisions" / "model-parts.md"
 EFFECTS = "--pixel-integration true --pupil-edge 0 --aberrations spherical=0.5"
 BASE = {"letters": "letters --seed 0", "beads": "beads --shape 64 64 --n-slices 8 --sources 7 --depth-um 30 --seed 0"}
 SETTINGS = {

@@ -4,7 +4,7 @@ Usage (repository root; a scene folder of ``benchmarks/model_parts.py``)::
 
     python benchmarks/tv_choice_seeds.py out/parts/letters_clean 0 1 2
 
-Used in docs/solver.md ("Run-to-run spread") to tell a spread of the chosen weight from a spread of the trajectory.
+Used in docs/decisions/run-to-run-spread.md to tell a spread of the chosen weight from a spread of the trajectory.
 """
 
 from __future__ import annotations

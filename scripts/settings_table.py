@@ -1,8 +1,8 @@
-"""Print, check or rewrite the settings table of docs/solver.md, generated from the settings schema.
+"""Print, check or rewrite the settings table of docs/settings.md, generated from the settings schema.
 
     python scripts/settings_table.py            # print the table
-    python scripts/settings_table.py --check    # exit 1 when docs/solver.md's table differs
-    python scripts/settings_table.py --write    # replace the table in docs/solver.md
+    python scripts/settings_table.py --check    # exit 1 when docs/settings.md's table differs
+    python scripts/settings_table.py --write    # replace the table in docs/settings.md
 
 The table lies between the two marker comments below; tests/test_schema.py checks it is up to date.
 """
@@ -14,7 +14,7 @@ from pathlib import Path
 
 from napari_fdt.recon.config import settings_markdown
 
-DOC = Path(__file__).resolve().parents[1] / "docs" / "solver.md"
+DOC = Path(__file__).resolve().parents[1] / "docs" / "settings.md"
 BEGIN = "<!-- settings table: generated from napari_fdt.recon.config by scripts/settings_table.py --write; do not edit -->"
 END = "<!-- end of the generated settings table -->"
 

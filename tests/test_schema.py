@@ -27,8 +27,8 @@ def _script(name: str):
 
 def test_docs_settings_table_is_the_generated_one() -> None:
     table = _script("settings_table")
-    text = (ROOT / "docs" / "solver.md").read_text(encoding="utf-8")
-    assert table.rewrite(text) == text, "docs/solver.md is out of date: python scripts/settings_table.py --write"
+    text = (ROOT / "docs" / "settings.md").read_text(encoding="utf-8")
+    assert table.rewrite(text) == text, "docs/settings.md is out of date: python scripts/settings_table.py --write"
     # every field is in it, with its bounds and its choices
     for name in schema_fields(SolverConfig):
         assert f"| `{name}` |" in text

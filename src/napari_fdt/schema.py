@@ -47,7 +47,7 @@ SCHEMA_CONFIG = ConfigDict(extra="forbid", allow_inf_nan=False)
 
 
 #: The tiers of settings, in the order ``--help`` and the docs show them: the few a user sets, the advanced ones, and
-#: the experimental ones (kept while they are measured; docs/solver.md, "Settings").
+#: the experimental ones (kept while they are measured; docs/settings.md).
 TIERS = ("basic", "advanced", "experimental")
 
 

@@ -1,7 +1,7 @@
 """Every solver setting, in one JSON-serialisable configuration shared by the API, ``fdt`` and napari.
 
 The fields below are the schema (:mod:`napari_fdt.schema`): their descriptions, bounds and choices are read by
-``fdt reconstruct``'s flags, the napari widgets and the settings table of ``docs/solver.md`` (regenerate it with
+``fdt reconstruct``'s flags, the napari widgets and the settings table of ``docs/settings.md`` (regenerate it with
 ``python scripts/settings_table.py --write``). Unknown keys are refused (a typo would otherwise be silently
 ignored) and bad values raise :class:`~napari_fdt.errors.FDTInputError` naming the field and the fix.
 """
@@ -105,7 +105,7 @@ class SolverConfig:
         24.0, ge=0, description="the finest stage runs at least this many passes over the images (iterations × batch / "
         "images; a pass visits every source once): acquisitions with many images get more iterations, since each source's "
         "position and gain are fitted only when its own image is in a batch; 0 keeps the stages' iterations "
-        "(docs/solver.md, \"Length of the finest stage\")")
+        "(docs/decisions/finest-stage-length.md)")
     # RI grid
     delta_n_max: float = setting(0.1, gt=0, description="bound of Δn (absolute RI units)")
     activation: Activation = setting("paper", strict=False, description="`\"paper\"` (Δn ≥ 0) or `\"signed\"`")
@@ -113,7 +113,7 @@ class SolverConfig:
     lr_ri_final_ratio: float = setting(
         1.0, gt=0, le=1, description="the RI step at the end of the finest stage over `lr_ri`: the step falls along that stage "
         "as ½(1 + cos(π·t))·(1 − r) + r (t from 0 to 1); 1 (the default) keeps it constant: a fall to 0.1 fitted the held-out "
-        "images better but gave a larger Δn error on each of three seeds of letters_clean (docs/solver.md, \"Run-to-run spread\")", tier="experimental")
+        "images better but gave a larger Δn error on each of three seeds of letters_clean (docs/decisions/run-to-run-spread.md)", tier="experimental")
     # losses
     l1_l2_total: float = setting(1.0, ge=0, description="α + β", fix="0 switches the term off")
     l1_ramp_start: float = setting(0.0, ge=0, le=1, description="fraction of the run where α starts rising from 0 (≤ `l1_ramp_end`)",
@@ -179,7 +179,7 @@ class SolverConfig:
     early_stopping_tolerance: float = setting(
         0.02, ge=0.0, description="relative rise of the validation error over its best that counts as worse (below it: noise of the "
         "optimisation, the later iterate is kept)")
-    # source-position steps (issue 12, item 4; docs/solver.md "Source positions on deep, wide scenes")
+    # source-position steps (issue 12, item 4; docs/decisions/source-steps.md)
     source_step: SourceStep = setting(
         "whitened", strict=False, description="how each source's position steps: `\"whitened\"`: one step per visit (when its image is in "
         "the batch) of `lr_sources_um × N/B` (N images, B per batch), scaled by the inverse square root of the 3×3 mean outer "
@@ -199,12 +199,12 @@ class SolverConfig:
     restart_source_moments: bool = setting(
         True, description="restart the optimiser moments of the source positions and of the depth offset at the start of "
         "every stage: the gradients of the previous stage's model and grid (an envelope stage's, biased and of another "
-        "scale) no longer steer or scale the steps (docs/solver.md, \"Source positions on deep, wide scenes\")", tier="experimental")
+        "scale) no longer steer or scale the steps (docs/decisions/source-steps.md)", tier="experimental")
     multislice_source_step_scale: float = setting(
         2.0, gt=0, description="scale of the per-visit step of the source positions and of its cap (λ/(4·NA)) in multi-slice "
         "stages (`source_step` `\"whitened\"` or `\"per_visit\"`; envelope stages keep 1): seen from 50 µm below a volume "
         "15 µm thick, a source's shift moves the volume's shadow on the camera by a fraction of itself, so its image's loss "
-        "stays smooth over more than a quarter of the resolution (docs/solver.md, \"Source positions on deep, wide scenes\")", tier="experimental")
+        "stays smooth over more than a quarter of the resolution (docs/decisions/source-steps.md)", tier="experimental")
     source_step_schedule: SourceStepSchedule = setting(
         "constant", strict=False, description="per-visit step of the source positions along a multi-slice stage (`\"whitened\"`, "
         "`\"per_visit\"`): `\"constant\"`; `\"cosine\"`: each source's step falls as ½(1 + cos(π·v/V)) from its first to its "
@@ -273,7 +273,7 @@ class SolverConfig:
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> "SolverConfig":
         if not isinstance(data, dict):
-            raise FDTInputError("config", f"must be a JSON object, got {type(data).__name__}", "see docs/solver.md")
+            raise FDTInputError("config", f"must be a JSON object, got {type(data).__name__}", "see docs/settings.md")
         return cls(**data)
 
     def save(self, path: str | Path) -> None:
@@ -335,6 +335,6 @@ def load_config(path: str | Path) -> SolverConfig:
 
 
 def settings_markdown() -> str:
-    """The settings table of ``docs/solver.md``, generated from :class:`SolverConfig` and :class:`StageConfig`."""
+    """The settings table of ``docs/settings.md``, generated from :class:`SolverConfig` and :class:`StageConfig`."""
     return markdown_table(SolverConfig) + "\n" + "Each entry of `stages`:\n\n" + markdown_table(StageConfig)
 

@@ -27,7 +27,7 @@ def _envelope_stages_before_multislice(config: SolverConfig, coarse_model: str) 
 def position_frozen_stages(config: SolverConfig, coarse_model: str) -> frozenset[int]:
     """Stages whose source positions and depth offset stay fixed: with ``calibrate_sources_in_envelope_stages`` off, the
     envelope stages (factor > 1, ``coarse_model`` ``"envelope"``) that a multi-slice stage follows. Fitted with the volume
-    at the truth, the envelope model pulls the positions off (``docs/solver.md``, "Source positions")."""
+    at the truth, the envelope model pulls the positions off (``docs/decisions/source-steps.md``)."""
     if config.calibrate_sources_in_envelope_stages:
         return frozenset()
     return _envelope_stages_before_multislice(config, coarse_model)
