@@ -2,7 +2,7 @@
 
 Usage (repository root)::
 
-    python benchmarks/ablation.py [--device cpu] [--out docs/ablation.md]
+    python -m benchmarks run ablation [--device cpu] [--out docs/ablation.md]
 
 Datasets (all the bundled sample's geometry: 96×96 px of 0.33 µm, 8 slices of 2 µm, 64 sources 40 µm deep,
 NA 0.8, noise 2000 photo-electrons, brightness spread 0.2, initial positions jittered 1 µm per axis):
@@ -129,7 +129,7 @@ def main() -> None:
     page = [
         "# Ablation: each component on and off",
         "",
-        "Made by `python benchmarks/ablation.py --device cpu` (this page and `ablation.json`, which holds every number",
+        "Made by `python -m benchmarks run ablation --device cpu` (this page and `ablation.json`, which holds every number",
         f"and the calibrated parameters). Run on {datetime.date.today().isoformat()}: {hardware['threads']} CPU threads,",
         f"torch {hardware['torch']}, the project's 2-core CI-class machine. The shape follows the paper's Table S1.",
         "",

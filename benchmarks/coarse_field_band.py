@@ -1,6 +1,6 @@
 """Can a coarse stage's multi-slice model cut the field's band? Measured on the demo optics (issue 16, item 1a).
 
-    OMP_NUM_THREADS=1 python benchmarks/coarse_field_band.py        # → benchmarks/results/coarse_field_band.json
+    OMP_NUM_THREADS=1 python -m benchmarks run coarse_field_band        # → benchmarks/results/coarse_field_band.json
 
 A stage of factor f compares block-averaged (f×f) images. A multi-slice model on a field grid of f·dx would hold
 field frequencies below 1/(2·f·dx) only, while the pupil passes up to NA/λ. Since the intensity is |E|², its low

@@ -1,7 +1,7 @@
 """Whole reconstructions with each coarse-stage model: final accuracy and time per stage (issue 16, item 1).
 
-    python benchmarks/regularisation.py make-scenes --scenes beads,letters128      # scenes into out/scenes/
-    OMP_NUM_THREADS=1 python benchmarks/coarse_recon.py --scenes sample,beads --models envelope,envelope_batched,multislice
+    python -m benchmarks run regularisation make-scenes --scenes beads,letters128      # scenes into out/scenes/
+    OMP_NUM_THREADS=1 python -m benchmarks run coarse_recon --scenes sample,beads --models envelope,envelope_batched,multislice
 
 Every run uses the default settings except ``coarse_model``: ``envelope`` (the envelope model, path chosen by
 device: one slice at a time on the CPU), ``envelope_batched`` (the same model forced onto its batched path,
@@ -16,23 +16,21 @@ from __future__ import annotations
 import argparse
 import json
 import platform
-import sys
 import time
 from pathlib import Path
 
 import torch
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "benchmarks"))
 
 
 def run(scene: str, model: str, device: str) -> dict:
+    from benchmarks.regularisation import SCENES
     from napari_fdt import read_acquisition, read_volume_tiff
     from napari_fdt.model.envelope import EnvelopeModel
     from napari_fdt.recon.config import SolverConfig
     from napari_fdt.recon.metrics import relative_delta_n_error
     from napari_fdt.recon.solver import Reconstructor
-    from regularisation import SCENES
 
     folder, _ = SCENES[scene]
     acq = read_acquisition(folder)

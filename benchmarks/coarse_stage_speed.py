@@ -1,7 +1,7 @@
 """Cost of one training iteration per coarse-to-fine stage, and the operations it launches (issue 16, item 1).
 
-    OMP_NUM_THREADS=1 python benchmarks/coarse_stage_speed.py --device cpu            # sample + demo geometry
-    python benchmarks/coarse_stage_speed.py --device cuda --cuda-graph                # adds CUDA-graph rows
+    OMP_NUM_THREADS=1 python -m benchmarks run coarse_stage_speed --device cpu            # sample + demo geometry
+    python -m benchmarks run coarse_stage_speed --device cuda --cuda-graph                # adds CUDA-graph rows
 
 For each geometry and stage factor (4, 2, 1) the stage is built as the solver builds it
 (:func:`napari_fdt.recon.stages.build_stage`) and one iteration is timed: forward through the stage model, an L2

@@ -1,9 +1,9 @@
 """One default run, or one plain pass, of a suite scene: wall time, the TV choice, the parts kept, the Δn error and the
 validation error, as one JSON line (docs/decisions/one-pass-default-vs-plain.md).
 
-    python benchmarks/default_vs_plain.py SCENE [--seed 0]                         # the defaults
-    python benchmarks/default_vs_plain.py SCENE --plain 1 [--set '{"calibrate_pupil": true}']   # τ_xy 1, τ_z 0.5 given
-    PYTHONPATH=/path/to/older/checkout/src python benchmarks/default_vs_plain.py SCENE   # the same with older code
+    python -m benchmarks run default_vs_plain SCENE [--seed 0]                         # the defaults
+    python -m benchmarks run default_vs_plain SCENE --plain 1 [--set '{"calibrate_pupil": true}']   # τ_xy 1, τ_z 0.5 given
+    PYTHONPATH=/path/to/older/checkout/src python -m benchmarks run default_vs_plain SCENE   # the same with older code
 
 SCENE: a name of ``benchmarks/regularisation.py``'s suite (``make-scenes`` simulates them) or a folder under out/scenes.
 """
@@ -12,16 +12,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import time
-from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).parent))
+from benchmarks.regularisation import SCENE_DIR, SCENES  # noqa: E402
 from napari_fdt import read_acquisition, read_volume_tiff  # noqa: E402
 from napari_fdt.recon.config import SolverConfig  # noqa: E402
 from napari_fdt.recon.metrics import relative_delta_n_error  # noqa: E402
 from napari_fdt.recon.solver import Reconstructor  # noqa: E402
-from regularisation import SCENE_DIR, SCENES  # noqa: E402
 
 
 def main() -> None:

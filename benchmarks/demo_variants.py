@@ -1,6 +1,6 @@
 """Settings on the authors' demo geometry (issue 5): which solver settings reach which accuracy how fast.
 
-    python benchmarks/demo_variants.py --device cuda [--variants default,tv,...] [--iterations 200,200,400]
+    python -m benchmarks run demo_variants --device cuda [--variants default,tv,...] [--iterations 200,200,400]
 
 Simulates the demo scene of ``benchmarks/suite.py`` once, then runs each variant (a dict of
 ``SolverConfig`` overrides) with the same data and seed, printing relative Δn error, the authors'
@@ -19,10 +19,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-sys.path.insert(0, str(Path(__file__).parent))
+from benchmarks.suite import _letters_scene, run_scene  # noqa: E402
 from napari_fdt import resolve_device  # noqa: E402
 from napari_fdt.recon.config import SolverConfig, StageConfig  # noqa: E402
-from suite import _letters_scene, run_scene  # noqa: E402
 
 VARIANTS = {
     "default": {},

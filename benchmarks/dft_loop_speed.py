@@ -1,7 +1,7 @@
 """The slice loop with FFTs as DFT-matrix products (:mod:`napari_fdt.model.dft_loop`) against torch.fft (issue 16, item 2).
 
-    OMP_NUM_THREADS=1 python benchmarks/dft_loop_speed.py --device cpu --sizes 128,256,512 --batch 8 --slices 14
-    python benchmarks/dft_loop_speed.py --device cuda --sizes 512,1024 --batch 30 --slices 14,24     # a GPU session
+    OMP_NUM_THREADS=1 python -m benchmarks run dft_loop_speed --device cpu --sizes 128,256,512 --batch 8 --slices 14
+    python -m benchmarks run dft_loop_speed --device cuda --sizes 512,1024 --batch 30 --slices 14,24     # a GPU session
 
 Per size: one 2D transform pair (forward + unnormalised inverse) of a batch of complex64 fields, and one step of
 the slice loop (forward, |u|² loss, backward to v0, φ and K): the package's ``slice_loop`` (stored mode, torch.fft)

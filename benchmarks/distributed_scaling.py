@@ -2,9 +2,9 @@
 
 Usage (from the repository root, with napari-fdt installed)::
 
-    python benchmarks/distributed_scaling.py --device cpu --nproc 1 2                  # gloo on CPU
-    python benchmarks/distributed_scaling.py --device cuda --nproc 1 2                 # one GPU per rank (NCCL)
-    python benchmarks/distributed_scaling.py --device cuda --nproc 1 2 --backend gloo  # N ranks on one GPU
+    python -m benchmarks run distributed_scaling --device cpu --nproc 1 2                  # gloo on CPU
+    python -m benchmarks run distributed_scaling --device cuda --nproc 1 2                 # one GPU per rank (NCCL)
+    python -m benchmarks run distributed_scaling --device cuda --nproc 1 2 --backend gloo  # N ranks on one GPU
 
 Each run is ``fdt reconstruct`` of ``--acquisition`` (default the bundled letters sample) with the default
 configuration cut to ``--iterations`` per stage. It reports seconds per iteration of every stage (from the

@@ -4,7 +4,7 @@ source-depth shift degenerate with the defocus and spherical aberration (the tru
 
 Usage (repository root; scenes of ``benchmarks/model_parts.py make-scenes``)::
 
-    python benchmarks/effects_at_truth.py out/parts/letters_effects
+    python -m benchmarks run effects_at_truth out/parts/letters_effects
 
 Errors: median over images of the relative L2 error after a least-squares gain per image.
 """

@@ -2,7 +2,7 @@
 
 Run from the repository root::
 
-    python benchmarks/forward_memory.py            # CPU (one subprocess per configuration), and CUDA if present
+    python -m benchmarks run forward_memory            # CPU (one subprocess per configuration), and CUDA if present
 
 For each (window side, slices, batch) it builds a :class:`~napari_fdt.model.forward.MultiSliceModel` on a window of
 that size, renders ``batch`` images with :func:`napari_fdt.model.render.render_images` (``torch.no_grad``) and

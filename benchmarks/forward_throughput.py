@@ -2,8 +2,8 @@
 
 Usage (from the repository root, with napari-fdt installed)::
 
-    python benchmarks/forward_throughput.py --device cpu            # 256² and 512² scenes
-    python benchmarks/forward_throughput.py --device cuda --gpu     # 512²×14 and 1024²×24, batch 30
+    python -m benchmarks run forward_throughput --device cpu            # 256² and 512² scenes
+    python -m benchmarks run forward_throughput --device cuda --gpu     # 512²×14 and 1024²×24, batch 30
 
 Writes ``benchmarks/results/forward_<device>.json`` (hardware, versions, per-scene timings) and prints
 a Markdown table for ``docs/benchmarks.md``. Timing only: the numbers are never asserted anywhere.

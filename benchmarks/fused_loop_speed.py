@@ -1,7 +1,7 @@
 """The fused Triton slice loop (:mod:`napari_fdt.model.fused_loop`) against the FFT loop on a GPU (issue 16, item 2).
 
-    python benchmarks/fused_loop_speed.py --sizes 512,1024 --slices 14,24 --batch 30        # a GPU session
-    python benchmarks/fused_loop_speed.py --device cpu --sizes 64 --slices 4 --batch 2 --repeats 1   # interpreter
+    python -m benchmarks run fused_loop_speed --sizes 512,1024 --slices 14,24 --batch 30        # a GPU session
+    python -m benchmarks run fused_loop_speed --device cpu --sizes 64 --slices 4 --batch 2 --repeats 1   # interpreter
 
 One step of the slice loop (forward, weighted |u|² loss, backward to v0 and φ) per size: the package's
 ``slice_loop`` in ``"stored"`` mode (torch.fft, cuFFT on a GPU) against ``fused_slice_loop`` in each precision

@@ -1,6 +1,6 @@
 """Correctness on a CUDA device (CI has none): run on a GPU machine before quoting GPU figures.
 
-    python benchmarks/gpu_checks.py
+    python -m benchmarks run gpu_checks
 
 Checks, each against a reference in float64 on the CPU, on fresh random inputs:
 1. the fused Triton adjoint kernel against the torch version (outputs poisoned first: every element written);
@@ -21,13 +21,11 @@ from __future__ import annotations
 
 import math
 import sys
-from pathlib import Path
 
 import numpy as np
 import torch
 
-sys.path.insert(0, str(Path(__file__).parent))
-from naive_step import naive_loop  # noqa: E402
+from benchmarks.naive_step import naive_loop  # noqa: E402
 from napari_fdt import MultiSliceModel, Optics, plan_for_sources, source_grid
 from napari_fdt.physics.grid import frequency_grid
 from napari_fdt.physics.propagation import propagation_kernel

@@ -2,7 +2,7 @@
 
 Run from the repository root::
 
-    python benchmarks/hard_cases.py            # writes docs/hard_cases.md
+    python -m benchmarks run hard_cases            # writes docs/hard_cases.md
 
 For each case it (a) runs the multi-slice forward model in float32 and float64 and reports the relative
 L2 error of the float32 images against float64, (b) back-propagates a scalar loss to Δn and the source
@@ -36,7 +36,7 @@ from napari_fdt.recon.solver import Reconstructor
 from napari_fdt.sim.simulate import simulate, source_grid
 
 ROOT = Path(__file__).resolve().parents[1]
-COMMAND = "python benchmarks/hard_cases.py"
+COMMAND = "python -m benchmarks run hard_cases"
 
 #: Base optics of every case (overridden per case): 0.6 µm in water, NA 0.5, 0.5 µm pixels, 8 × 1 µm slices.
 BASE = dict(wavelength_um=0.6, n_background=1.33, na=0.5, pixel_size_um=0.5, n_slices=8, slice_spacing_um=1.0,
@@ -278,7 +278,7 @@ def markdown(results: list[dict], obliquity: list[dict] | None = None) -> str:
         "but finite.",
     ]
     if obliquity:
-        lines += ["", "## Obliquity of the thin screen (`python benchmarks/obliquity.py`, docs/physics.md §6)", "",
+        lines += ["", "## Obliquity of the thin screen (`python -m benchmarks run obliquity`, docs/physics.md §6)", "",
                   "A uniform slab (Δn 0.02, T 8 µm) filling the window; the screens give every plane-wave component "
                   "2π·T·Δn/λ, the exact slab 2π·T·(sqrt((n_b+Δn)²/λ² − f²) − sqrt(n_b²/λ² − f²)). Image: a source 20 µm "
                   "below, the whole defocused disc, relative L2 after a least-squares gain.", "",
@@ -309,11 +309,8 @@ def main(argv: list[str] | None = None) -> int:
         results.append(r)
     obliquity = []
     if not args.no_obliquity:
-        import importlib.util
+        from benchmarks import obliquity as ob
 
-        spec = importlib.util.spec_from_file_location("_fdt_obliquity", Path(__file__).with_name("obliquity.py"))
-        ob = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(ob)
         for na in (0.45, 0.8):
             r = {**ob.measure_plane_wave(na, 8, 0.02), **ob.measure_image(na, 8, 0.02)}
             print(f"obliquity NA {na}: phase error {r['error']:.3f}, image {r['model']:.4f}", flush=True)

@@ -1,6 +1,6 @@
 """Cost of the exact homogeneous field with non-radial aberrations (angular harmonics) on the sample's geometry.
 
-    python benchmarks/harmonics_cost.py [--threads 1]
+    python -m benchmarks run harmonics_cost [--threads 1]
 
 Hard pupil, pixel integration, 0.1 rad in each of the six Zernike modes (trainable), 4 images of
 ``sample_data/letters``: the time of a forward pass on the first call (Bessel tables J_0 … J_M built) and on the

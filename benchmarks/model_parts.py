@@ -2,9 +2,9 @@
 
 Usage (repository root)::
 
-    python benchmarks/model_parts.py make-scenes
-    python benchmarks/model_parts.py run --scenes letters_clean,letters_effects --settings auto,off
-    python benchmarks/model_parts.py table --write      # docs/decisions/model-parts.md's table
+    python -m benchmarks run model_parts make-scenes
+    python -m benchmarks run model_parts run --scenes letters_clean,letters_effects --settings auto,off
+    python -m benchmarks run model_parts table --write      # docs/decisions/model-parts.md's table
 
 Scenes (``fdt simulate``, seed 0): ``letters`` is the bundled sample's geometry (96², 8 slices, 64 sources 40 µm deep,
 NA 0.8), ``beads`` 64²×8 with 49 sources 30 µm deep. Each in three versions: ``_clean`` (point samples, the default
@@ -209,7 +209,7 @@ def write_doc(rows: list[dict]) -> None:
     hw = sorted({f"{r['device']} ({r['threads']} thread(s), {r['cpu']}, torch {r['torch']}, {r['date']})" for r in rows})
     body = "\n".join([
         start,
-        "Measured with `python benchmarks/model_parts.py run --scenes ... --settings auto,off` and `... table --write`",
+        "Measured with `python -m benchmarks run model_parts run --scenes ... --settings auto,off` and `... table --write`",
         "(rows in `benchmarks/results/model_parts_<device>.jsonl`; the scenes are described in the script's docstring:",
         "`_effects` has pixel integration, a hard pupil and 0.5 rad of spherical aberration with the first two stated in",
         "acquisition.json, `_real` the same images with nothing stated). `off`: every optional part off.",

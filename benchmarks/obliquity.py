@@ -2,7 +2,7 @@
 
 Run from the repository root::
 
-    python benchmarks/obliquity.py          # prints the tables of docs/physics.md §6 (Markdown)
+    python -m benchmarks run obliquity          # prints the tables of docs/physics.md §6 (Markdown)
 
 A uniform slab of contrast Δn fills the volume (the whole window, so it is laterally infinite): every plane-wave
 component then picks up exactly ``φ_exact(f) = 2π·T·(sqrt((n_b+Δn)²/λ² − f²) − sqrt(n_b²/λ² − f²))`` (reflections

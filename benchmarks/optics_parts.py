@@ -1,6 +1,6 @@
 """The camera and objective parts of the forward model: accuracy against the brute-force reference, and cost.
 
-    python benchmarks/optics_parts.py [--images 4] [--grow 5]
+    python -m benchmarks run optics_parts [--images 4] [--grow 5]
 
 Scene: ``fdt simulate beads``'s defaults (96×96 px of 0.33 µm, NA 0.8, λ 0.635, 8 slices of 2 µm, sources 40 µm
 deep on the 8×8 grid spanning 80 % of the field); a subset of the sources (corners and centre first).
@@ -13,19 +13,16 @@ samples, no aberration); then the time of one float32 forward pass of 16 images 
 from __future__ import annotations
 
 import argparse
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-import independent_reference_optics as ref  # noqa: E402
 from napari_fdt.model.forward import MultiSliceModel  # noqa: E402
 from napari_fdt.physics.grid import plan_for_sources  # noqa: E402
 from napari_fdt.physics.optics import Optics  # noqa: E402
 from napari_fdt.sim.simulate import make_scene, source_grid  # noqa: E402
+from tests import independent_reference_optics as ref  # noqa: E402
 
 
 def main() -> None:

@@ -1,6 +1,6 @@
 """Plots of ``benchmarks/suite.py`` results: error against wall time, per scene.
 
-    python benchmarks/plot_suite.py benchmarks/results/suite_cuda.json [more.json ...] [--out docs/images]
+    python -m benchmarks run plot_suite benchmarks/results/suite_cuda.json [more.json ...] [--out docs/images]
 
 Writes ``suite_<device>_<scene>.png`` (relative Δn error and normalised PSNR/SSIM against seconds, stage
 boundaries marked, the authors' quoted 500-iteration accuracy drawn for the demo scene). Needs matplotlib.

@@ -1,6 +1,6 @@
 """Where the time of one training step goes on a GPU: primitive costs and a kernel-level profile.
 
-    python benchmarks/profile_step.py [--side 1024 --slices 24 --batch 30] [--solver-demo]
+    python -m benchmarks run profile_step [--side 1024 --slices 24 --batch 30] [--solver-demo]
 
 Prints (1) the two ceilings: a device-to-device copy of one batch of fields (bytes read + written) and
 one batched fft2 of it; (2) each elementwise primitive of the slice loop; (3) the top CUDA kernels of
@@ -12,13 +12,10 @@ from __future__ import annotations
 
 import argparse
 import statistics
-import sys
-from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).parent))
-from step_speed import _inputs, _package_step, _timer  # noqa: E402
+from benchmarks.step_speed import _inputs, _package_step, _timer  # noqa: E402
 
 
 def bench(fn, repeats=30):
@@ -78,9 +75,9 @@ def profile_solver_demo():
 
     from torch.profiler import ProfilerActivity, profile
 
+    from benchmarks.suite import _letters_scene
     from napari_fdt.recon.config import SolverConfig, StageConfig
     from napari_fdt.recon.solver import Reconstructor
-    from suite import _letters_scene
 
     acq, dn = _letters_scene(512, 14, 13, 84.0, 100, torch.device("cuda"), text="UCDAVIS")
     for factor in (4, 2, 1):

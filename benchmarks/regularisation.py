@@ -2,9 +2,9 @@
 
 Usage (repository root)::
 
-    python benchmarks/regularisation.py make-scenes            # simulate the suite's scenes into out/scenes/
-    python benchmarks/regularisation.py run --scenes sample,beads --settings auto,0,1,5,10,50,200
-    python benchmarks/regularisation.py table                  # docs/ablation.md's regularisation section
+    python -m benchmarks run regularisation make-scenes            # simulate the suite's scenes into out/scenes/
+    python -m benchmarks run regularisation run --scenes sample,beads --settings auto,0,1,5,10,50,200
+    python -m benchmarks run regularisation table                  # docs/ablation.md's regularisation section
 
 Every run is a full reconstruction with the default settings except the TV weights: ``auto`` (the default,
 ``tv_xy_weight = tv_z_weight = "auto"``), ``0`` (no TV), or a number τ (τ_xy = τ, τ_z = τ/2, as the issue's
@@ -261,8 +261,8 @@ def write_doc(rows: list[dict], since: str | None = None) -> None:
                        for name, (_, args) in SCENES.items() if any(r["scene"] == name for r in rows))
     body = "\n".join([
         start,
-        "Made by `python benchmarks/regularisation.py run --scenes SCENES --settings auto,0,1,5,10,50,200` and",
-        f"`python benchmarks/regularisation.py table --write{' --since ' + since if since else ''}` (every row, with each stage's "
+        "Made by `python -m benchmarks run regularisation run --scenes SCENES --settings auto,0,1,5,10,50,200` and",
+        f"`python -m benchmarks run regularisation table --write{' --since ' + since if since else ''}` (every row, with each stage's "
         "errors, the trials of \"auto\" and the model parts kept,",
         "is in `benchmarks/results/regularisation_<device>.jsonl`; older rows stay there as history). Each row is a full",
         "reconstruction with the default settings (10 % of the images held out) except the TV weights: `auto` (the default),",

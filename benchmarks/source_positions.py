@@ -2,9 +2,9 @@
 
 Usage (repository root)::
 
-    python benchmarks/source_positions.py fixed --scene out/scenes/letters128 --factor 2 --model envelope
-    python benchmarks/source_positions.py fixed --scene out/scenes/letters128 --factor 1 --model multislice --start truth
-    python benchmarks/source_positions.py run --scene letters128 --setting 0 --set '{"multislice_source_step_scale": 1}'
+    python -m benchmarks run source_positions fixed --scene out/scenes/letters128 --factor 2 --model envelope
+    python -m benchmarks run source_positions fixed --scene out/scenes/letters128 --factor 1 --model multislice --start truth
+    python -m benchmarks run source_positions run --scene letters128 --setting 0 --set '{"multislice_source_step_scale": 1}'
 
 ``fixed`` builds one solver stage (``factor``, ``model``), sets the RI to the scene's ground truth (block-averaged
 to the stage grid) or to zero (``--volume zero``), and trains only the calibration (positions, per-source depths,
@@ -106,10 +106,8 @@ def fixed_volume_fit(folder: Path, factor: int, model: str, start: str = "initia
 def traced_run(scene: str, setting: str, overrides: dict | None = None, every: int = 40, verbose: bool = False) -> dict:
     """One full default reconstruction of a suite scene (``benchmarks/regularisation.py``'s ``run_one`` row) with the
     source errors traced every ``every`` iterations of each stage and at each stage's end (``trace``)."""
-    import sys
 
-    sys.path.insert(0, str(Path(__file__).parent))
-    import regularisation as suite
+    from benchmarks import regularisation as suite
 
     trace: list[dict] = []
 

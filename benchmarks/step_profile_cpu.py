@@ -1,7 +1,7 @@
 """The sample's finest step against the naive step on the CPU, and where the step's time goes (docs/benchmarks.md,
 "The finest step against the naive step on the CPU").
 
-    python benchmarks/step_profile_cpu.py [--acquisition DIR] [--pixel-integration] [--repeats 10] [--profile]
+    python -m benchmarks run step_profile_cpu [--acquisition DIR] [--pixel-integration] [--repeats 10] [--profile]
 
 Times ``Reconstructor._step`` on an acquisition's (default the bundled sample's) finest stage (factor 1, TV 1/0.5,
 parts off, the default validation split: held-out images in a batch run through the model separately) and ``benchmarks/naive_step.py`` on the
@@ -12,14 +12,12 @@ operator table of 5 steps. Nothing is asserted; this reports.
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).parent))
-from naive_step import naive_step  # noqa: E402
+from benchmarks.naive_step import naive_step  # noqa: E402
 from napari_fdt.data.io import read_acquisition  # noqa: E402
 from napari_fdt.recon.config import SolverConfig  # noqa: E402
 from napari_fdt.recon.solver import Reconstructor  # noqa: E402

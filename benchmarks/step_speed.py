@@ -2,8 +2,8 @@
 
 Usage (repository root)::
 
-    python benchmarks/step_speed.py --device cuda                 # 512²×14 and 1024²×24 at batch 30, 1024²×96 memory
-    python benchmarks/step_speed.py --device cpu --quick          # small sizes, to try it without a GPU
+    python -m benchmarks run step_speed --device cuda                 # 512²×14 and 1024²×24 at batch 30, 1024²×96 memory
+    python -m benchmarks run step_speed --device cpu --quick          # small sizes, to try it without a GPU
 
 For each size, on the same random inputs in one process: the naive eager step
 (``benchmarks/naive_step.py``), the package's slice loop in each backward mode
@@ -28,8 +28,7 @@ from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).parent))
-from naive_step import naive_step  # noqa: E402
+from benchmarks.naive_step import naive_step  # noqa: E402
 from napari_fdt import MultiSliceModel, Optics, plan_for_sources, resolve_device, source_grid  # noqa: E402
 from napari_fdt.model.slice_loop import slice_loop  # noqa: E402
 from napari_fdt.physics.grid import frequency_grid  # noqa: E402

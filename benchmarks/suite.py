@@ -2,9 +2,9 @@
 against wall time (relative Δn error, the authors' normalised PSNR/SSIM, image loss), seconds per
 iteration per stage and peak memory::
 
-    python benchmarks/suite.py --device cuda                       # sample, demo, big
-    python benchmarks/suite.py --device cpu --scenes sample        # the CPU-sized scene only
-    python benchmarks/plot_suite.py benchmarks/results/suite_cuda.json   # PNG plots into docs/images/
+    python -m benchmarks run suite --device cuda                       # sample, demo, big
+    python -m benchmarks run suite --device cpu --scenes sample        # the CPU-sized scene only
+    python -m benchmarks run plot_suite benchmarks/results/suite_cuda.json   # PNG plots into docs/images/
 
 Scenes
 - ``sample``: the bundled ``sample_data/letters`` (96², 8 slices, 64 sources), default settings.

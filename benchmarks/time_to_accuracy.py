@@ -1,7 +1,7 @@
 """Cold time to the authors' demo accuracy: normalised PSNR ≥ 24 and SSIM ≥ 0.59 (issue 16, item 3; GPU).
 
-    python benchmarks/time_to_accuracy.py --device cuda                          # demo geometry, the suite's demo settings
-    python benchmarks/time_to_accuracy.py --device cuda --coarse-model envelope  # same, envelope coarse stages
+    python -m benchmarks run time_to_accuracy --device cuda                          # demo geometry, the suite's demo settings
+    python -m benchmarks run time_to_accuracy --device cuda --coarse-model envelope  # same, envelope coarse stages
 
 Run it as the first thing in a fresh process on a freshly started machine: that is the *cold* time. The demo scene
 (``benchmarks/suite.py``'s ``demo``: 512²×14, 1521 sources, letters Δn 0.03) is simulated first, not timed. Two
@@ -22,23 +22,21 @@ PROCESS_START = time.perf_counter()
 import argparse  # noqa: E402
 import json  # noqa: E402
 import platform  # noqa: E402
-import sys  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import torch  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "benchmarks"))
 
 AUTHORS_S = 720.0
 
 
 def main() -> None:
+    from benchmarks.suite import demo_config, scene_demo, scene_sample
     from napari_fdt import resolve_device
     from napari_fdt.recon.config import SolverConfig
     from napari_fdt.recon.metrics import paper_normalised_metrics
     from napari_fdt.recon.solver import Reconstructor
-    from suite import demo_config, scene_demo, scene_sample
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--device", default="cuda")

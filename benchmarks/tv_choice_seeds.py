@@ -2,7 +2,7 @@
 
 Usage (repository root; a scene folder of ``benchmarks/model_parts.py``)::
 
-    python benchmarks/tv_choice_seeds.py out/parts/letters_clean 0 1 2
+    python -m benchmarks run tv_choice_seeds out/parts/letters_clean 0 1 2
 
 Used in docs/decisions/run-to-run-spread.md to tell a spread of the chosen weight from a spread of the trajectory.
 """

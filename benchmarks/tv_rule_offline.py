@@ -2,8 +2,8 @@
 
 Usage (repository root)::
 
-    python benchmarks/tv_rule_offline.py --since 2026-11-25          # table of rules × scenes, means over seeds
-    python benchmarks/tv_rule_offline.py --since 2026-11-25 --markdown
+    python -m benchmarks run tv_rule_offline --since 2026-11-25          # table of rules × scenes, means over seeds
+    python -m benchmarks run tv_rule_offline --since 2026-11-25 --markdown
 
 An "auto" run is bit-identical to the run given its chosen weight as a number (``tests/test_regularisation.py``), and
 its row in ``benchmarks/results/regularisation_cpu.jsonl`` keeps every trial of the pilot with its per-image held-out
@@ -19,14 +19,11 @@ over the same seeds (weights run with every seed that has an "auto" row).
 from __future__ import annotations
 
 import argparse
-import sys
-from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+from benchmarks.regularisation import RESULTS, SCENES, load_rows  # noqa: E402
 from napari_fdt.recon.regularisation import pick  # noqa: E402
-from regularisation import RESULTS, SCENES, load_rows  # noqa: E402
 
 RULES = {"argmin (0 SE)": 0.0, "1 SE (default)": 1.0, "2 SE": 2.0}
 

@@ -21,7 +21,7 @@ import math
 
 import numpy as np
 
-import independent_reference as base
+from tests import independent_reference as base
 
 __all__ = ["zernike_phase", "forward_images_optics"]
 

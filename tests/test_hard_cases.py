@@ -6,25 +6,17 @@ w.r.t. Δn and source positions, a 2-stage × 3-iteration reconstruction); about
 
 from __future__ import annotations
 
-import importlib.util
 import math
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 
+from benchmarks import hard_cases as hc  # the benchmark's cases
 from napari_fdt.data.acquisition import Acquisition
 from napari_fdt.errors import FDTInputError
 from napari_fdt.physics.optics import Optics
 from napari_fdt.recon.config import SolverConfig, StageConfig
 from napari_fdt.recon.solver import Reconstructor
-
-_PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "hard_cases.py"
-_spec = importlib.util.spec_from_file_location("_fdt_hard_cases", _PATH)
-hc = importlib.util.module_from_spec(_spec)
-sys.modules[_spec.name] = hc
-_spec.loader.exec_module(hc)
 
 NAMES = [c.name for c in hc.CASES]
 

@@ -16,8 +16,7 @@ import numpy as np
 import pytest
 import tifffile
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-import independent_reference as ref  # noqa: E402
+from tests import independent_reference as ref  # noqa: E402
 
 
 def _simulate(out: Path, scene: str, *args: str) -> str:

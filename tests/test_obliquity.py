@@ -7,22 +7,14 @@ slice count. Their ratio minus one is ``1/cos θ − 1 − (Δn/(2·n_b))·sin²
 
 from __future__ import annotations
 
-import importlib.util
 import math
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
+from benchmarks import obliquity as ob  # the benchmark's measurement
 from napari_fdt.errors import FDTInputError
-
-_PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "obliquity.py"
-_spec = importlib.util.spec_from_file_location("_fdt_obliquity_bench", _PATH)
-ob = importlib.util.module_from_spec(_spec)
-sys.modules[_spec.name] = ob
-_spec.loader.exec_module(ob)
 
 
 @pytest.mark.parametrize("na", [0.3, 0.66, 0.95])

@@ -7,9 +7,6 @@ exact homogeneous field (Hankel transform), Cartesian polynomials and a Fourier-
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
 import numpy as np
 import pytest
 import torch
@@ -18,9 +15,7 @@ from napari_fdt.model.forward import MultiSliceModel
 from napari_fdt.physics.grid import plan_for_sources
 from napari_fdt.physics.optics import Optics
 from napari_fdt.sim.phantoms import bead_phantom
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-import independent_reference_optics as ref  # noqa: E402
+from tests import independent_reference_optics as ref  # noqa: E402
 
 GEOMETRIES = {
     "na0.8_hard": dict(optics=dict(wavelength_um=0.635, n_background=1.33, na=0.8, pixel_size_um=0.33, n_slices=4,
