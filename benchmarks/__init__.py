@@ -1,6 +1,6 @@
 """The project's benchmarks: speed, memory and accuracy measurements behind the numbers in docs/.
 
-Run them from the repository root as a package (no ``sys.path`` edits; one module imports another as
+Run them from the repository root as a package (no edits of the import path; one module imports another as
 ``benchmarks.<name>``)::
 
     python -m benchmarks list                 # each benchmark and what it measures

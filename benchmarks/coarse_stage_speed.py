@@ -12,7 +12,7 @@ loss against the stage's images, backward to Δn (stage grid), the source positi
 - ``envelope_per_slice``: the same model one slice at a time (``images_per_slice``, its path on the CPU);
 - ``multislice``: :class:`~napari_fdt.model.forward.MultiSliceModel` on the field grid the pupil needs;
 - ``envelope_graph`` (``--cuda-graph``, CUDA only): the batched envelope captured in CUDA graphs
-  (:mod:`napari_fdt.model.graphed`).
+  (:mod:`benchmarks._graphed`).
 
 ``ops`` counts the operations of one iteration that run arithmetic (torch.profiler, CPU activity: leaf ATen
 operations other than views and allocations, each FFT once): on a GPU each is at least one kernel launch, so it
@@ -166,7 +166,7 @@ def main() -> None:
                         return stage.model.images_per_slice
                 elif name == "envelope_graph":
                     def call_for(dn, s, g, stage=stage):
-                        from napari_fdt.model.graphed import graphed_model
+                        from benchmarks._graphed import graphed_model
 
                         return graphed_model(stage.model, dn, s, g)
                 else:

@@ -1,4 +1,4 @@
-"""The slice loop with FFTs as DFT-matrix products (:mod:`napari_fdt.model.dft_loop`) against torch.fft (issue 16, item 2).
+"""The slice loop with FFTs as DFT-matrix products (:mod:`benchmarks._dft_loop`) against torch.fft (issue 16, item 2).
 
     OMP_NUM_THREADS=1 python -m benchmarks run dft_loop_speed --device cpu --sizes 128,256,512 --batch 8 --slices 14
     python -m benchmarks run dft_loop_speed --device cuda --sizes 512,1024 --batch 30 --slices 14,24     # a GPU session
@@ -20,8 +20,8 @@ from pathlib import Path
 
 import torch
 
+from benchmarks._dft_loop import DftPlan, dft_slice_loop
 from napari_fdt import resolve_device
-from napari_fdt.model.dft_loop import DftPlan, dft_slice_loop
 from napari_fdt.model.slice_loop import slice_loop
 from napari_fdt.physics.propagation import propagation_kernel
 

@@ -9,7 +9,7 @@ Checks, each against a reference in float64 on the CPU, on fresh random inputs:
 4. a short reconstruction on CUDA against the same on the CPU (envelope coarse stage: the batched path on CUDA);
 5. the envelope model's batched path on CUDA (float32), eager and captured in a CUDA graph, against its per-slice
    path in float64 on the CPU: images and gradients (issue 16);
-6. the DFT-matrix slice loop (:mod:`napari_fdt.model.dft_loop`) on CUDA, float32 without TF32: gradients within
+6. the DFT-matrix slice loop (:mod:`benchmarks._dft_loop`) on CUDA, float32 without TF32: gradients within
    1e-5 of the float64 reference (issue 16's bound);
 7. the fused Triton slice loop (:mod:`napari_fdt.model.fused_loop`) compiled for CUDA, both precisions ("ieee",
    "tf32x3"), powers of two and a 2·3·5-smooth window: field and gradients within 1e-5 of the float64 reference,
@@ -134,8 +134,8 @@ def check_reconstruction(dev) -> None:
 
 
 def check_envelope(dev) -> None:
+    from benchmarks._graphed import graphed_model
     from napari_fdt.model.envelope import EnvelopeModel
-    from napari_fdt.model.graphed import graphed_model
 
     o = Optics(wavelength_um=0.6, n_background=1.33, na=0.65, pixel_size_um=0.33, n_slices=14, slice_spacing_um=1.5, image_plane_um=10.5)
     g = torch.Generator().manual_seed(5)
@@ -163,7 +163,7 @@ def check_envelope(dev) -> None:
 
 
 def check_dft_loop(dev) -> None:
-    from napari_fdt.model.dft_loop import DftPlan, dft_slice_loop
+    from benchmarks._dft_loop import DftPlan, dft_slice_loop
     from napari_fdt.model.slice_loop import slice_loop
 
     torch.backends.cuda.matmul.allow_tf32 = False  # TF32 products carry 10-bit mantissas: far above 1e-5

@@ -5,7 +5,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from napari_fdt.model.dft_loop import DftPlan, dft_slice_loop, split_factors
+from benchmarks._dft_loop import DftPlan, dft_slice_loop
+from napari_fdt.model.fused_loop import split_factors
 from napari_fdt.model.slice_loop import slice_loop
 from napari_fdt.physics.propagation import propagation_kernel
 

@@ -151,7 +151,7 @@ def test_step_kernels_match_the_autograd_kernels_with_gradients() -> None:
 
 
 def test_batched_auto_follows_the_device_and_graphs_need_cuda() -> None:
-    from napari_fdt.model.graphed import can_graph, graphed_model
+    from benchmarks._graphed import can_graph, graphed_model
 
     o = Optics(wavelength_um=0.6, n_background=1.33, na=0.6, pixel_size_um=0.8, n_slices=2, slice_spacing_um=1.0)
     assert EnvelopeModel(o, (8, 8), 2, (0.0, 0.0)).batched is False  # CPU: one slice at a time

@@ -3,7 +3,7 @@
 Both kernels work on (B, H, W) complex64 fields stored as interleaved float32 (``torch.view_as_real``), with
 H = N1H·N2H and W = N1W·N2W (any factors; each tile side is padded to a power of two P ≥ N, masked, with the
 small DFT matrices zero on the padding). A pixel (row, column) = (N2H·a + c, N2W·d + e) has the flat offset
-``(N2H·a + c)·W + N2W·d + e``; every intermediate of the four-step transform (:mod:`napari_fdt.model.dft_loop`)
+``(N2H·a + c)·W + N2W·d + e``; every intermediate of the four-step transform (``benchmarks/_dft_loop.py``)
 is stored at the offset of its digits in the same formula, so no kernel ever transposes memory.
 
 ``outer_kernel`` — one program per (image b, high-row-digit c, block of EB column digits e); its tile runs over

@@ -14,8 +14,9 @@ passes) and two elementwise passes (``docs/benchmarks.md``):
   field written for the backward pass, the first half of the next DFT with its twiddle.
 
 The adjoint is the same chain run backwards with conj(K) and −φ, the screen gradient ``Σ_b Im(g·conj(u_k))``
-formed inside ``outer`` from the stored fields. The layout is :mod:`napari_fdt.model.dft_loop`'s digit order, so
-the intermediates never leave their places in memory (both kernels work in place on one buffer).
+formed inside ``outer`` from the stored fields. The layout is the four-step transform's digit order
+(:func:`digit_index`; its plain-torch reference is ``benchmarks/_dft_loop.py``), so the intermediates never leave
+their places in memory (both kernels work in place on one buffer).
 
 Where it runs: CUDA tensors with Triton (compiled), and CPU tensors through Triton's interpreter when
 ``interpret=True`` (numpy, slow: for tests). Sizes: any H and W whose factors (``split_factors``) are at most
@@ -29,13 +30,26 @@ measured by ``benchmarks/fused_loop_speed.py`` on a GPU; it is not used by the m
 from __future__ import annotations
 
 import functools
+import math
 import os
 
 import torch
 
-from napari_fdt.model.dft_loop import digit_index, split_factors
+__all__ = ["available", "interpreting", "supports", "fused_slice_loop", "PRECISIONS", "split_factors", "digit_index"]
 
-__all__ = ["available", "interpreting", "supports", "fused_slice_loop", "PRECISIONS"]
+
+def split_factors(n: int) -> tuple[int, int]:
+    """(n1, n2) with n1·n2 = n and n1 ≤ n2 as close to √n as possible (n1 = 1 for a prime)."""
+    best = 1
+    for a in range(1, int(math.isqrt(n)) + 1):
+        if n % a == 0:
+            best = a
+    return best, n // best
+
+
+def digit_index(n1: int, n2: int, device=None) -> torch.Tensor:
+    """(n1, n2) natural frequency index ``k1 + n1·k2`` of each digit-order position [k1, k2] of a length n1·n2 axis."""
+    return torch.arange(n1, device=device)[:, None] + n1 * torch.arange(n2, device=device)[None, :]
 
 #: Triton ``input_precision`` of the small matrix products: "ieee" (float32 FMA) or "tf32x3" (tensor cores,
 #: about float32 accuracy). "tf32" alone loses three decimal digits and is not offered.

@@ -12,7 +12,8 @@ transform reads it, so no transposition is ever made. Work per point is N1 + N2 
 at many times their FFT rate: this is the form in which a fused GPU kernel would apply the screen on load and the
 propagator on store. Here it is the reference for such a kernel, differentiable by autograd and checked against
 the FFT loop (``tests/test_dft_loop.py``); ``benchmarks/dft_loop_speed.py`` times it against ``torch.fft``.
-Not used by the models: on the CPU it is slower than the FFT (``docs/benchmarks.md``).
+Not used by the models (on the CPU it is slower than the FFT, ``docs/benchmarks.md``), so it lives with the benchmarks;
+the digit order it shares with the fused CUDA loop is :mod:`napari_fdt.model.fused_loop`'s.
 """
 
 from __future__ import annotations
@@ -22,21 +23,9 @@ from dataclasses import dataclass
 
 import torch
 
+from napari_fdt.model.fused_loop import digit_index, split_factors
+
 __all__ = ["DftPlan", "split_factors", "digit_index", "dft_slice_loop"]
-
-
-def split_factors(n: int) -> tuple[int, int]:
-    """(n1, n2) with n1·n2 = n and n1 ≤ n2 as close to √n as possible (n1 = 1 for a prime)."""
-    best = 1
-    for a in range(1, int(math.isqrt(n)) + 1):
-        if n % a == 0:
-            best = a
-    return best, n // best
-
-
-def digit_index(n1: int, n2: int, device=None) -> torch.Tensor:
-    """(n1, n2) natural frequency index ``k1 + n1·k2`` of each digit-order position [k1, k2] of a length n1·n2 axis."""
-    return torch.arange(n1, device=device)[:, None] + n1 * torch.arange(n2, device=device)[None, :]
 
 
 def _dft(n: int, sign: float, dtype: torch.dtype, device) -> torch.Tensor:

@@ -5,7 +5,8 @@ than running them. :func:`graphed_model` records one forward and one backward pa
 :class:`~napari_fdt.model.protocol.ImageModel` for fixed shapes with :func:`torch.cuda.make_graphed_callables`
 and replays them: one launch per pass. The inputs must keep their shapes, dtypes and ``requires_grad`` flags
 between calls (a fixed batch size); optics overrides are not captured. Used by
-``benchmarks/coarse_stage_speed.py --cuda-graph``; not wired into the solver (not yet timed on a GPU).
+``benchmarks/coarse_stage_speed.py --cuda-graph``; not wired into the solver (not yet timed on a GPU), so it lives with
+the benchmarks.
 """
 
 from __future__ import annotations
