@@ -27,3 +27,4 @@ def test_no_import_path_edits() -> None:
     edit = re.compile(r"sys\.path\.(insert|append)\(")
     files = [*(ROOT / "benchmarks").glob("*.py"), *(ROOT / "tests").glob("*.py")]
     assert not [f.name for f in files if edit.search(f.read_text(encoding="utf-8"))]
+
