@@ -21,7 +21,8 @@ from napari_fdt.recon.snapshot import StageRecord
 if TYPE_CHECKING:
     from napari_fdt.recon.solver import Reconstructor
 
-__all__ = ["FORMAT", "checkpoint_path", "checkpoint_state", "write_checkpoint", "read_checkpoint", "restore_checkpoint"]
+__all__ = ["FORMAT", "checkpoint_path", "latest_checkpoint", "checkpoint_state", "write_checkpoint", "read_checkpoint",
+           "restore_checkpoint"]
 
 FORMAT = "napari-fdt-checkpoint"
 
@@ -29,6 +30,17 @@ FORMAT = "napari-fdt-checkpoint"
 def checkpoint_path(directory: str | Path, stage_index: int) -> Path:
     """Where the checkpoint of stage ``stage_index`` goes in ``directory``: ``stage_<i>.pt``."""
     return Path(directory) / f"stage_{stage_index}.pt"
+
+
+def latest_checkpoint(directory: str | Path) -> Path:
+    """The checkpoint in ``directory`` written last (``stage_<i>.pt``; a file being written is a hidden ``.tmp`` until it
+    is complete, so it is never picked). By write time, not by stage number: when a choice runs the stages again from
+    the first, ``stage_0.pt`` of the second pass is newer than ``stage_1.pt`` of the first."""
+    found = [p for p in Path(directory).glob("stage_*.pt") if p.is_file()]
+    if not found:
+        raise FDTInputError("resume", f"{directory} holds no checkpoint (stage_*.pt)",
+                            "point --resume at the folder given to --checkpoint-dir, or at one of its stage_*.pt files")
+    return max(found, key=lambda p: (p.stat().st_mtime_ns, p.name))
 
 
 def checkpoint_state(rec: Reconstructor) -> dict[str, Any]:
@@ -58,7 +70,10 @@ def write_checkpoint(state: dict[str, Any], path: str | Path) -> Path:
 
 
 def read_checkpoint(path: str | Path, acquisition: Acquisition) -> dict[str, Any]:
-    """Read a checkpoint and check that it belongs to an acquisition of ``acquisition``'s size (FDTInputError if not)."""
+    """Read a checkpoint (a ``stage_<i>.pt`` file, or a checkpoint folder: its :func:`latest_checkpoint`) and check that
+    it belongs to an acquisition of ``acquisition``'s size (FDTInputError if not)."""
+    if Path(path).is_dir():
+        path = latest_checkpoint(path)
     try:
         state = torch.load(Path(path), map_location="cpu", weights_only=False)
     except (OSError, RuntimeError, EOFError) as exc:
