@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from napari_fdt import read_volume_tiff, write_acquisition
+from napari_fdt.recon.checkpoint import latest_checkpoint
 
 
 def _fdt(*args: str) -> list[str]:
@@ -24,23 +25,24 @@ def test_a_killed_run_resumed_from_its_folder_equals_the_uninterrupted_run(scene
     acq = write_acquisition(scene16.acquisition, tmp_path / "acq")
     cfg = tmp_path / "cfg.json"  # the TV weights chosen at stage 0's start, a finest stage long enough to be killed in
     cfg.write_text(json.dumps({"stages": [{"factor": 2, "iterations": 20}, {"factor": 1, "iterations": 120}],
-                               "batch_size": 4, "validation_fraction": 0.2, "final_stage_min_passes": 0}))
+                               "batch_size": 4, "validation_fraction": 0.2, "final_stage_min_passes": 0,
+                               "checkpoint_every_s": 0}))  # a checkpoint at every snapshot, inside the stages too
     subprocess.run(_fdt(str(acq), "--out", str(tmp_path / "full.tif"), "--config", str(cfg)), check=True, timeout=600)
 
     ckpt = tmp_path / "ckpt"
     proc = subprocess.Popen(_fdt(str(acq), "--out", str(tmp_path / "killed.tif"), "--config", str(cfg), "--checkpoint-dir", str(ckpt)))
     try:
         deadline = time.monotonic() + 300
-        while not (ckpt / "stage_0.pt").exists():
-            assert proc.poll() is None, "the run ended before its first checkpoint"
+        while not list(ckpt.glob("stage_1_it*.pt")):  # a checkpoint inside the finest stage
+            assert proc.poll() is None, "the run ended before a checkpoint inside its finest stage"
             assert time.monotonic() < deadline
             time.sleep(0.02)
-        time.sleep(0.2)  # inside the finest stage
         assert proc.poll() is None, "the run ended before it could be killed: lengthen its finest stage"
         os.kill(proc.pid, signal.SIGKILL)
     finally:
         proc.wait(timeout=60)
     assert proc.returncode == -signal.SIGKILL and not (tmp_path / "killed.tif").exists()
+    assert latest_checkpoint(ckpt).name.startswith("stage_1_it")  # the resume goes on inside the finest stage
 
     subprocess.run(_fdt(str(acq), "--out", str(tmp_path / "resumed.tif"), "--resume", str(ckpt), "--checkpoint-dir", str(ckpt)),
                    check=True, timeout=600)
@@ -50,6 +52,35 @@ def test_a_killed_run_resumed_from_its_folder_equals_the_uninterrupted_run(scene
     a, b = (json.loads((tmp_path / f"{n}.json").read_text()) for n in ("full", "resumed"))
     assert a["regularisation"]["tv_xy_weight"] == b["regularisation"]["tv_xy_weight"]
     assert a["calibration"]["sources_um"] == b["calibration"]["sources_um"]
+    assert not list(ckpt.glob("stage_*_it*.pt")) and (ckpt / "stage_1.pt").exists()  # pruned by the stage's end
+
+
+def test_a_run_stopped_inside_a_stage_resumes_there_and_equals_the_unbroken_run(scene16, tmp_path: Path) -> None:
+    """In one process: a run stopped inside its finest stage leaves a checkpoint of that stage's progress (its RI
+    optimiser, best iterate, record, the state the model-parts choice starts it again from); resumed from the folder it
+    ends bit-identical to the unbroken run, the choice of model parts at the stage's end included."""
+    from napari_fdt.recon.config import SolverConfig, StageConfig
+    from napari_fdt.recon.solver import Reconstructor
+
+    cfg = SolverConfig(stages=[StageConfig(2, 6), StageConfig(1, 12)], batch_size=4, snapshot_every=2, validation_fraction=0.2,
+                       final_stage_min_passes=0, checkpoint_every_s=0.0)
+    unbroken = Reconstructor(scene16.acquisition, cfg, device="cpu")
+    list(unbroken.run())
+    rec = Reconstructor(scene16.acquisition, cfg, device="cpu")
+    seen = []
+    for snap in rec.run(checkpoint_dir=tmp_path):
+        seen.append((snap.stage, snap.iteration))
+        if (snap.stage, snap.iteration) == (1, 6):
+            break
+    assert latest_checkpoint(tmp_path).name == "stage_1_it6.pt" and [p.name for p in tmp_path.glob("stage_*_it*.pt")] == ["stage_1_it6.pt"]
+    resumed = Reconstructor.from_checkpoint(tmp_path, scene16.acquisition, device="cpu")
+    assert resumed.completed_stages == 1
+    snaps = list(resumed.run(checkpoint_dir=tmp_path))
+    assert [(s.stage, s.iteration) for s in snaps] == [(1, 8), (1, 10), (1, 12)]
+    assert np.array_equal(resumed.delta_n_full(), unbroken.delta_n_full())
+    assert np.array_equal(resumed.sources_um(), unbroken.sources_um())
+    assert [r.validation_error for r in resumed.stages] == [r.validation_error for r in unbroken.stages]
+    assert resumed.parts_choice.to_dict()["parts"] == unbroken.parts_choice.to_dict()["parts"]
 
 
 def test_the_folder_resumes_from_the_checkpoint_written_last(tmp_path: Path) -> None:
@@ -58,7 +89,6 @@ def test_the_folder_resumes_from_the_checkpoint_written_last(tmp_path: Path) -> 
     import pytest
 
     from napari_fdt.errors import FDTInputError
-    from napari_fdt.recon.checkpoint import latest_checkpoint
 
     with pytest.raises(FDTInputError, match=r"^resume: .* holds no checkpoint"):
         latest_checkpoint(tmp_path)

@@ -1,7 +1,8 @@
 """Checkpoints of a reconstruction: the state at the end of a stage, written atomically, and read back to resume.
 
 A checkpoint (``stage_<i>.pt``, ``torch.save`` of a dict; ``format`` ``"napari-fdt-checkpoint"``, version 1)
-holds the configuration, the completed stages, the RI grid, the calibration parameters and their Adam
+holds the configuration, the completed stages (and, written inside a stage, ``in_stage``: that stage's progress,
+:func:`in_stage_state`), the RI grid, the calibration parameters and their Adam
 state (:meth:`~napari_fdt.recon.calibration.Calibration.state_dict`, its keys at the top level), the batch
 order, the stage records, the history and the elapsed time, and the acquisition's size (checked on resume).
 """
@@ -21,8 +22,8 @@ from napari_fdt.recon.snapshot import StageRecord
 if TYPE_CHECKING:
     from napari_fdt.recon.solver import Reconstructor
 
-__all__ = ["FORMAT", "checkpoint_path", "latest_checkpoint", "checkpoint_state", "write_checkpoint", "read_checkpoint",
-           "restore_checkpoint"]
+__all__ = ["FORMAT", "checkpoint_path", "in_stage_path", "prune_in_stage", "in_stage_state", "latest_checkpoint",
+           "checkpoint_state", "write_checkpoint", "read_checkpoint", "restore_checkpoint"]
 
 FORMAT = "napari-fdt-checkpoint"
 
@@ -30,6 +31,30 @@ FORMAT = "napari-fdt-checkpoint"
 def checkpoint_path(directory: str | Path, stage_index: int) -> Path:
     """Where the checkpoint of stage ``stage_index`` goes in ``directory``: ``stage_<i>.pt``."""
     return Path(directory) / f"stage_{stage_index}.pt"
+
+
+def in_stage_path(directory: str | Path, stage_index: int, iteration: int) -> Path:
+    """Where a checkpoint inside stage ``stage_index`` after ``iteration`` of its iterations goes: ``stage_<i>_it<k>.pt``."""
+    return Path(directory) / f"stage_{stage_index}_it{iteration}.pt"
+
+
+def prune_in_stage(directory: str | Path, keep: Path | None = None) -> None:
+    """Delete the checkpoints written inside stages (``stage_*_it*.pt``) but ``keep``: a newer one, or the stage's end,
+    holds all they held."""
+    for p in Path(directory).glob("stage_*_it*.pt"):
+        if keep is None or p.resolve() != Path(keep).resolve():
+            p.unlink(missing_ok=True)
+
+
+def in_stage_state(work: Any, now: float) -> dict[str, Any]:
+    """What a checkpoint inside a stage adds to the run's state: the stage's iterations done, its RI optimiser, its
+    best iterate so far, its record, what its choices marked (the state to start it again from) and its seconds."""
+    best = work.best
+    return {"stage": work.stage.index, "done": work.done, "optimiser": work.optimiser.state_dict(),
+            "best": {"best_error": best.best_error, "best_iteration": best.best_iteration, "state": best.state,
+                     "errors": list(best.errors)},
+            "record": work.record.to_dict(), "choosing": dict(work.choosing), "stage_seconds": now - work.t0,
+            "terms": work.terms, "train_error": work.train_error}
 
 
 def latest_checkpoint(directory: str | Path) -> Path:
@@ -92,10 +117,12 @@ def restore_checkpoint(rec: Reconstructor, state: dict[str, Any]) -> None:
     from napari_fdt.recon.volume import RIVolume
 
     rec.completed_stages = state["completed_stages"]
+    in_stage = state.get("in_stage")  # a checkpoint written inside a stage: that stage goes on where it was
+    rec._resume_in_stage = in_stage
     parts = state.get("parts_choice")  # absent before the choice (and in checkpoints written before it existed)
     if parts is not None:
         rec.apply_parts_choice(PartsChoice.from_dict(parts))
-    rec.calibration.load_state_dict(state, max(0, rec.completed_stages - 1))
+    rec.calibration.load_state_dict(state, rec.completed_stages if in_stage else max(0, rec.completed_stages - 1))
     if state["volume"] is not None:
         rec.volume = RIVolume.from_state_dict(state["volume"], rec.device, rec.dtype)
     rec.volume_factor = state["volume_factor"]

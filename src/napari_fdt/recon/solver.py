@@ -39,7 +39,16 @@ from napari_fdt.model.gain import least_squares_gain
 from napari_fdt.model.render import iter_batches
 from napari_fdt.recon.batches import BatchOrder
 from napari_fdt.recon.calibration import Calibration
-from napari_fdt.recon.checkpoint import checkpoint_path, checkpoint_state, read_checkpoint, restore_checkpoint, write_checkpoint
+from napari_fdt.recon.checkpoint import (
+    checkpoint_path,
+    checkpoint_state,
+    in_stage_path,
+    in_stage_state,
+    prune_in_stage,
+    read_checkpoint,
+    restore_checkpoint,
+    write_checkpoint,
+)
 from napari_fdt.recon.choices import default_choices
 from napari_fdt.recon.config import SolverConfig, resolve_coarse_model, resolve_stage_lengths
 from napari_fdt.recon.losses import BatchShare, LossWeights, total_loss
@@ -222,6 +231,7 @@ class Reconstructor:
         the selection stage, the ``"auto"`` model parts after the first multi-slice stage) may send the run back to
         its first stage where what they chose changes what the stages before did.
         """
+        self._checkpoint_dir, self._checkpointed_at = checkpoint_dir, time.perf_counter()
         self._start_pass()
         while self.completed_stages < len(self.config.stages):
             work = self._begin_stage(self.completed_stages)
@@ -289,9 +299,35 @@ class Reconstructor:
             self._init_gains(stage, mask)
         self.calibration.set_trainable(stage_index)
         self._enter_stage_phase(stage_index)
-        return StageWork(stage, mask, new_optimiser(self), cfg.stage_batch(stage_index), float(stage.images.max()),
+        work = StageWork(stage, mask, new_optimiser(self), cfg.stage_batch(stage_index), float(stage.images.max()),
                          self._record(stage), BestIterate(tolerance=cfg.early_stopping_tolerance),
                          base_iteration=sum(s.iterations for s in cfg.stages[:stage_index]))
+        resume, self._resume_in_stage = getattr(self, "_resume_in_stage", None), None
+        if resume is not None and resume["stage"] == stage_index:  # a checkpoint written inside this stage
+            work.optimiser.load_state_dict(resume["optimiser"])
+            work.done, work.resumed = int(resume["done"]), True
+            b = resume["best"]
+            work.best.best_error, work.best.best_iteration, work.best.state, work.best.errors = (
+                b["best_error"], b["best_iteration"], b["state"], list(b["errors"]))
+            work.record = StageRecord.from_dict(resume["record"])
+            self.stages = [r for r in self.stages if r.stage != stage_index] + [work.record]
+            work.choosing, work.terms, work.train_error = dict(resume["choosing"]), dict(resume["terms"]), resume["train_error"]
+            work.t0 = time.perf_counter() - float(resume["stage_seconds"])
+        return work
+
+    def _checkpoint_in_stage(self, work: StageWork) -> None:
+        """A checkpoint inside the stage (``stage_<i>_it<k>.pt``, the older ones deleted) when a checkpoint folder is
+        given and ``checkpoint_every_s`` has passed since the last one."""
+        directory = getattr(self, "_checkpoint_dir", None)
+        now = time.perf_counter()
+        if directory is None or (self.group is not None and not self.group.is_writer):
+            return
+        if now - self._checkpointed_at < self.config.checkpoint_every_s:
+            return
+        path = write_checkpoint({**self.state_dict(), "in_stage": in_stage_state(work, now)},
+                                in_stage_path(directory, work.stage.index, work.done))
+        prune_in_stage(directory, keep=path)
+        self._checkpointed_at = time.perf_counter()
 
     def _end_stage(self, work: StageWork, checkpoint_dir: str | Path | None) -> Snapshot:
         """The stage's snapshot (the last complete state from now on) and its checkpoint."""
@@ -299,6 +335,8 @@ class Reconstructor:
                               work.validation_error, work.train_error)
         if checkpoint_dir is not None and (self.group is None or self.group.is_writer):
             self.save_checkpoint(checkpoint_path(checkpoint_dir, work.stage.index))
+            prune_in_stage(checkpoint_dir)  # the stage's end holds what its checkpoints inside it held
+            self._checkpointed_at = time.perf_counter()
         return snap
 
     # -- per-stage set-up -----------------------------------------------------------------------

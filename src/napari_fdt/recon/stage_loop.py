@@ -65,6 +65,8 @@ class StageWork:
     train_error: float | None = None
     validation_error: float | None = None
     choosing: dict[str, Any] = field(default_factory=dict)
+    #: resumed from a checkpoint written inside the stage: its start (validation, the choices) has been done
+    resumed: bool = False
 
     @property
     def global_iteration(self) -> int:
@@ -93,11 +95,13 @@ def train_stage(rec: Reconstructor, work: StageWork, choices: Sequence[Choice],
     start while a choice says :attr:`Verdict.STAGE_AGAIN`. Returns GO_ON when the stage is complete."""
     again = 0
     while True:
-        if len(rec.validation_indices) and rec.config.early_stopping != "off":
+        if work.resumed and not again:  # its start was done before the checkpoint
+            pass
+        elif len(rec.validation_indices) and rec.config.early_stopping != "off":
             # The stage's starting volume is a candidate too: a stage that only makes the held-out images worse ends
             # where it began (from stage 0 on: never a volume that explains them worse than no object).
             track_validation(rec, work.stage, work.mask, work.best, 0)
-        for choice in choices:
+        for choice in choices if not (work.resumed and not again) else ():
             verdict = yield from choice.at_start(rec, work, again, should_stop)
             if verdict is not Verdict.GO_ON:
                 return verdict
@@ -131,9 +135,12 @@ def iterate(rec: Reconstructor, work: StageWork, should_stop: Callable[[], bool]
             break
         if it % cfg.snapshot_every == 0:
             val = track_validation(rec, stage, work.mask, work.best, it)
+            stalled = cfg.early_stopping == "stop" and work.best.stalled(cfg.early_stopping_patience)
+            if not stalled:  # a checkpoint inside the stage (with a folder, once checkpoint_every_s has passed)
+                rec._checkpoint_in_stage(work)
             yield from work.hand_over(take_snapshot(rec, stage, it, work.global_iteration, work.terms, work.t0, False, val,
                                                     work.train_error))
-            if cfg.early_stopping == "stop" and work.best.stalled(cfg.early_stopping_patience):
+            if stalled:
                 work.record.stopped_at = it
                 break
     work.validation_error = end_on_best(rec, stage, work.mask, work.best, work.done, work.record)
