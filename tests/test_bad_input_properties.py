@@ -3,7 +3,7 @@
 The core (configuration, acquisition.json, image stacks), then the command line (``fdt info`` and ``fdt
 reconstruct`` called in-process) and napari's readers on corrupted acquisition folders: one line naming the
 field, exit status 2, no traceback, or an accepted input read without losing a pixel. The widget half runs in
-``tests/test_napari_plugin.py`` (it needs Qt).
+``tests/test_napari_plugin_more.py`` (it needs Qt).
 """
 
 from __future__ import annotations

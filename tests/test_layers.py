@@ -1,6 +1,6 @@
 """The napari plugin's Qt-free parts: layer geometry, reader, writer, sample data, coverage, settings, the job.
 
-None of these tests needs a display or Qt; the Qt tests are in ``test_napari_plugin.py``.
+None of these tests needs a display or Qt; the Qt tests are in ``test_napari_plugin.py`` and ``test_napari_plugin_more.py``.
 """
 
 from __future__ import annotations
