@@ -482,7 +482,7 @@ def test_failed_write_leaves_old_folder_and_no_temporaries(tmp_path: Path, monke
         raise OSError("disk full")
 
     monkeypatch.setattr(fdt_io.tifffile, "imwrite", broken_imwrite)
-    with pytest.raises(OSError, match="disk full"):
+    with pytest.raises(FDTInputError, match=r"^path: could not write .*disk full \(the previous one is unchanged\)"):
         write_acquisition(make_acquisition(seed=2), dest, overwrite=True)
     assert folder_hashes(dest) == before
     assert hidden_siblings(tmp_path) == []

@@ -97,3 +97,24 @@ def test_read_volume_converts_ome_units(tmp_path: Path) -> None:
             "PhysicalSizeY": 0.5, "PhysicalSizeX": 0.25}  # Y, X: OME's default unit µm
     tifffile.imwrite(tmp_path / "v.ome.tif", vol, ome=True, metadata=meta)
     assert read_volume_tiff(tmp_path / "v.ome.tif")[1] == pytest.approx((2.0, 0.5, 0.25))
+
+
+def test_a_full_disk_during_a_save_keeps_the_previous_volume(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A write that fails half-way (a mocked full disk) leaves the previous RI volume byte-identical, no temporary file,
+    and a clear error naming the path and the fix (issue 28, item 4)."""
+    import errno
+
+    from napari_fdt.data import io as fdt_io
+
+    path = write_volume_tiff(tmp_path / "RI.tif", np.full((2, 4, 5), 1.33, np.float32), (2.0, 0.3, 0.3))
+    before = path.read_bytes()
+
+    def full_disk(file, *args, **kwargs) -> None:
+        Path(file).write_bytes(b"half a volume")  # what a write cut short leaves
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(fdt_io.tifffile, "imwrite", full_disk)
+    with pytest.raises(FDTInputError, match=r"^path: could not write .*RI.tif: No space left on device \(the previous one is "
+                                            r"unchanged\) \(free space on that disk or choose a writable location\)"):
+        write_volume_tiff(path, np.full((2, 4, 5), 1.4, np.float32), (2.0, 0.3, 0.3), overwrite=True)
+    assert path.read_bytes() == before and sorted(p.name for p in tmp_path.iterdir()) == ["RI.tif"]

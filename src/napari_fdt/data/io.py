@@ -127,7 +127,8 @@ def _atomic_output(
     An existing target is refused unless ``overwrite``; a file is then replaced atomically, a
     folder is moved aside to a temporary sibling, the new one moved in, and the old one deleted,
     so that an interruption never leaves a half folder at ``path``. On error the temporary
-    output is deleted and the target left as it was.
+    output is deleted and the target left as it was; an ``OSError`` (a full disk, a folder that became
+    unwritable) becomes an :class:`FDTInputError` naming the path and saying the previous output is unchanged.
     """
     target = Path(path)
     if not target.name or target.name in (".", ".."):
@@ -157,6 +158,11 @@ def _atomic_output(
             _remove(old)
         else:
             os.replace(tmp, target)
+    except OSError as exc:  # a full disk, a folder that became unwritable: the target stays as it was
+        _remove(tmp)
+        before = "the previous one is unchanged" if os.path.lexists(target) else "nothing was written"
+        raise FDTInputError("path", f"could not write {target}: {exc.strerror or exc} ({before})",
+                            "free space on that disk or choose a writable location") from exc
     except BaseException:
         _remove(tmp)
         raise
