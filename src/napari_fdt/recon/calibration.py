@@ -22,6 +22,8 @@ __all__ = ["Calibration"]
 
 #: The tensors of :class:`Calibration`, in the order of its state dict (and of the checkpoint's keys).
 PARAMETERS = ("sources", "log_gain", "pixel_scale", "spacing_scale", "depth_offset_um", "na_scale", "pupil_edge", "zernike")
+#: The pupil parts' parameters (NA scale, edge, Zernike phase): what a kept part starts from when stages run again.
+PUPIL_PARAMETERS = ("na_scale", "pupil_edge", "zernike")
 #: Smallest calibrated pupil edge (relative to NA/λ): a hard edge has no gradient in NA.
 MIN_CALIBRATED_EDGE = 0.002
 
@@ -205,9 +207,10 @@ class Calibration:
         return tensors
 
     # -- state ---------------------------------------------------------------------------------
-    def copy_values(self) -> dict[str, torch.Tensor]:
-        """Copies of the tensors (on their device), for :meth:`restore_values` after a cancel."""
-        return {name: getattr(self, name).detach().clone() for name in PARAMETERS}
+    def copy_values(self, names: tuple[str, ...] = PARAMETERS) -> dict[str, torch.Tensor]:
+        """Copies of the tensors ``names`` (default all; :data:`PUPIL_PARAMETERS`: the pupil parts' fitted values) on
+        their device, for :meth:`restore_values` after a cancel or a restart."""
+        return {name: getattr(self, name).detach().clone() for name in names}
 
     def restore_values(self, values: dict[str, torch.Tensor]) -> None:
         """Set the tensors in place from :meth:`copy_values` or :meth:`state_dict` (a checkpoint without the pupil's

@@ -10,6 +10,7 @@ order, the stage records, the history and the elapsed time, and the acquisition'
 from __future__ import annotations
 
 import dataclasses
+import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -22,8 +23,8 @@ from napari_fdt.recon.snapshot import StageRecord
 if TYPE_CHECKING:
     from napari_fdt.recon.solver import Reconstructor
 
-__all__ = ["FORMAT", "checkpoint_path", "in_stage_path", "prune_in_stage", "in_stage_state", "latest_checkpoint",
-           "checkpoint_state", "write_checkpoint", "read_checkpoint", "restore_checkpoint"]
+__all__ = ["FORMAT", "checkpoint_path", "in_stage_path", "prune_in_stage", "in_stage_state", "resume_in_stage",
+           "latest_checkpoint", "checkpoint_state", "write_checkpoint", "read_checkpoint", "restore_checkpoint"]
 
 FORMAT = "napari-fdt-checkpoint"
 
@@ -55,6 +56,20 @@ def in_stage_state(work: Any, now: float) -> dict[str, Any]:
                      "errors": list(best.errors)},
             "record": work.record.to_dict(), "choosing": dict(work.choosing), "stage_seconds": now - work.t0,
             "terms": work.terms, "train_error": work.train_error}
+
+
+def resume_in_stage(rec: Reconstructor, work: Any, state: dict[str, Any]) -> None:
+    """Put :func:`in_stage_state`'s ``state`` back into the stage ``work`` just begun (its record replaces the new one
+    in ``rec.stages``); the stage then goes on after ``state["done"]`` iterations."""
+    work.optimiser.load_state_dict(state["optimiser"])
+    work.done, work.resumed = int(state["done"]), True
+    b = state["best"]
+    work.best.best_error, work.best.best_iteration, work.best.state, work.best.errors = (
+        b["best_error"], b["best_iteration"], b["state"], list(b["errors"]))
+    work.record = StageRecord.from_dict(state["record"])
+    rec.stages = [r for r in rec.stages if r.stage != work.stage.index] + [work.record]
+    work.choosing, work.terms, work.train_error = dict(state["choosing"]), dict(state["terms"]), state["train_error"]
+    work.t0 = time.perf_counter() - float(state["stage_seconds"])
 
 
 def latest_checkpoint(directory: str | Path) -> Path:

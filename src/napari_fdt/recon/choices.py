@@ -14,6 +14,7 @@ from __future__ import annotations
 import dataclasses
 from typing import TYPE_CHECKING, Callable, Generator
 
+from napari_fdt.recon.calibration import PUPIL_PARAMETERS
 from napari_fdt.recon.model_parts import PARTS, PartsChoice, parts_stage
 from napari_fdt.recon.parts_search import choose_parts
 from napari_fdt.recon.parts_switch import restart_with_parts
@@ -84,7 +85,7 @@ class ChooseModelParts:
         kept = tuple(p for p in rec._auto_parts if rec.parts[p])
         rec._revise_plan(rec.plan.with_rerun([dataclasses.replace(rec.plan.phases[rec._phase_index], parts=kept)]))
         rec._phase_index = len(rec.plan.phases) - 1
-        fitted = {name: getattr(rec.calibration, name).detach().clone() for name in ("na_scale", "pupil_edge", "zernike")}
+        fitted = rec.calibration.copy_values(PUPIL_PARAMETERS)
         restore_branch(rec, start)
         rec.calibration.restore_values(fitted)
         rec.calibration.set_trainable(chosen.index)

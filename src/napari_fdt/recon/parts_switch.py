@@ -8,6 +8,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 from napari_fdt.model.coherence import emission_spectrum
+from napari_fdt.recon.calibration import PUPIL_PARAMETERS
 from napari_fdt.recon.model_parts import PARTS, PartsChoice, requested_parts
 from napari_fdt.recon.stage_roles import set_stage_roles
 from napari_fdt.recon.stages import camera_model_options, stated_pixel_integration
@@ -98,6 +99,6 @@ def restart_with_parts(rec: Reconstructor) -> None:
     choice.rerun = "stages"
     choice.pending = [p for p in rec._auto_parts if p not in kept]
     rec.apply_parts_choice(choice)
-    fitted = {name: getattr(rec.calibration, name).detach().clone() for name in ("na_scale", "pupil_edge", "zernike")}
+    fitted = rec.calibration.copy_values(PUPIL_PARAMETERS)
     rec._restart()
     rec.calibration.restore_values(fitted)  # the kept parts start from their fitted values

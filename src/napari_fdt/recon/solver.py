@@ -47,6 +47,7 @@ from napari_fdt.recon.checkpoint import (
     prune_in_stage,
     read_checkpoint,
     restore_checkpoint,
+    resume_in_stage,
     write_checkpoint,
 )
 from napari_fdt.recon.choices import default_choices
@@ -242,7 +243,7 @@ class Reconstructor:
                     return
                 self._start_pass()  # FROM_FIRST_STAGE: the choice has set the state back
                 continue
-            yield self._end_stage(work, checkpoint_dir)
+            yield self._end_stage(work)
 
     def _start_pass(self) -> None:
         """Before the stages run from the first not completed: the seed (as a run from there would set it) and, in a
@@ -304,38 +305,33 @@ class Reconstructor:
                          base_iteration=sum(s.iterations for s in cfg.stages[:stage_index]))
         resume, self._resume_in_stage = getattr(self, "_resume_in_stage", None), None
         if resume is not None and resume["stage"] == stage_index:  # a checkpoint written inside this stage
-            work.optimiser.load_state_dict(resume["optimiser"])
-            work.done, work.resumed = int(resume["done"]), True
-            b = resume["best"]
-            work.best.best_error, work.best.best_iteration, work.best.state, work.best.errors = (
-                b["best_error"], b["best_iteration"], b["state"], list(b["errors"]))
-            work.record = StageRecord.from_dict(resume["record"])
-            self.stages = [r for r in self.stages if r.stage != stage_index] + [work.record]
-            work.choosing, work.terms, work.train_error = dict(resume["choosing"]), dict(resume["terms"]), resume["train_error"]
-            work.t0 = time.perf_counter() - float(resume["stage_seconds"])
+            resume_in_stage(self, work, resume)
         return work
+
+    def _checkpoint_folder(self) -> Path | None:
+        """The folder this process writes checkpoints to (None: none given, or a rank that does not write)."""
+        directory = getattr(self, "_checkpoint_dir", None)
+        return None if directory is None or (self.group is not None and not self.group.is_writer) else Path(directory)
 
     def _checkpoint_in_stage(self, work: StageWork) -> None:
         """A checkpoint inside the stage (``stage_<i>_it<k>.pt``, the older ones deleted) when a checkpoint folder is
         given and ``checkpoint_every_s`` has passed since the last one."""
-        directory = getattr(self, "_checkpoint_dir", None)
-        now = time.perf_counter()
-        if directory is None or (self.group is not None and not self.group.is_writer):
-            return
-        if now - self._checkpointed_at < self.config.checkpoint_every_s:
+        directory, now = self._checkpoint_folder(), time.perf_counter()
+        if directory is None or now - self._checkpointed_at < self.config.checkpoint_every_s:
             return
         path = write_checkpoint({**self.state_dict(), "in_stage": in_stage_state(work, now)},
                                 in_stage_path(directory, work.stage.index, work.done))
         prune_in_stage(directory, keep=path)
         self._checkpointed_at = time.perf_counter()
 
-    def _end_stage(self, work: StageWork, checkpoint_dir: str | Path | None) -> Snapshot:
+    def _end_stage(self, work: StageWork) -> Snapshot:
         """The stage's snapshot (the last complete state from now on) and its checkpoint."""
         snap = complete_stage(self, work.stage, work.record, work.base_iteration + work.stage.iterations, work.terms, work.t0,
                               work.validation_error, work.train_error)
-        if checkpoint_dir is not None and (self.group is None or self.group.is_writer):
-            self.save_checkpoint(checkpoint_path(checkpoint_dir, work.stage.index))
-            prune_in_stage(checkpoint_dir)  # the stage's end holds what its checkpoints inside it held
+        directory = self._checkpoint_folder()
+        if directory is not None:
+            self.save_checkpoint(checkpoint_path(directory, work.stage.index))
+            prune_in_stage(directory)  # the stage's end holds what its checkpoints inside it held
             self._checkpointed_at = time.perf_counter()
         return snap
 

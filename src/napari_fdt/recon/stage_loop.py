@@ -95,16 +95,15 @@ def train_stage(rec: Reconstructor, work: StageWork, choices: Sequence[Choice],
     start while a choice says :attr:`Verdict.STAGE_AGAIN`. Returns GO_ON when the stage is complete."""
     again = 0
     while True:
-        if work.resumed and not again:  # its start was done before the checkpoint
-            pass
-        elif len(rec.validation_indices) and rec.config.early_stopping != "off":
-            # The stage's starting volume is a candidate too: a stage that only makes the held-out images worse ends
-            # where it began (from stage 0 on: never a volume that explains them worse than no object).
-            track_validation(rec, work.stage, work.mask, work.best, 0)
-        for choice in choices if not (work.resumed and not again) else ():
-            verdict = yield from choice.at_start(rec, work, again, should_stop)
-            if verdict is not Verdict.GO_ON:
-                return verdict
+        if again or not work.resumed:  # (a stage resumed inside it had its start before the checkpoint)
+            if len(rec.validation_indices) and rec.config.early_stopping != "off":
+                # The stage's starting volume is a candidate too: a stage that only makes the held-out images worse
+                # ends where it began (from stage 0 on: never a volume that explains them worse than no object).
+                track_validation(rec, work.stage, work.mask, work.best, 0)
+            for choice in choices:
+                verdict = yield from choice.at_start(rec, work, again, should_stop)
+                if verdict is not Verdict.GO_ON:
+                    return verdict
         if not (yield from iterate(rec, work, should_stop)):
             return Verdict.STOPPED
         verdict = Verdict.GO_ON
