@@ -315,7 +315,14 @@ def main(argv: list[str] | None = None) -> int:
             r = {**ob.measure_plane_wave(na, 8, 0.02), **ob.measure_image(na, 8, 0.02)}
             print(f"obliquity NA {na}: phase error {r['error']:.3f}, image {r['model']:.4f}", flush=True)
             obliquity.append(r)
-    Path(args.out).write_text(markdown(results, obliquity), encoding="utf-8")
+    text = markdown(results, obliquity)
+    out = Path(args.out)
+    if out.exists():  # keep full_size_stack's block (it has its own command)
+        old = out.read_text(encoding="utf-8")
+        start, end = "<!-- full-size:start -->", "<!-- full-size:end -->"
+        if start in old and end in old:
+            text += "\n" + old[old.index(start): old.index(end) + len(end)] + "\n"
+    out.write_text(text, encoding="utf-8")
     print(f"wrote {args.out}")
     return 0
 

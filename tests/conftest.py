@@ -50,3 +50,18 @@ def notifications():
     notification_manager.notification_ready.connect(keep)
     yield seen
     notification_manager.notification_ready.disconnect(keep)
+
+
+@pytest.fixture(autouse=True, scope="session")
+def _plugin_checkpoints_in_a_temporary_folder(tmp_path_factory):
+    """The plugin's runs checkpoint under the user's cache (napari_fdt.napari.resume); in the tests, under a temporary
+    folder instead (inherited by the computation processes the widget starts)."""
+    import os
+
+    before = os.environ.get("NAPARI_FDT_CHECKPOINTS")
+    os.environ["NAPARI_FDT_CHECKPOINTS"] = str(tmp_path_factory.mktemp("plugin_checkpoints"))
+    yield
+    if before is None:
+        os.environ.pop("NAPARI_FDT_CHECKPOINTS", None)
+    else:
+        os.environ["NAPARI_FDT_CHECKPOINTS"] = before

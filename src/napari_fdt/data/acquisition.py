@@ -17,6 +17,7 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
+from napari_fdt.data.mapped import MappedFile, chunks, mapped_file
 from napari_fdt.errors import FDTInputError, FDTWarning
 from napari_fdt.physics.optics import OPTICS_FIELDS, Optics
 
@@ -218,6 +219,40 @@ def parse_metadata(
     return optics, sources, extra
 
 
+def _checked_float(images: np.ndarray) -> np.ndarray:
+    """Float images (N, H, W) checked for NaN/Inf, as float32, warning about negative pixels; chunk by chunk, so a
+    memory-mapped stack is read once without a temporary of its size (a float64 stack is converted: a copy)."""
+    stored = _stored_dtype(images.dtype)
+    out = images if images.dtype == stored else np.empty(images.shape, dtype=stored)
+    negative = 0
+    for s in chunks(images):
+        part = images[s]
+        finite = np.isfinite(part)
+        if not finite.all():
+            bad = sum(int((~np.isfinite(images[t])).sum()) for t in chunks(images) if t.start >= s.start)
+            first = np.unravel_index(int(np.argmax(~finite)), part.shape)
+            raise FDTInputError(
+                "images",
+                f"{bad} non-finite pixels (NaN or Inf), first at image {s.start + int(first[0])}, "
+                f"row {first[1]}, col {first[2]}",
+                "replace or mask the bad pixels before reconstruction",
+            )
+        if out is not images:
+            converted = part.astype(stored)
+            if not np.isfinite(converted).all():
+                raise FDTInputError("images", "pixel values exceed the float32 range", "rescale the images")
+            out[s] = converted
+        negative += int((part < 0).sum())
+    if negative:
+        warnings.warn(
+            f"images: {negative} negative pixels; fluorescence intensities should be >= 0 "
+            "(background subtraction may have overshot)",
+            FDTWarning,
+            stacklevel=4,
+        )
+    return out
+
+
 @dataclass(eq=False)
 class Acquisition:
     """A stack of images with the optics and, optionally, one point-source position per image.
@@ -250,32 +285,7 @@ class Acquisition:
         n, h, w = check_image_layout(images.shape, images.dtype)
         images = images.reshape(n, h, w)
         if images.dtype.kind == "f":
-            finite = np.isfinite(images)
-            if not finite.all():
-                bad = ~finite
-                first = np.unravel_index(int(np.argmax(bad)), bad.shape)
-                raise FDTInputError(
-                    "images",
-                    f"{int(bad.sum())} non-finite pixels (NaN or Inf), first at image {first[0]}, "
-                    f"row {first[1]}, col {first[2]}",
-                    "replace or mask the bad pixels before reconstruction",
-                )
-            stored = _stored_dtype(images.dtype)
-            if images.dtype != stored:
-                converted = images.astype(stored)
-                if not np.isfinite(converted).all():
-                    raise FDTInputError(
-                        "images", "pixel values exceed the float32 range", "rescale the images"
-                    )
-                images = converted
-            negative = int((images < 0).sum())
-            if negative:
-                warnings.warn(
-                    f"images: {negative} negative pixels; fluorescence intensities should be >= 0 "
-                    "(background subtraction may have overshot)",
-                    FDTWarning,
-                    stacklevel=3,
-                )
+            images = _checked_float(images)
         else:
             images = images.astype(_stored_dtype(images.dtype), copy=False)
         self.images = images
@@ -310,6 +320,19 @@ class Acquisition:
     def image_shape(self) -> tuple[int, int]:
         """``(H, W)`` of each image, pixels."""
         return int(self.images.shape[1]), int(self.images.shape[2])
+
+    def __getstate__(self) -> dict[str, Any]:
+        """Pickled with a memory-mapped stack as its file reference: another process maps the file, not a copy."""
+        state = dict(self.__dict__)
+        ref = mapped_file(self.images)
+        if ref is not None:
+            state["images"] = ref
+        return state
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        if isinstance(state.get("images"), MappedFile):
+            state = {**state, "images": state["images"].open()}
+        self.__dict__.update(state)
 
     def images_float32(self) -> np.ndarray:
         """The ``(N, H, W)`` images as float32: the stored array itself if already float32, else a copy."""

@@ -29,6 +29,7 @@ import numpy as np
 import tifffile
 
 from napari_fdt.data.acquisition import Acquisition, check_image_layout, check_sources, parse_metadata
+from napari_fdt.data.mapped import map_series
 from napari_fdt.errors import FDTInputError
 
 __all__ = [
@@ -44,6 +45,7 @@ __all__ = [
     "check_report_free",
     "VOLUME_SUFFIXES",
     "read_image_stack",
+    "check_fits_in_memory",
 ]
 
 PathLike = Union[str, "os.PathLike[str]"]
@@ -350,12 +352,14 @@ def _quiet_tifffile() -> Iterator[None]:
         log.setLevel(level)
 
 
-def _check_fits_in_memory(name: str, shape: tuple[int, int, int], dtype: Any) -> None:
-    """Refuse, from the TIFF's header alone, a stack that could not be held in memory (twice: read and a float copy)."""
+def check_fits_in_memory(name: str, shape: tuple[int, ...], dtype: Any, copies: int = 2) -> None:
+    """Refuse, from the stack's shape alone, a stack whose ``copies`` arrays (each at least float32) would not fit in
+    the memory that is free: 2 for a stack read into memory (the pixels and the float32 copy every run makes), 1 for
+    the float32 copy of a memory-mapped one."""
     from napari_fdt.device import available_bytes
 
-    n, h, w = shape
-    need = 2 * n * h * w * max(np.dtype(dtype).itemsize, 4)  # the pixels, and the float32 copy every run makes
+    n, h, w = (int(s) for s in shape[-3:]) if len(shape) >= 3 else (1, *(int(s) for s in shape))
+    need = copies * n * h * w * max(np.dtype(dtype).itemsize, 4)
     free = available_bytes("cpu")
     if free is not None and need > 0.9 * free:
         gib = 2.0**30
@@ -368,6 +372,10 @@ def _check_fits_in_memory(name: str, shape: tuple[int, int, int], dtype: Any) ->
 
 def read_image_stack(image_path: PathLike, name: str, sources: np.ndarray | None = None) -> np.ndarray:
     """Pixels of the first TIFF series; shape, pixel type, source count and memory checked from the header first.
+
+    Where the file stores them uncompressed and contiguous (what :func:`write_acquisition` and most acquisition
+    software write) they come back as a read-only memory map (:mod:`napari_fdt.data.mapped`): nothing is read until
+    used, and the input cannot be changed through them. Otherwise they are read into memory.
 
     Every problem is an :class:`FDTInputError` naming ``images`` (``name`` is the file name shown).
     """
@@ -384,7 +392,10 @@ def read_image_stack(image_path: PathLike, name: str, sources: np.ndarray | None
             n, h, w = check_image_layout(series.shape, series.dtype)
             if sources is not None:
                 check_sources(sources, n)
-            _check_fits_in_memory(name, (n, h, w), series.dtype)
+            mapped = map_series(image_path, series)
+            if mapped is not None:  # pixels read when used (chunked checks, the solver's float32 copy)
+                return mapped
+            check_fits_in_memory(name, (n, h, w), series.dtype)
             return series.asarray()
     except FDTInputError:
         raise
@@ -403,7 +414,9 @@ def read_acquisition(path: PathLike) -> Acquisition:
 
     Returns
     -------
-    The :class:`~napari_fdt.data.acquisition.Acquisition`, images ``(N, H, W)`` float32 or uint16.
+    The :class:`~napari_fdt.data.acquisition.Acquisition`, images ``(N, H, W)`` float32 or uint16: a read-only memory
+    map of the file where it stores them uncompressed (:func:`read_image_stack`; ``numpy.array(acq.images)`` for a
+    copy to edit).
 
     Raises
     ------

@@ -44,7 +44,8 @@ import numpy as np
 import tifffile
 
 from napari_fdt.data.acquisition import check_image_layout
-from napari_fdt.data.io import _OME_UNITS_UM, _check_fits_in_memory, _quiet_tifffile
+from napari_fdt.data.io import _OME_UNITS_UM, _quiet_tifffile, check_fits_in_memory
+from napari_fdt.data.mapped import map_series
 from napari_fdt.errors import FDTInputError
 
 __all__ = ["StackHeader", "FileStack", "TIFF_SUFFIXES", "BIOIO_SUFFIXES", "has_bioio", "probe_stack", "read_stack", "read_source_files",
@@ -343,10 +344,12 @@ def read_stack(path: str | Path) -> FileStack:
     head = probe_stack(p)
     if head is None:
         raise _refuse_why(p)
-    _check_fits_in_memory(p.name, head.shape, head.dtype)
     try:
         with _quiet_tifffile(), tifffile.TiffFile(p) as tif:
-            images = tif.series[0].asarray().reshape(head.shape)
+            mapped = map_series(p, tif.series[0])  # uncompressed and contiguous: read when used
+            if mapped is None:
+                check_fits_in_memory(p.name, head.shape, head.dtype)
+            images = (tif.series[0].asarray() if mapped is None else mapped).reshape(head.shape)
     except MemoryError as exc:
         raise FDTInputError("images", f"{p.name}: not enough memory to read {head.shape} {head.dtype}",
                             "crop or bin the images") from exc
@@ -373,7 +376,7 @@ def read_with_bioio(path: str | Path) -> FileStack:
     if head is None:
         raise FDTInputError("images", f"{p.name} has dimensions {img.dims}: not one grayscale image per source along one axis",
                             "export one channel, one image per source (N, H, W)")
-    _check_fits_in_memory(p.name, head.shape, head.dtype)
+    check_fits_in_memory(p.name, head.shape, head.dtype)
     order = str(img.dims.order)
     keep = head.axes[0] if head.shape[0] > 1 and len(head.axes) == 3 else None
     squeeze = {a: 0 for a in order if a not in "YX" and a != keep}
@@ -440,7 +443,7 @@ def read_source_files(paths: Sequence[str | Path] | str | Path) -> FileStack:
                                 "give images of one size and pixel type")
         heads.append(head)
     n, (_, h, w) = len(heads), heads[0].shape
-    _check_fits_in_memory(files[0].name, (n, h, w), heads[0].dtype)
+    check_fits_in_memory(files[0].name, (n, h, w), heads[0].dtype)
     images = np.empty((n, h, w), dtype=heads[0].dtype)
     for i, p in enumerate(files):
         try:

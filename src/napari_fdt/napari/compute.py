@@ -81,7 +81,7 @@ def forward_preview(
                                 "use an RI layer of this acquisition (or none for the homogeneous medium)")
     model = MultiSliceModel(o, plan_for_sources(o, acq.image_shape, src), device=device)
     pred = render_images(model, dn, src)[0].astype(np.float64)
-    meas = acq.images_float32()[index].astype(np.float64)
+    meas = np.asarray(acq.images[index], dtype=np.float64)
     gain = float(least_squares_gain(torch.from_numpy(pred), torch.from_numpy(meas)))
     return (pred * gain).astype(np.float32), meas.astype(np.float32), gain
 
@@ -111,4 +111,4 @@ def predicted_vs_measured(rec, index: int) -> tuple[np.ndarray, np.ndarray]:
     if rec.volume is None:
         raise FDTInputError("reconstruction", "holds no volume yet", "run a reconstruction first")
     pred = rec.predict([index])[0]
-    return pred.astype(np.float32), acq.images_float32()[index].astype(np.float32)
+    return pred.astype(np.float32), np.asarray(acq.images[index], dtype=np.float32)

@@ -12,6 +12,7 @@ from __future__ import annotations
 import threading
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Iterator
 
 import numpy as np
@@ -61,21 +62,33 @@ def reconstruction_job(
     closing: threading.Event | None = None,
     min_interval_s: float = 0.5,
     acquisition_path: str | None = None,
+    checkpoint_dir: str | None = None,
+    resume: bool = False,
 ) -> Iterator[Update]:
     """Generator: yields :class:`Update` s, returns a :class:`JobResult` (``StopIteration.value``).
 
     ``closing`` set (the viewer is closing) skips the final evaluation so the thread ends at once.
-    ``done`` is set when the generator ends, however it ends.
+    ``done`` is set when the generator ends, however it ends. ``checkpoint_dir``: where the run writes its checkpoints
+    (:mod:`napari_fdt.napari.resume`); with ``resume`` it continues the run they hold (its own settings; ``config``
+    and ``initial_sources_um`` are not used), else the old ones are deleted first. A run that ends deletes them; a
+    cancelled one keeps them, to be resumed.
     """
+    from napari_fdt.napari.resume import clear
     from napari_fdt.recon.report import build_report
     from napari_fdt.recon.solver import Reconstructor
 
     try:
-        rec = Reconstructor(acquisition, config, device=device, initial_sources_um=initial_sources_um)
+        folder = None if checkpoint_dir is None else Path(checkpoint_dir)
+        if resume and folder is not None:
+            rec = Reconstructor.from_checkpoint(folder, acquisition, device=device)
+            config = rec.requested_config
+        else:
+            clear(folder)
+            rec = Reconstructor(acquisition, config, device=device, initial_sources_um=initial_sources_um)
         yield Update("started", rec=rec)
         n_b = np.float32(acquisition.optics.n_background)
         last = -float("inf")
-        for snap in rec.run(should_stop=stop.is_set):
+        for snap in rec.run(should_stop=stop.is_set, checkpoint_dir=folder):
             now = time.perf_counter()
             ri = None
             # a TV trial's volume (phase "tv_choice") is a candidate, not the run's: no RI for it
@@ -83,7 +96,9 @@ def reconstruction_job(
                 ri = n_b + snap.delta_n_full()
                 last = time.perf_counter()
             yield Update("snapshot", snapshot=snap, ri=ri)
-        cancelled = stop.is_set() and rec.completed_stages < len(config.stages)
+        cancelled = stop.is_set() and rec.completed_stages < len(rec.config.stages)
+        if not cancelled and not (closing is not None and closing.is_set()):
+            clear(folder)  # the run ended: nothing to resume
         if closing is not None and closing.is_set():
             return JobResult(rec, True, rec.completed_stages)
         if cancelled:

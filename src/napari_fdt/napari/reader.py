@@ -25,6 +25,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from napari_fdt.data.mapped import chunks
 from napari_fdt.errors import FDTInputError
 from napari_fdt.napari.layers import META_KIND, META_PATH, META_REPORT, UNITS, LayerDataTuple, acquisition_layer, stack_layer
 
@@ -126,7 +127,7 @@ def read_tiff_layers(path: str | list[str]) -> list[LayerDataTuple]:
 
 def _stack(stack, path: str, name: str) -> LayerDataTuple:
     images = stack.images
-    if images.dtype.kind == "f" and not np.isfinite(images).all():
+    if images.dtype.kind == "f" and not all(np.isfinite(images[s]).all() for s in chunks(images)):
         raise FDTInputError("images", f"{name} holds NaN or Inf pixels", "replace or mask the bad pixels first")
     return stack_layer(images, path=path, name=name, file_optics=stack.optics)
 

@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from magicgui.widgets import ComboBox, Container, Label, LineEdit, ProgressBar, PushButton, SpinBox
+from magicgui.widgets import CheckBox, ComboBox, Container, Label, LineEdit, ProgressBar, PushButton, SpinBox
 
 from napari_fdt.errors import FDTInputError
 from napari_fdt.napari.job import JobResult, Update
@@ -33,6 +33,7 @@ from napari_fdt.napari.layers import (
 )
 from napari_fdt.napari.remote_job import ComputeProcessDied, RunResult, remote_reconstruction
 from napari_fdt.napari.result_view import content_slice, keep_view, results_line, ri_contrast_limits, show_slice, truth_error
+from napari_fdt.napari.resume import checkpoint_folder, interrupted_run
 from napari_fdt.napari.schema_widgets import schema_widget
 from napari_fdt.napari.settings import format_stages, merge_config
 from napari_fdt.napari.widget_common import (
@@ -138,6 +139,9 @@ class ReconstructionWidget(ResultActions, Container):
         self.load_settings_button = PushButton(text="Load settings…")
         self.run_button = PushButton(text="Reconstruct")
         self.cancel_button = PushButton(text="Cancel", enabled=False)
+        #: shown when the selected acquisition has an interrupted run's checkpoints (napari_fdt.napari.resume)
+        self.resume_run = CheckBox(text="resume the interrupted run", value=False, visible=False)
+        self.resume_offer = None
         self.progress = ProgressBar(label="progress", value=0, min=0, max=1)
         self.status = Label(value="")
         #: the last run's key numbers (image fit, validation error, error against a loaded truth), above the fold
@@ -169,7 +173,7 @@ class ReconstructionWidget(ResultActions, Container):
         self.extend([
             Container(widgets=[self.layer, self.progress]),
             Container(widgets=[self.run_button, self.cancel_button], layout="horizontal", labels=False),
-            self.status, self.results,
+            self.resume_run, self.status, self.results,
             Container(widgets=[self.save_button, self.command_button], layout="horizontal", labels=False),
             self.feedback.label,
         ])
@@ -252,6 +256,19 @@ class ReconstructionWidget(ResultActions, Container):
             for event in (layer.events.scale, layer.events.translate):  # Apply optics changes them: re-check
                 event.connect(self._update_run_state)
         self._update_run_state()
+        self._offer_resume()
+
+    def _offer_resume(self) -> None:
+        """Show "resume the interrupted run" where the selected acquisition's checkpoint folder holds one."""
+        layer = self.layer.value
+        offer = None if layer is None or self.running else interrupted_run(checkpoint_folder(layer.metadata.get(META_PATH)))
+        self.resume_offer = offer
+        self.resume_run.visible = offer is not None
+        if offer is None:
+            self.resume_run.value = False
+        else:
+            self.resume_run.text = f"resume the interrupted run ({offer.describe()}, with its own settings)"
+            self.resume_run.tooltip = f"its checkpoints: {offer.folder}; unticked, Reconstruct starts afresh and deletes them"
 
     def _clear_stale_error(self, _value=None) -> None:
         if self.feedback.last_error is not None:
@@ -341,6 +358,8 @@ class ReconstructionWidget(ResultActions, Container):
             run_config = resolve_stage_lengths(config, acq.n_images)
             sources = sources_for(self._viewer, layer, acq, required=False)
             device = self.device.value
+            folder = checkpoint_folder(layer.metadata.get(META_PATH))
+            resume = bool(self.resume_offer is not None and self.resume_run.value)
             self.feedback.info("")
             self._acq_layer = layer
             self._rec, self._report, self.cancelled = None, None, False
@@ -358,6 +377,7 @@ class ReconstructionWidget(ResultActions, Container):
                 remote_reconstruction, acq, config, device=device, initial_sources_um=sources, stop=stop,
                 done=done, closing=closing, min_interval_s=UPDATE_INTERVAL_S,
                 acquisition_path=layer.metadata.get(META_PATH), target=self.job_target,
+                checkpoint_dir=None if folder is None else str(folder), resume=resume,
             )
             worker.yielded.connect(self._on_update)
             worker.returned.connect(self._on_returned)
@@ -375,7 +395,8 @@ class ReconstructionWidget(ResultActions, Container):
             self.losses.value = ""
             self._set_running(True)
             self.results.value = ""
-            self.status.value = f"run #{self._runs}: starting the computation process on {device}…"
+            self.status.value = f"run #{self._runs}: {'resuming' if resume else 'starting'} the computation process on {device}…"
+            self.resume_run.visible, self.resume_offer = False, None
             if run_config.stages[-1].iterations != config.stages[-1].iterations:
                 self.status.value += (f" (finest stage {run_config.stages[-1].iterations} iterations, not {config.stages[-1].iterations}: "
                                       f"{config.final_stage_min_passes:g} passes over the {acq.n_images} images)")
@@ -565,3 +586,4 @@ class ReconstructionWidget(ResultActions, Container):
         if self._closing.is_set():
             return
         self._set_running(False)
+        self._offer_resume()

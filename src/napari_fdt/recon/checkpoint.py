@@ -116,7 +116,7 @@ def read_checkpoint(path: str | Path, acquisition: Acquisition) -> dict[str, Any
         path = latest_checkpoint(path)
     try:
         state = torch.load(Path(path), map_location="cpu", weights_only=False)
-    except (OSError, RuntimeError, EOFError) as exc:
+    except Exception as exc:  # noqa: BLE001 (torch.load raises OSError, RuntimeError, EOFError, UnpicklingError … on a bad file)
         raise FDTInputError("resume", f"cannot read checkpoint {path}: {exc}", "point --resume at a stage_*.pt file") from None
     if not isinstance(state, dict) or state.get("format") != FORMAT:
         raise FDTInputError("resume", f"{path} is not a napari-fdt checkpoint", "point --resume at a stage_*.pt file")

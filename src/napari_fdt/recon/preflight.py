@@ -16,6 +16,7 @@ import numpy as np
 import torch
 
 from napari_fdt.data.acquisition import Acquisition
+from napari_fdt.data.mapped import chunks
 from napari_fdt.errors import FDTInputError, FDTWarning
 from napari_fdt.physics.grid import plan_for_sources
 from napari_fdt.recon.config import SolverConfig
@@ -30,14 +31,16 @@ def warn_about_images(acquisition: Acquisition, stacklevel: int = 3) -> None:
     """
     imgs = acquisition.images
     n = imgs.shape[0]
-    blank = np.flatnonzero(imgs.reshape(n, -1).max(axis=1) <= 0)
+    parts = list(chunks(imgs))  # a memory-mapped stack is read in chunks, without a temporary of its size
+    peaks = np.concatenate([imgs[s].reshape(s.stop - s.start, -1).max(axis=1) for s in parts])
+    blank = np.flatnonzero(peaks <= 0)
     if blank.size:
         listed = ", ".join(map(str, blank[:10])) + (" …" if blank.size > 10 else "")
         warnings.warn(f"images: {blank.size} of {n} images are blank (no positive pixel): {listed}; they carry no "
                       "information and their gain goes to about 0: drop them from the acquisition", FDTWarning, stacklevel=stacklevel)
-    top = np.iinfo(imgs.dtype).max if imgs.dtype.kind == "u" else float(imgs.max())
+    top = np.iinfo(imgs.dtype).max if imgs.dtype.kind == "u" else float(peaks.max())
     if top > 0:
-        at_top = int(np.count_nonzero(imgs == top))
+        at_top = sum(int(np.count_nonzero(imgs[s] == top)) for s in parts)
         if at_top > max(10, 1e-3 * imgs.size):
             warnings.warn(f"images: {at_top} pixels ({100 * at_top / imgs.size:.2f} %) sit at the maximum value {top:g}: "
                           "saturated pixels break the intensity model; mask them or re-acquire with less exposure",

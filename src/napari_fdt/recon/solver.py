@@ -32,6 +32,8 @@ import numpy as np
 import torch
 
 from napari_fdt.data.acquisition import Acquisition
+from napari_fdt.data.io import check_fits_in_memory
+from napari_fdt.data.mapped import mean_of, scaled_float32
 from napari_fdt.device import resolve_device
 from napari_fdt.errors import FDTInputError, FDTWarning
 from napari_fdt.model.coherence import coherence_masks, spectral_images
@@ -130,8 +132,8 @@ class Reconstructor:
             raise FDTInputError("sources_um", f"need one [x, y, depth] per image ({n_img}), got shape {src.shape}",
                                 "give one source per image")
         self.initial_sources_um = src.copy()
-        imgs = acquisition.images_float32().astype(np.float32)
-        mean = float(imgs.mean(dtype=np.float64))
+        check_fits_in_memory("images", acquisition.images.shape, np.float32, copies=1)  # the copy made here
+        mean = mean_of(acquisition.images)
         if not mean > 0:
             raise FDTInputError("images", "are all zero (or their mean is not positive)", "check the acquisition")
         #: the acquisition's mean intensity; the solver works on images divided by it
@@ -139,7 +141,7 @@ class Reconstructor:
         warn_about_images(acquisition)
         warn_about_sampling(acquisition, src)  # before any run
         #: (N, H, W) float32 images / image_scale, on the CPU (each stage averages them to its grid)
-        self.images = torch.from_numpy(imgs / mean)
+        self.images = torch.from_numpy(scaled_float32(acquisition.images, mean))
         self.full_shape = acquisition.image_shape
         self.calibration = self._new_calibration()
         self.volume: RIVolume | None = None
