@@ -98,3 +98,22 @@ def test_the_folder_resumes_from_the_checkpoint_written_last(tmp_path: Path) -> 
     (tmp_path / "stage_0.pt").write_bytes(b"0")
     os.utime(tmp_path / "stage_1.pt", ns=(1_000_000_000, 1_000_000_000))
     assert latest_checkpoint(tmp_path).name == "stage_0.pt"
+
+
+def test_the_checkpoint_interval_counts_computation_not_the_consumers_pauses(scene16, tmp_path: Path) -> None:
+    """A consumer that holds every snapshot for 0.4 s (a viewer drawing, a slow disk) does not make the run write more
+    checkpoints: ``checkpoint_every_s`` counts the solver's own seconds (its ``elapsed_s``)."""
+    from napari_fdt.recon.config import SolverConfig, StageConfig
+    from napari_fdt.recon.solver import Reconstructor
+
+    cfg = SolverConfig(stages=[StageConfig(1, 10)], batch_size=4, snapshot_every=1, validation_fraction=0.0,
+                       final_stage_min_passes=0, checkpoint_every_s=2.0, tv_xy_weight=0.0, tv_z_weight=0.0)
+    rec = Reconstructor(scene16.acquisition, cfg, device="cpu")
+    written = []
+    for snap in rec.run(checkpoint_dir=tmp_path):
+        written += [p.name for p in tmp_path.glob("stage_0_it*.pt") if p.name not in written]
+        if not snap.stage_complete:
+            time.sleep(0.4)  # 9 pauses: 3.6 s of the consumer's, past the 2 s interval twice
+    compute_s = rec.stages[0].seconds
+    assert compute_s < 2.0, f"the stage's own computation took {compute_s:.1f} s: the test needs it below the interval"
+    assert written == [], written

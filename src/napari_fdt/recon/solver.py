@@ -234,7 +234,8 @@ class Reconstructor:
         the selection stage, the ``"auto"`` model parts after the first multi-slice stage) may send the run back to
         its first stage where what they chose changes what the stages before did.
         """
-        self._checkpoint_dir, self._checkpointed_at = checkpoint_dir, time.perf_counter()
+        #: the solver's compute seconds (elapsed_s: the consumer's pauses not counted) at the last checkpoint
+        self._checkpoint_dir, self._checkpointed_s = checkpoint_dir, self.elapsed_s
         self._start_pass()
         while self.completed_stages < len(self.config.stages):
             work = self._begin_stage(self.completed_stages)
@@ -317,14 +318,14 @@ class Reconstructor:
 
     def _checkpoint_in_stage(self, work: StageWork) -> None:
         """A checkpoint inside the stage (``stage_<i>_it<k>.pt``, the older ones deleted) when a checkpoint folder is
-        given and ``checkpoint_every_s`` has passed since the last one."""
+        given and ``checkpoint_every_s`` of computation (not of the consumer's pauses) has passed since the last one."""
         directory, now = self._checkpoint_folder(), time.perf_counter()
-        if directory is None or now - self._checkpointed_at < self.config.checkpoint_every_s:
+        if directory is None or self.elapsed_s + (now - work.t0) - self._checkpointed_s < self.config.checkpoint_every_s:
             return
         path = write_checkpoint({**self.state_dict(), "in_stage": in_stage_state(work, now)},
                                 in_stage_path(directory, work.stage.index, work.done))
         prune_in_stage(directory, keep=path)
-        self._checkpointed_at = time.perf_counter()
+        self._checkpointed_s = self.elapsed_s + (time.perf_counter() - work.t0)
 
     def _end_stage(self, work: StageWork) -> Snapshot:
         """The stage's snapshot (the last complete state from now on) and its checkpoint."""
@@ -334,7 +335,7 @@ class Reconstructor:
         if directory is not None:
             self.save_checkpoint(checkpoint_path(directory, work.stage.index))
             prune_in_stage(directory)  # the stage's end holds what its checkpoints inside it held
-            self._checkpointed_at = time.perf_counter()
+            self._checkpointed_s = self.elapsed_s
         return snap
 
     # -- per-stage set-up -----------------------------------------------------------------------
