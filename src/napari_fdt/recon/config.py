@@ -155,7 +155,8 @@ class SolverConfig:
     snapshot_every: int = setting(10, ge=1, description="iterations between progress snapshots")
     checkpoint_every_s: float = setting(
         300.0, ge=0, description="with a checkpoint folder (`--checkpoint-dir`): seconds between the checkpoints written inside a "
-        "stage, at its snapshots, counted in computation (not the time a consumer holds a snapshot; the latest kept; a stage's end always writes one); 0: at every snapshot")
+        "stage, at its snapshots, counted in computation (not the time a consumer holds a snapshot; the latest kept; a stage's "
+        "end always writes one); 0: at every snapshot")
     backward_mode: BackwardMode = setting(
         "auto", strict=False, description="how the multi-slice model forms gradients (`napari_fdt.model.slice_loop`): `\"stored\"` (one field per slice and "
         "image, fastest), `\"reversible\"` (re-propagates the field backwards: memory independent of the number of slices; grids without "
