@@ -84,16 +84,11 @@ def latest_checkpoint(directory: str | Path) -> Path:
 
 
 def checkpoint_state(rec: Reconstructor) -> dict[str, Any]:
-    """The state of ``rec`` as a checkpoint dict (tensors on the CPU)."""
+    """The state of ``rec`` as a checkpoint dict (tensors on the CPU): its :class:`~napari_fdt.recon.run_state.RunState`,
+    the configuration, the initial sources and the acquisition's size."""
     return {
-        "format": FORMAT, "version": 1,
-        "config": rec.requested_config.to_dict(), "completed_stages": rec.completed_stages,
-        "volume": None if rec.volume is None else rec.volume.state_dict(), "volume_factor": rec.volume_factor,
-        **rec.calibration.state_dict(),
-        **rec.batches.state_dict(),
-        "stages": [r.to_dict() for r in rec.stages], "history": rec.history, "elapsed_s": rec.elapsed_s,
-        "tv_choice": None if rec.tv_choice is None else rec.tv_choice.to_dict(),
-        "parts_choice": None if rec.parts_choice is None else rec.parts_choice.to_dict(),
+        "format": FORMAT, "version": 1, "config": rec.requested_config.to_dict(),
+        **rec.state.state_dict(),
         "initial_sources_um": rec.initial_sources_um, "n_images": rec.acquisition.n_images,
         "image_shape": list(rec.full_shape),
     }
@@ -126,26 +121,16 @@ def read_checkpoint(path: str | Path, acquisition: Acquisition) -> dict[str, Any
 
 
 def restore_checkpoint(rec: Reconstructor, state: dict[str, Any]) -> None:
-    """Put a checkpoint's state into ``rec`` (made with the checkpoint's configuration and initial sources)."""
+    """Put a checkpoint's state into ``rec`` (made with the checkpoint's configuration and initial sources): the parts
+    choice first (it switches the calibration's parameters), then the :class:`~napari_fdt.recon.run_state.RunState`,
+    then the loss weights of the chosen TV weights."""
     from napari_fdt.recon.model_parts import PartsChoice
-    from napari_fdt.recon.regularisation import TVChoice
-    from napari_fdt.recon.volume import RIVolume
 
-    rec.completed_stages = state["completed_stages"]
-    in_stage = state.get("in_stage")  # a checkpoint written inside a stage: that stage goes on where it was
-    rec._resume_in_stage = in_stage
+    rec._resume_in_stage = state.get("in_stage")  # a checkpoint written inside a stage: that stage goes on where it was
+    rec.completed_stages = int(state["completed_stages"])
     parts = state.get("parts_choice")  # absent before the choice (and in checkpoints written before it existed)
     if parts is not None:
         rec.apply_parts_choice(PartsChoice.from_dict(parts))
-    rec.calibration.load_state_dict(state, rec.completed_stages if in_stage else max(0, rec.completed_stages - 1))
-    if state["volume"] is not None:
-        rec.volume = RIVolume.from_state_dict(state["volume"], rec.device, rec.dtype)
-    rec.volume_factor = state["volume_factor"]
-    rec.batches.load_state_dict(state)
-    rec.stages = [StageRecord.from_dict(r) for r in state["stages"]]
-    choice = state.get("tv_choice")  # absent in checkpoints written before automatic regularisation
-    if choice is not None:
-        rec.tv_choice = TVChoice(**choice)
+    rec.state.load_state_dict(state, rec.device, rec.dtype)
+    if rec.tv_choice is not None:
         rec.loss_weights = dataclasses.replace(rec.loss_weights, tv_xy=rec.tv_choice.tv_xy_weight, tv_z=rec.tv_choice.tv_z_weight)
-    rec.history = list(state["history"])
-    rec.elapsed_s = float(state["elapsed_s"])

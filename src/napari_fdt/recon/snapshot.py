@@ -145,7 +145,7 @@ def complete_stage(rec: Reconstructor, stage: Stage, record: StageRecord, global
     snap.elapsed_s = rec.elapsed_s
     rec.completed_stages = stage.index + 1
     rec.last_complete = snap
-    rec._last_complete_state = rec._capture()
+    rec.last_complete_state = rec._capture()
     rec.final_losses = snap.losses
     return snap
 

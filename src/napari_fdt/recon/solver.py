@@ -62,6 +62,7 @@ from napari_fdt.recon.phases import RERUN, RUN, TV_CHOICE
 from napari_fdt.recon.plan import Pace, Plan, make_plan, stage_phase
 from napari_fdt.recon.preflight import check_backward_mode, check_memory, warn_about_images, warn_about_sampling
 from napari_fdt.recon.regularisation import TVChoice, candidate_weights, selection_stages, tv_is_auto
+from napari_fdt.recon.run_state import InState, RunState
 from napari_fdt.recon.run_validation import validation_error
 from napari_fdt.recon.schedule import final_step_scale
 from napari_fdt.recon.snapshot import Snapshot, StageRecord, complete_stage, rerun_parts
@@ -95,6 +96,11 @@ class Reconstructor:
     Results: :meth:`delta_n_full` / :meth:`ri_full` (the volume), :meth:`sources_um` and :meth:`gains` (the
     calibration), :meth:`predict` (images of the current state, in the acquisition's units).
     """
+
+    # the run's state (:class:`~napari_fdt.recon.run_state.RunState`), read and written as attributes
+    calibration, batches, volume, volume_factor = InState(), InState(), InState(), InState()
+    completed_stages, stages, history, elapsed_s, final_losses = InState(), InState(), InState(), InState(), InState()
+    tv_choice, parts_choice, last_complete, last_complete_state = InState(), InState(), InState(), InState()
 
     def __init__(
         self,
@@ -143,26 +149,16 @@ class Reconstructor:
         #: (N, H, W) float32 images / image_scale, on the CPU (each stage averages them to its grid)
         self.images = torch.from_numpy(scaled_float32(acquisition.images, mean))
         self.full_shape = acquisition.image_shape
-        self.calibration = self._new_calibration()
-        self.volume: RIVolume | None = None
-        self.volume_factor: int | None = None
+        #: everything the run changes and has decided (:mod:`napari_fdt.recon.run_state`; its fields read as attributes here)
+        self.state = RunState(self._new_calibration(), BatchOrder(n_img, cfg.seed, self.device))
         #: (V,) indices of the held-out images, spread over the field (empty: no validation). They are drawn in
         #: batches like the others, but their loss reaches only their own position and gain: never the volume
         #: nor the shared calibration (a fit of their positions that does not touch the volume).
         self.validation_indices = holdout_indices(src, cfg.validation_fraction)
         self._held_out = torch.zeros(n_img, dtype=torch.bool, device=self.device)
         self._held_out[torch.as_tensor(self.validation_indices, dtype=torch.long, device=self.device)] = True
-        self.batches = BatchOrder(n_img, cfg.seed, self.device)
-        self.completed_stages = 0
-        self.stages: list[StageRecord] = []
-        self.history: list[dict[str, Any]] = []
-        self.elapsed_s = 0.0
-        self.last_complete: Snapshot | None = None
-        self.final_losses: dict[str, float] = {}
         #: the optional model parts (:mod:`napari_fdt.recon.model_parts`) as now switched; "auto" ones are off until chosen
         self.parts: dict[str, bool] = {}
-        #: what the choice of the "auto" parts tried and chose (None until made)
-        self.parts_choice: PartsChoice | None = None
         self.wavelengths, self.weights = None, None
         #: auto parts the finest stage chooses again after every stage ran again with the kept ones (``parts_rerun``)
         self._choose_again: list[str] = []
@@ -170,9 +166,6 @@ class Reconstructor:
         self.choices = default_choices()
         init_parts(self)
         self.loss_weights = LossWeights.from_config(cfg)
-        #: the TV weights chosen from the data ("auto"; :mod:`napari_fdt.recon.regularisation`), None until chosen
-        #: or when the weights are fixed numbers
-        self.tv_choice: TVChoice | None = None
         if tv_is_auto(cfg) and not len(self.validation_indices):
             warnings.warn("tv_xy_weight: \"auto\" chooses the TV weights by the validation error, and this run holds no "
                           "images out (validation_fraction 0, or too few images): TV is off. Give validation_fraction > 0 "
@@ -257,15 +250,8 @@ class Reconstructor:
     def _restart(self, keep_last_complete: bool = False) -> None:
         """Back to the state before any stage ran (volume, calibration and its optimiser, batch order, records); with
         ``keep_last_complete`` the last complete stage stays what a cancel returns to until a stage completes again."""
-        cfg = self.config
-        self.calibration = self._new_calibration()
-        self.batches = BatchOrder(self.acquisition.n_images, cfg.seed, self.device)
-        self.volume, self.volume_factor = None, None
-        self.completed_stages, self.stages, self.history = 0, [], []
-        self.final_losses = {}
-        if not keep_last_complete:
-            self.last_complete = None
-            self.__dict__.pop("_last_complete_state", None)
+        self.state = self.state.fresh(self._new_calibration(), BatchOrder(self.acquisition.n_images, self.config.seed, self.device),
+                                      keep_last_complete)
 
     def _new_calibration(self) -> Calibration:
         """The calibration parameters at their start (the initial sources, the acquisition's optics)."""
@@ -493,7 +479,7 @@ class Reconstructor:
 
     def restore_last_complete(self) -> None:
         """Return to the state at the end of the last complete stage (after a cancel mid-stage)."""
-        state = getattr(self, "_last_complete_state", None)
+        state = self.last_complete_state
         if state is None:
             raise RuntimeError("no stage has completed yet")
         self._restore(state)
