@@ -31,6 +31,7 @@ from benchmarks.regularisation import SCENE_DIR, SCENES
 from napari_fdt import read_acquisition, read_volume_tiff
 from napari_fdt.recon.config import SolverConfig
 from napari_fdt.recon.metrics import relative_delta_n_error
+from napari_fdt.recon.regularisation import selection_stages
 from napari_fdt.recon.run_validation import validation
 from napari_fdt.recon.solver import Reconstructor
 from napari_fdt.recon.stage_loop import Verdict, capture_branch, new_optimiser, restore_branch
@@ -58,8 +59,9 @@ def halves(sources_um: np.ndarray, train: np.ndarray, seed: int) -> tuple[np.nda
 class Sweep:
     """A choice plugged in at the finest stage's start: runs the study, records it, stops the run."""
 
-    def __init__(self, truth_dn: np.ndarray, taus: list[float], probe: int, seed: int) -> None:
+    def __init__(self, truth_dn: np.ndarray, taus: list[float], probe: int, seed: int, stage_index: int, full: bool) -> None:
         self.truth, self.taus, self.probe, self.seed = truth_dn, taus, probe, seed
+        self.stage_index, self.full = stage_index, full
         self.result: dict = {}
 
     def _train(self, rec, work, iterations: int, record_at: int | None = None):
@@ -75,7 +77,7 @@ class Sweep:
         return at
 
     def at_start(self, rec, work, again, should_stop):
-        if work.stage.index != len(rec.config.stages) - 1:
+        if work.stage.index != self.stage_index:
             return Verdict.GO_ON
         start = capture_branch(rec)
         held0 = rec._held_out.clone()
@@ -88,8 +90,8 @@ class Sweep:
             rec.loss_weights = dataclasses.replace(weights, tv_xy=tau, tv_z=tau / 2)
             t = time.perf_counter()
             restore_branch(rec, start)
-            dn_probe, val_probe = self._train(rec, work, work.stage.iterations, record_at=self.probe)
-            final = relative_delta_n_error(rec.delta_n_full(), self.truth)
+            dn_probe, val_probe = self._train(rec, work, work.stage.iterations if self.full else self.probe, record_at=self.probe)
+            final = relative_delta_n_error(rec.delta_n_full(), self.truth) if self.full else None
             row = {"tau": tau, "truth_probe": relative_delta_n_error(dn_probe, self.truth), "truth_final": final,
                    "heldout_probe": val_probe, "full_s": time.perf_counter() - t}
             for name, other in (("A", half_b), ("B", half_a)):
@@ -117,27 +119,49 @@ class Sweep:
         yield
 
 
+def reference_finals(scene: str, seed: int) -> dict[float, float]:
+    """Final relative Δn errors of full runs at fixed τ (τ_z = τ/2), the latest row per τ, from the regularisation
+    benchmark's results (benchmarks/results/regularisation_cpu.jsonl)."""
+    finals: dict[float, float] = {}
+    path = Path(__file__).resolve().parent / "results" / "regularisation_cpu.jsonl"
+    for line in path.read_text().splitlines():
+        r = json.loads(line)
+        if r["scene"] == scene and r["setting"] != "auto" and r.get("config_overrides", {}).get("seed", 0) == seed:
+            finals[float(r["setting"])] = r["relative_delta_n_error"]
+    return finals
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("scene")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--probe", type=int, default=40)
     ap.add_argument("--taus", default="0,1,3,10,30")
+    ap.add_argument("--at", choices=("finest", "selection"), default="finest",
+                    help="where: the finest stage's start (stages before at τ 1; the stage run in full per τ), or the "
+                         "selection stage's start as the automatic choice runs (the stages before without TV; probes only: "
+                         "the final errors of runs at each τ come from benchmarks/results/regularisation_cpu.jsonl)")
     args = ap.parse_args()
     folder = SCENES[args.scene][0] if args.scene in SCENES else SCENE_DIR / args.scene
     acq = read_acquisition(folder)
     truth, _ = read_volume_tiff(folder / "ground_truth_ri.tif")
-    cfg = SolverConfig.from_dict({**SolverConfig().to_dict(), "seed": args.seed, "tv_xy_weight": 1.0, "tv_z_weight": 0.5,
+    tau0 = 1.0 if args.at == "finest" else 0.0
+    cfg = SolverConfig.from_dict({**SolverConfig().to_dict(), "seed": args.seed, "tv_xy_weight": tau0, "tv_z_weight": tau0 / 2,
                                   "early_stopping": "off"})
     rec = Reconstructor(acq, cfg, device="cpu")
-    sweep = Sweep(truth - acq.optics.n_background, [float(t) for t in args.taus.split(",")], args.probe, args.seed)
+    at = len(cfg.stages) - 1 if args.at == "finest" else selection_stages(cfg)[0]
+    sweep = Sweep(truth - acq.optics.n_background, [float(t) for t in args.taus.split(",")], args.probe, args.seed, at,
+                  args.at == "finest")
     rec.choices = [sweep, *rec.choices]
     t = time.perf_counter()
     for _ in rec.run():
         pass
     rows = sweep.result["rows"]
+    if args.at == "selection":  # the final errors of full runs at each τ (seed 0's sweep of the regularisation benchmark)
+        finals = reference_finals(args.scene, args.seed)
+        rows = [dict(r, truth_final=finals[r["tau"]]) for r in rows if r["tau"] in finals]
     best = min(rows, key=lambda r: r["truth_final"])
-    summary = {"scene": args.scene, "seed": args.seed, "probe": args.probe, "halves": sweep.result["halves"],
+    summary = {"scene": args.scene, "seed": args.seed, "at": args.at, "probe": args.probe, "halves": sweep.result["halves"],
                "best_final": best["tau"], "wall_s": round(time.perf_counter() - t, 1), "date": time.strftime("%Y-%m-%d")}
     for crit in ("cross", "agree", "heldout_probe", "truth_probe"):
         pick = min(rows, key=lambda r: r[crit])

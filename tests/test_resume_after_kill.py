@@ -117,3 +117,41 @@ def test_the_checkpoint_interval_counts_computation_not_the_consumers_pauses(sce
     compute_s = rec.stages[0].seconds
     assert compute_s < 2.0, f"the stage's own computation took {compute_s:.1f} s: the test needs it below the interval"
     assert written == [], written
+
+
+def test_ctrl_c_writes_the_last_complete_stage(scene16, tmp_path: Path) -> None:
+    """Ctrl-C (SIGINT) inside the finest stage: `fdt reconstruct` writes the last complete stage, says so in the report
+    and exits with 130 (recon.session.finish_run, shared with the plugin); its volume equals stage 1's checkpoint."""
+    import torch
+
+    from napari_fdt.recon.volume import RIVolume
+
+    acq = write_acquisition(scene16.acquisition, tmp_path / "acq")
+    cfg = tmp_path / "cfg.json"
+    cfg.write_text(json.dumps({"stages": [{"factor": 2, "iterations": 10}, {"factor": 1, "iterations": 4000}],
+                               "batch_size": 4, "validation_fraction": 0.2, "final_stage_min_passes": 0,
+                               "tv_xy_weight": 1.0, "tv_z_weight": 0.5}))
+    ckpt = tmp_path / "ckpt"
+    out = tmp_path / "cut.tif"
+    proc = subprocess.Popen(_fdt(str(acq), "--out", str(out), "--config", str(cfg), "--checkpoint-dir", str(ckpt)),
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 300
+        while not (ckpt / "stage_0.pt").exists():
+            assert proc.poll() is None and time.monotonic() < deadline
+            time.sleep(0.02)
+        time.sleep(1.0)  # inside the finest stage
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 130, err
+    assert "interrupted: writing the last complete stage (1/2)" in err
+    report = json.loads(out.with_suffix(".json").read_text())
+    assert report["cancelled"] is True and report["completed_stages"] == 1
+    written, _ = read_volume_tiff(out)
+    state = torch.load(ckpt / "stage_0.pt", map_location="cpu", weights_only=False)
+    stage0 = RIVolume.from_state_dict(state["volume"], torch.device("cpu"), torch.float32)
+    expected = stage0.full_resolution(state["volume_factor"], written.shape[1:]).numpy() + scene16.acquisition.optics.n_background
+    assert float(np.max(np.abs(written - expected))) <= 1e-6

@@ -434,14 +434,11 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
 
 
 def _run_and_write(args, config, acq, out: Path, json_out: Path, truth, truth_src, group) -> int:
-    from napari_fdt.recon.report import build_report, describe_parts, describe_plan, write_result
-    from napari_fdt.recon.solver import Reconstructor
+    from napari_fdt.recon.report import describe_parts, describe_plan, write_result
+    from napari_fdt.recon.session import finish_run, open_run
 
     device = args.device if group is None else group.device
-    if args.resume is not None:
-        rec = Reconstructor.from_checkpoint(args.resume, acq, device=device, group=group)
-    else:
-        rec = Reconstructor(acq, config, device=device, group=group)
+    rec = open_run(acq, config, device=device, resume=args.resume, group=group)
     writer = group is None or group.is_writer
     cancelled = False
     if writer:  # what the run will do and cost, before it starts (also with --quiet: a batch log shows it)
@@ -462,12 +459,11 @@ def _run_and_write(args, config, acq, out: Path, json_out: Path, truth, truth_sr
             print("interrupted before the first stage completed: nothing written", file=sys.stderr)
             return 130
         print(f"interrupted: writing the last complete stage ({rec.completed_stages}/{len(rec.config.stages)})", file=sys.stderr)
-        rec.restore_last_complete()
     bar.close()
     if not writer:
         return 0
-    report = build_report(rec, output=str(out), acquisition_path=str(args.acquisition), truth_ri=truth,
-                          truth_sources_um=truth_src, cancelled=cancelled)
+    report = finish_run(rec, cancelled, output=str(out), acquisition_path=str(args.acquisition), truth_ri=truth,
+                        truth_sources_um=truth_src)
     write_result(rec, out, report, overwrite=args.overwrite)
     st = ", ".join(f"x{r['factor']}: {r.get('stopped_at') or r['iterations']} it, {r['seconds_per_iteration']:.3f} s/it" for r in report["stages"])
     print(f"wrote {out} and {json_out}: {report['seconds_total']:.1f} s on {rec.device} ({st})")

@@ -4,7 +4,8 @@
 runs) and yields an :class:`Update` per snapshot. The absolute RI on the acquisition grid is attached
 (computed here, in the worker, not in the GUI thread) at every stage end and otherwise at most every
 ``min_interval_s``. Setting ``stop`` cancels at the next iteration; the job then returns to the last
-complete stage (:meth:`~napari_fdt.recon.solver.Reconstructor.restore_last_complete`) and reports it. No Qt here.
+complete stage and reports it. The run starts and ends as ``fdt reconstruct``'s (:mod:`napari_fdt.recon.session`:
+``open_run``, ``finish_run``). No Qt here.
 """
 
 from __future__ import annotations
@@ -74,17 +75,15 @@ def reconstruction_job(
     cancelled one keeps them, to be resumed.
     """
     from napari_fdt.napari.resume import clear
-    from napari_fdt.recon.report import build_report
-    from napari_fdt.recon.solver import Reconstructor
+    from napari_fdt.recon.session import finish_run, open_run
 
     try:
         folder = None if checkpoint_dir is None else Path(checkpoint_dir)
-        if resume and folder is not None:
-            rec = Reconstructor.from_checkpoint(folder, acquisition, device=device)
-            config = rec.requested_config
-        else:
+        resumed = resume and folder is not None
+        if not resumed:
             clear(folder)
-            rec = Reconstructor(acquisition, config, device=device, initial_sources_um=initial_sources_um)
+        rec = open_run(acquisition, config, device=device, resume=folder if resumed else None,
+                       initial_sources_um=initial_sources_um)
         yield Update("started", rec=rec)
         n_b = np.float32(acquisition.optics.n_background)
         last = -float("inf")
@@ -101,12 +100,10 @@ def reconstruction_job(
             clear(folder)  # the run ended: nothing to resume
         if closing is not None and closing.is_set():
             return JobResult(rec, True, rec.completed_stages)
-        if cancelled:
-            if rec.completed_stages == 0:
-                return JobResult(rec, True, 0)
-            rec.restore_last_complete()
+        if cancelled and rec.completed_stages == 0:
+            return JobResult(rec, True, 0)  # nothing to keep
         yield Update("evaluating")
-        report = build_report(rec, acquisition_path=acquisition_path, cancelled=cancelled)
+        report = finish_run(rec, cancelled, acquisition_path=acquisition_path)
         sources = rec.sources_um()
         return JobResult(rec, cancelled, rec.completed_stages, ri=rec.ri_full(), sources_um=sources, report=report)
     finally:
