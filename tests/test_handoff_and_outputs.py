@@ -283,3 +283,29 @@ def test_progress_grows_but_never_starts_again_when_the_stages_run_again_with_mo
     _show_progress(bar, snap(13, 20, "stage 1/2 (x2) again with aberrations"))
     assert bar.n == 13 and bar.total == 20 and "again with aberrations" in bar.desc
     bar.close()
+
+
+def test_command_for_folder_refuses_what_the_folder_does_not_hold(tiny_dir: Path) -> None:
+    """The widget's Copy command without the widget (recon.command.command_for_folder): the line is given only for a
+    folder that holds the optics and sources the run uses; settings go beside it under a new name each time."""
+    import dataclasses
+    import shlex
+
+    from napari_fdt.recon.command import command_for_folder
+
+    acq = read_acquisition(tiny_dir)
+    config = SolverConfig(stages=[StageConfig(1, 5)], seed=3)
+    command, settings = command_for_folder(tiny_dir, acq.optics, acq.sources_um, config, device="cpu")
+    assert settings == tiny_dir.with_name("tiny_settings.json") and SolverConfig.from_dict(
+        json.loads(settings.read_text())).seed == 3
+    argv = shlex.split(command)
+    args = build_parser().parse_args(argv[1:])
+    assert Path(args.acquisition) == tiny_dir and Path(args.config) == settings and args.device == "cpu"
+    _, again = command_for_folder(tiny_dir, acq.optics, acq.sources_um, config)
+    assert again == tiny_dir.with_name("tiny_settings_2.json")  # nothing overwritten
+    with pytest.raises(FDTInputError, match="differ from"):
+        command_for_folder(tiny_dir, dataclasses.replace(acq.optics, na=0.7), acq.sources_um, config)
+    with pytest.raises(FDTInputError, match="differ from"):
+        command_for_folder(tiny_dir, acq.optics, acq.sources_um + 0.5, config)
+    with pytest.raises(FDTInputError, match="not an acquisition folder"):
+        command_for_folder(None, acq.optics, acq.sources_um, config)

@@ -8,11 +8,11 @@ format of ``fdt reconstruct --config``.
 from __future__ import annotations
 
 import re
-from pathlib import Path
 from typing import Any
 
 from napari_fdt.errors import FDTInputError
 from napari_fdt.physics.optics import Optics
+from napari_fdt.recon.command import unique_path  # noqa: F401 (re-exported: it lived here)
 from napari_fdt.recon.config import SolverConfig, StageConfig
 
 __all__ = [
@@ -144,16 +144,3 @@ def optics_from_entries(entries: dict[str, str]) -> Optics:
         raise FDTInputError(label, exc.problem.replace("n_background", f"the {medium}"), exc.fix) from None
 
 
-def unique_path(path: Path) -> Path:
-    """``path``, or ``stem_2.suffix``, ``stem_3.suffix``, … : the first that does not exist (nothing is overwritten)."""
-    path = Path(path)
-    if not path.exists():
-        return path
-    name = path.name
-    stem, dot, suffix = name.partition(".")
-    n = 2
-    while True:
-        candidate = path.with_name(f"{stem}_{n}{dot}{suffix}")
-        if not candidate.exists():
-            return candidate
-        n += 1

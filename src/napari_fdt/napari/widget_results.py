@@ -31,9 +31,8 @@ from napari_fdt.napari.layers import (
     volume_scale,
     volume_translate,
 )
-from napari_fdt.napari.settings import unique_path
 from napari_fdt.napari.widget_common import acquisition_of, put_layer, sources_for
-from napari_fdt.recon.command import format_command, reconstruct_command
+from napari_fdt.recon.command import command_for_folder
 
 __all__ = ["ResultActions", "with_tiff_suffix"]
 
@@ -177,29 +176,12 @@ class ResultActions:
         edited): the layer's folder if they are unchanged, else *Save acquisition…* first. The settings are written
         beside that folder (``<folder>_settings.json``, a new name each time: nothing is overwritten).
         """
-        from napari_fdt.data.io import read_acquisition
-
         with self.feedback.guard():
             layer = self.layer.value
             acq = acquisition_of(layer)
-            config = self.config()
-            folder = layer.metadata.get(META_PATH)
-            if not folder or not (Path(folder) / "acquisition.json").is_file():
-                raise FDTInputError("Copy command", f"{layer.name} is not an acquisition folder on disk",
-                                    "press Save acquisition… in the FDT acquisition widget first")
-            on_disk = read_acquisition(folder)
             sources = sources_for(self._viewer, layer, acq, required=False)
-            same_sources = (sources is None and on_disk.sources_um is None) or (
-                sources is not None and on_disk.sources_um is not None
-                and np.allclose(sources, on_disk.sources_um, rtol=0, atol=1e-9))
-            if on_disk.optics != acq.optics or not same_sources:
-                raise FDTInputError("Copy command", f"the optics or sources of {layer.name} differ from {folder}",
-                                    "press Save acquisition… in the FDT acquisition widget to write them, then copy again")
-            folder = Path(folder)
-            settings = unique_path(folder.with_name(f"{folder.name}_settings.json"))
-            config.save(settings)
-            out = unique_path(folder.with_name(f"{folder.name}_RI.ome.tif"))
-            command = format_command(reconstruct_command(folder, out, settings, device=self.device.value))
+            command, _ = command_for_folder(layer.metadata.get(META_PATH), acq.optics, sources, self.config(),
+                                            device=self.device.value, name=layer.name)
             self.last_command = command
             try:
                 from qtpy.QtWidgets import QApplication

@@ -4,11 +4,13 @@
   output path, the settings (a :class:`~napari_fdt.recon.config.SolverConfig`, a settings file or a report
   ``RI.json``), the seed and the device; :func:`format_command` quotes it for a POSIX shell. The napari
   widget's "Copy command" and the tests use it; ``fdt`` parses exactly these flags (``cli.build_parser``).
+* :func:`command_for_folder` is the napari widget's "Copy command": it checks that an acquisition folder holds the
+  optics and sources the run uses, writes the settings beside it and returns the line.
 * :func:`config_from_file` reads a settings file (JSON or TOML, ``docs/solver.md``) or a report written by
   ``fdt reconstruct`` / the napari plugin, whose ``config`` section holds every setting of that run (seed
   included): ``fdt reconstruct ACQ --config RI.json`` reruns it.
 
-No torch, no napari: this module only handles settings and text.
+No torch, no napari: this module handles settings and text (and reads an acquisition's metadata to compare it).
 """
 
 from __future__ import annotations
@@ -23,7 +25,8 @@ from napari_fdt.errors import FDTInputError
 from napari_fdt.recon.config import SolverConfig, load_config
 from napari_fdt.schema import scalar_type, schema_fields
 
-__all__ = ["REPORT_FORMAT", "config_from_file", "read_report", "reconstruct_command", "format_command", "config_flags"]
+__all__ = ["REPORT_FORMAT", "config_from_file", "read_report", "reconstruct_command", "format_command", "config_flags",
+           "unique_path", "command_for_folder"]
 
 PathLike = Union[str, "os.PathLike[str]"]
 
@@ -134,3 +137,48 @@ def reconstruct_command(acquisition: PathLike, out: PathLike, config: SolverConf
 def format_command(argv: list[str]) -> str:
     """One POSIX shell line of ``argv`` (paths with spaces or quotes quoted)."""
     return shlex.join(argv)
+
+
+def unique_path(path: PathLike) -> Path:
+    """``path``, or ``stem_2.suffix``, ``stem_3.suffix``, … : the first that does not exist (nothing is overwritten)."""
+    path = Path(path)
+    if not path.exists():
+        return path
+    stem, dot, suffix = path.name.partition(".")
+    n = 2
+    while True:
+        candidate = path.with_name(f"{stem}_{n}{dot}{suffix}")
+        if not candidate.exists():
+            return candidate
+        n += 1
+
+
+def command_for_folder(folder: PathLike | None, optics: Any, sources_um: Any, config: SolverConfig, *,
+                       device: str = "auto", name: str = "the acquisition") -> tuple[str, Path]:
+    """The ``fdt reconstruct`` line that repeats a run of ``config`` on the acquisition folder ``folder`` with these
+    ``optics`` and ``sources_um`` ((N, 3) µm, or None), and the settings file it reads.
+
+    Refused (:class:`FDTInputError`, field ``Copy command``) when ``folder`` is no acquisition folder on disk, or when
+    what it holds differs from the optics or sources given (the line would run something else). The settings are
+    written beside the folder (``<folder>_settings.json``, a new name each time); the output named in the line is
+    ``<folder>_RI.ome.tif`` (a new name too). ``name`` is what the messages call the acquisition.
+    """
+    import numpy as np
+
+    from napari_fdt.data.io import read_acquisition
+
+    if not folder or not (Path(folder) / "acquisition.json").is_file():
+        raise FDTInputError("Copy command", f"{name} is not an acquisition folder on disk",
+                            "press Save acquisition… in the FDT acquisition widget first")
+    folder = Path(folder)
+    on_disk = read_acquisition(folder)
+    same_sources = (sources_um is None and on_disk.sources_um is None) or (
+        sources_um is not None and on_disk.sources_um is not None
+        and np.allclose(sources_um, on_disk.sources_um, rtol=0, atol=1e-9))
+    if on_disk.optics != optics or not same_sources:
+        raise FDTInputError("Copy command", f"the optics or sources of {name} differ from {folder}",
+                            "press Save acquisition… in the FDT acquisition widget to write them, then copy again")
+    settings = unique_path(folder.with_name(f"{folder.name}_settings.json"))
+    config.save(settings)
+    out = unique_path(folder.with_name(f"{folder.name}_RI.ome.tif"))
+    return format_command(reconstruct_command(folder, out, settings, device=device)), settings
