@@ -15,7 +15,7 @@
 * **Save acquisition…** writes a format-v1 folder (``acquisition.json`` + ``images.tif``) with the optics and the
   sources as edited (:func:`napari_fdt.data.io.write_acquisition`), never over an existing path.
 
-The fit, the preview and the save run in worker threads (:class:`~napari_fdt.napari.widget_common.BackgroundTasks`).
+The fit, the preview and the save run in worker threads (:class:`~napari_fdt.napari.widget_tasks.BackgroundTasks`).
 """
 
 from __future__ import annotations
@@ -43,23 +43,19 @@ from napari_fdt.napari.layers import (
     stack_images,
 )
 from napari_fdt.napari.settings import OPTICS_LABELS, format_entry, missing_optics, optics_from_entries
-from napari_fdt.napari.widget_common import (
-    BackgroundTasks,
-    Feedback,
+from napari_fdt.napari.widget_layers import (
     acquisition_layer_choices,
     adopt_layer,
     find_layer,
     follow_layers,
-    follow_ndisplay,
     no_layer,
     put_layer,
     refresh_layer_choice,
-    sections_panel,
     set_sources,
     sources_for,
-    tighten,
-    watch_wrong_reader,
 )
+from napari_fdt.napari.widget_layout import follow_ndisplay, sections_panel, tighten
+from napari_fdt.napari.widget_tasks import BackgroundTasks, Feedback, watch_wrong_reader
 from napari_fdt.physics.optics import OPTICS_FIELDS, Optics
 
 if TYPE_CHECKING:  # pragma: no cover

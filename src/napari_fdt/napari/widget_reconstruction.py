@@ -8,7 +8,7 @@ bar, time left and loss terms at every snapshot; the sources points layer with t
 widget and as napari notifications. Closing the viewer stops the run (it waits for the current
 iteration to finish). Settings are saved and loaded in the format of ``fdt reconstruct --config``.
 The result actions (save, predicted vs measured, coverage) compute in worker threads too
-(:class:`~napari_fdt.napari.widget_common.BackgroundTasks`), their button disabled while they run.
+(:class:`~napari_fdt.napari.widget_tasks.BackgroundTasks`), their button disabled while they run.
 """
 
 from __future__ import annotations
@@ -36,24 +36,11 @@ from napari_fdt.napari.result_view import content_slice, keep_view, results_line
 from napari_fdt.napari.resume import checkpoint_folder, interrupted_run
 from napari_fdt.napari.schema_widgets import schema_widget
 from napari_fdt.napari.settings import format_stages, merge_config
-from napari_fdt.napari.widget_common import (
-    BackgroundTasks,
-    CloseWatcher,
-    Feedback,
-    acquisition_layer_choices,
-    acquisition_of,
-    claim_dock_height,
-    follow_layers,
-    follow_ndisplay,
-    refresh_layer_choice,
-    sections_panel,
-    set_sources,
-    sources_for,
-    tighten,
-    track_thread,
-)
 from napari_fdt.napari.widget_curve import ErrorCurveWidget
+from napari_fdt.napari.widget_layers import acquisition_layer_choices, acquisition_of, follow_layers, refresh_layer_choice, set_sources, sources_for
+from napari_fdt.napari.widget_layout import claim_dock_height, follow_ndisplay, sections_panel, tighten
 from napari_fdt.napari.widget_results import ResultActions, with_tiff_suffix
+from napari_fdt.napari.widget_tasks import BackgroundTasks, CloseWatcher, Feedback, track_thread
 from napari_fdt.recon.config import SolverConfig, load_config, resolve_stage_lengths
 from napari_fdt.recon.phases import TV_CHOICE
 from napari_fdt.recon.report import describe_parts
@@ -402,7 +389,7 @@ class ReconstructionWidget(ResultActions, Container):
                                       f"{config.final_stage_min_passes:g} passes over the {acq.n_images} images)")
             self._watch_close()
             self._t0 = time.perf_counter()
-        if worker is not None:  # started outside the guard's warning capture (see widget_common._THREADS)
+        if worker is not None:  # started outside the guard's warning capture (see widget_tasks._THREADS)
             track_thread(worker, self._done)
             worker.start()
 

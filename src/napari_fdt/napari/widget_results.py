@@ -2,7 +2,7 @@
 illumination coverage, coherence masks and the command line that repeats the run.
 
 A mixin of :class:`~napari_fdt.napari.widget_reconstruction.ReconstructionWidget` (one concern per module); it uses the
-widget's ``_viewer``, ``feedback``, ``tasks`` (:class:`~napari_fdt.napari.widget_common.BackgroundTasks`), ``layer``,
+widget's ``_viewer``, ``feedback``, ``tasks`` (:class:`~napari_fdt.napari.widget_tasks.BackgroundTasks`), ``layer``,
 ``mask_threshold``, ``device``, ``config()``, ``running`` and the last run's ``_rec`` (a
 :class:`~napari_fdt.napari.remote_job.RunResult`), ``_report``, ``_run_name`` and ``_acq_layer``. Each action computes
 in a worker thread, its button disabled meanwhile; no physics here (:mod:`napari_fdt.napari.compute`).
@@ -31,7 +31,7 @@ from napari_fdt.napari.layers import (
     volume_scale,
     volume_translate,
 )
-from napari_fdt.napari.widget_common import acquisition_of, put_layer, sources_for
+from napari_fdt.napari.widget_layers import acquisition_of, put_layer, sources_for
 from napari_fdt.recon.command import command_for_folder
 
 __all__ = ["ResultActions", "with_tiff_suffix"]
