@@ -32,8 +32,7 @@ import numpy as np
 import torch
 
 from napari_fdt.data.acquisition import Acquisition
-from napari_fdt.data.io import check_fits_in_memory
-from napari_fdt.data.mapped import mean_of, scaled_float32
+from napari_fdt.data.mapped import mean_of
 from napari_fdt.device import resolve_device
 from napari_fdt.errors import FDTInputError, FDTWarning
 from napari_fdt.model.coherence import coherence_masks, spectral_images
@@ -66,6 +65,7 @@ from napari_fdt.recon.run_state import InState, RunState
 from napari_fdt.recon.run_validation import validation_error
 from napari_fdt.recon.schedule import final_step_scale
 from napari_fdt.recon.snapshot import Snapshot, StageRecord, complete_stage, rerun_parts
+from napari_fdt.recon.stage_images import LazyImages
 from napari_fdt.recon.stage_loop import StageWork, Verdict, new_optimiser, train_stage
 from napari_fdt.recon.stage_roles import depth_frozen_stages, envelope_stages, position_frozen_stages, set_stage_roles
 from napari_fdt.recon.stages import Stage, build_stage, camera_model_options
@@ -138,7 +138,6 @@ class Reconstructor:
             raise FDTInputError("sources_um", f"need one [x, y, depth] per image ({n_img}), got shape {src.shape}",
                                 "give one source per image")
         self.initial_sources_um = src.copy()
-        check_fits_in_memory("images", acquisition.images.shape, np.float32, copies=1)  # the copy made here
         mean = mean_of(acquisition.images)
         if not mean > 0:
             raise FDTInputError("images", "are all zero (or their mean is not positive)", "check the acquisition")
@@ -146,8 +145,9 @@ class Reconstructor:
         self.image_scale = mean
         warn_about_images(acquisition)
         warn_about_sampling(acquisition, src)  # before any run
-        #: (N, H, W) float32 images / image_scale, on the CPU (each stage averages them to its grid)
-        self.images = torch.from_numpy(scaled_float32(acquisition.images, mean))
+        #: (N, H, W) float32 images / image_scale, read batch by batch from the acquisition's array (no float32 copy of
+        #: the stack on the CPU: :mod:`napari_fdt.recon.stage_images`); each stage averages them to its grid
+        self.images = LazyImages(acquisition.images, mean)
         self.full_shape = acquisition.image_shape
         #: everything the run changes and has decided (:mod:`napari_fdt.recon.run_state`; its fields read as attributes here)
         self.state = RunState(self._new_calibration(), BatchOrder(n_img, cfg.seed, self.device))

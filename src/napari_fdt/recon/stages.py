@@ -21,7 +21,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 from napari_fdt.errors import FDTInputError
 from napari_fdt.model.envelope import EnvelopeModel
@@ -29,6 +28,7 @@ from napari_fdt.model.forward import MultiSliceModel
 from napari_fdt.model.protocol import ImageModel
 from napari_fdt.physics.grid import DEFAULT_PUPIL_TAPER, GridPlan, plan_grid
 from napari_fdt.physics.optics import Optics
+from napari_fdt.recon.stage_images import LazyImages, block_average, stage_images
 from napari_fdt.recon.volume import upsample_to
 
 __all__ = ["Stage", "build_stage", "block_average", "stage_optics", "field_factor", "multislice_plan", "camera_model_options",
@@ -36,16 +36,6 @@ __all__ = ["Stage", "build_stage", "block_average", "stage_optics", "field_facto
 
 #: Fraction of the coarse grid's Nyquist frequency the stage pupil's outer edge may reach.
 NYQUIST_FILL = 0.95
-
-
-def block_average(images: torch.Tensor, factor: int) -> torch.Tensor:
-    """Average (..., H, W) over factor×factor blocks → (..., H//f, W//f); the remainder rows/columns are dropped."""
-    if factor == 1:
-        return images
-    shape = images.shape
-    flat = images.reshape(-1, 1, shape[-2], shape[-1])
-    out = F.avg_pool2d(flat, factor, stride=factor)
-    return out.reshape(*shape[:-2], out.shape[-2], out.shape[-1])
 
 
 def field_factor(optics: Optics, factor: int, pupil_taper: float = DEFAULT_PUPIL_TAPER) -> int:
@@ -82,7 +72,7 @@ class Stage:
     iterations: int
     optics: Optics
     model: ImageModel
-    images: torch.Tensor
+    images: torch.Tensor | LazyImages
     shift_um: tuple[float, float]
     grid_shape: tuple[int, int]
     window: tuple[int, int]
@@ -145,7 +135,7 @@ def build_stage(
     factor: int,
     iterations: int,
     optics: Optics,
-    images_normalised: torch.Tensor,
+    images_normalised: torch.Tensor | LazyImages,
     sources_um: np.ndarray,
     *,
     device: torch.device,
@@ -170,7 +160,7 @@ def build_stage(
         h, w = big_h // factor, big_w // factor
         shift = (_shift_um(big_w, factor, dx), _shift_um(big_h, factor, dx))
         env = EnvelopeModel(optics, (h, w), factor, (0.0, 0.0), device=device)
-        imgs = block_average(images_normalised[:, : h * factor, : w * factor], factor).to(device)
+        imgs = stage_images(images_normalised, h, w, factor, device)
         stage = Stage(index, factor, factor, iterations, optics, env, imgs, shift, (h, w), env.padded)
         src = torch.as_tensor(np.asarray(sources_um), dtype=env.dtype, device=device)
         stage.coverage = env.coverage(stage.stage_sources(src))
@@ -180,7 +170,7 @@ def build_stage(
     h, w = plan.image_shape
     model = MultiSliceModel(opt, plan, device=device, backward_mode=backward_mode, obliquity=obliquity,
                             pupil_edge=pupil_edge, pixel_integration=pixel_integration)
-    imgs = block_average(images_normalised[:, : h * g, : w * g], g).to(device)
+    imgs = stage_images(images_normalised, h, w, g, device)
     grid = (big_h // factor, big_w // factor)
     return Stage(index, factor, g, iterations, opt, model, imgs, shift, grid, plan.padded_shape)
 
