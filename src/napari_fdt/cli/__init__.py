@@ -305,12 +305,13 @@ def _cmd_plan(args: argparse.Namespace) -> int:
     device = resolve_device(args.device)
     plan, src = plan_for(acq, config, device.type)
     k = config.n_wavelengths if config.coherence in ("spectral", "mask+spectral") else 1
-    peak, _, _, _ = finest_stage_bytes(acq, resolve_stage_lengths(config, acq.n_images), src, k)
+    peak, _, _, _ = finest_stage_bytes(acq, resolve_stage_lengths(config, acq.n_images), src, k, device.type)
     if args.json:
         print(json.dumps({**plan.to_dict(), "peak_memory_bytes": int(peak)}))
         return 0
     print(plan.summary())
-    print(f"peak memory: about {peak / 2.0**30:.2f} GiB on {device} (the finest stage's batch and the images)")
+    held = "the finest stage's batch" + (" and the images" if device.type != "cpu" else "; the images are read from the file")
+    print(f"peak memory: about {peak / 2.0**30:.2f} GiB on {device} ({held})")
     return 0
 
 

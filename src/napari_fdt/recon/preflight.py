@@ -69,8 +69,10 @@ def check_backward_mode(acquisition: Acquisition, config: SolverConfig, sources_
                                 "use 'auto' (the fused kernels need CUDA with Triton and power-of-two windows of at least 256)")
 
 
-def finest_stage_bytes(acquisition: Acquisition, config: SolverConfig, sources_um: np.ndarray, n_wavelengths: int = 1):
-    """Bytes the finest multi-slice stage needs on its device (a training step of one batch, and every image, float32),
+def finest_stage_bytes(acquisition: Acquisition, config: SolverConfig, sources_um: np.ndarray, n_wavelengths: int = 1,
+                       device_type: str = "cuda"):
+    """Bytes the finest multi-slice stage needs on its device (a training step of one batch, and, on a GPU, every image
+    as float32; on the CPU the images are read batch by batch from the acquisition's array, :mod:`napari_fdt.recon.stage_images`),
     with its window plan, batch and backward mode: ``(bytes, plan, batch, mode)``. ``sources_um`` (N, 3) µm set the
     window."""
     from napari_fdt.model.memory import grid_is_unitary, leanest_mode, training_bytes
@@ -83,8 +85,8 @@ def finest_stage_bytes(acquisition: Acquisition, config: SolverConfig, sources_u
     mode = cfg.backward_mode
     if mode == "auto":  # auto falls back to the leanest mode when one field per slice does not fit
         mode = leanest_mode(grid_is_unitary(opt.pixel_size_um, o.n_background, o.wavelength_um))
-    # the finest stage's images live on the device too (float32, all of them)
-    images = 4 * acquisition.n_images * full_shape[0] * full_shape[1]
+    # the finest stage's images live on a GPU too (float32, all of them); on the CPU they stay in the acquisition's array
+    images = 4 * acquisition.n_images * full_shape[0] * full_shape[1] if device_type != "cpu" else 0
     return training_bytes(plan.padded_shape, o.n_slices, batch, n_wavelengths, mode) + images, plan, batch, mode
 
 
@@ -101,9 +103,9 @@ def check_memory(acquisition: Acquisition, config: SolverConfig, sources_um: np.
     free = available_bytes(device)
     if free is None:
         return
-    need, plan, batch, mode = finest_stage_bytes(acquisition, config, sources_um, n_wavelengths)
+    need, plan, batch, mode = finest_stage_bytes(acquisition, config, sources_um, n_wavelengths, torch.device(device).type)
     o, k = acquisition.optics, n_wavelengths
-    images = 4 * acquisition.n_images * acquisition.image_shape[0] * acquisition.image_shape[1]
+    images = 4 * acquisition.n_images * acquisition.image_shape[0] * acquisition.image_shape[1] if torch.device(device).type != "cpu" else 0
     if need <= 0.9 * free:
         return
     fits = int((0.9 * free - images) // max(1, training_bytes(plan.padded_shape, o.n_slices, 1, k, mode)))
