@@ -220,3 +220,22 @@ def test_pixel_integration_costs_what_its_fine_grid_ffts_cost(sample) -> None:
     on = make_plan(cfg, sample.optics, sample.image_shape, _sources(sample), "envelope", "cpu", choose_tv_at=None, pixel_integration=True)
     assert [a.seconds_per_iteration for a in off.phases[:2]] == [b.seconds_per_iteration for b in on.phases[:2]]  # envelope
     assert on.phases[2].seconds_per_iteration > 1.4 * off.phases[2].seconds_per_iteration
+
+
+def test_the_plan_says_what_keeping_a_model_part_would_add(sample) -> None:
+    """Where "auto" model parts are still to be chosen, the plan prices every stage again (multi-slice coarse stages
+    under coarse_model "auto") as its own line; with every part given as a setting there is no such line."""
+    from napari_fdt.recon.plan import plan_for, stage_phase
+
+    cfg = SolverConfig()
+    plan, src = plan_for(sample, cfg, "cpu")
+    again = [stage_phase(resolve_stage_lengths(cfg, sample.n_images), sample.optics, sample.image_shape, src, i,
+                         "multislice", "cpu") for i in range(len(cfg.stages))]
+    assert plan.if_part_kept_s == pytest.approx(sum(p.predicted_s for p in again))
+    assert plan.if_part_kept_s > plan.phases[-1].predicted_s  # more than the finest stage alone: the coarse ones too
+    assert "if the data ask for a model part" in plan.summary()
+    assert plan.to_dict()["predicted_extra_s_if_a_part_is_kept"] == plan.if_part_kept_s
+    fixed = replace(cfg, pixel_integration=False, obliquity_correction=False, coherence="none", calibrate_pupil=False,
+                    calibrate_aberrations=False)
+    plan, _ = plan_for(sample, fixed, "cpu")
+    assert plan.if_part_kept_s is None and "model part" not in plan.summary()

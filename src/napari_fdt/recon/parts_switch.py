@@ -19,21 +19,27 @@ if TYPE_CHECKING:
 __all__ = ["init_parts", "set_parts", "apply_parts_choice", "restart_with_parts"]
 
 
-def init_parts(rec: Reconstructor) -> None:
-    """Each part's switch before any choice: as set or stated, "auto" ones off; with nothing to choose (or no
-    validation split to choose by) ``rec.parts_choice`` is made at once."""
-    cfg = rec.config
+def requested_for(cfg, acquisition) -> tuple[dict[str, bool | None], dict[str, str]]:
+    """Each part as the settings and the acquisition ask for it (None: "auto", to choose from the data), and why."""
     requested = requested_parts(cfg)
     chosen_by = {p: "setting" for p in PARTS}
-    stated = stated_pixel_integration(cfg, rec.acquisition)
+    stated = stated_pixel_integration(cfg, acquisition)
     if cfg.pixel_integration == "auto" and stated is not None:
         chosen_by["pixel_integration"] = "acquisition"
     requested["pixel_integration"] = stated
-    extra = getattr(rec.acquisition, "extra", None) or {}
+    extra = getattr(acquisition, "extra", None) or {}
     if requested["pupil"] is None and "pupil_edge" in extra and cfg.pupil_edge is None:
         # a pupil the acquisition states (as fdt simulate writes it) is taken as stated, like its pixel integration
         requested["pupil"] = False
         chosen_by["pupil"] = "acquisition"
+    return requested, chosen_by
+
+
+def init_parts(rec: Reconstructor) -> None:
+    """Each part's switch before any choice: as set or stated, "auto" ones off; with nothing to choose (or no
+    validation split to choose by) ``rec.parts_choice`` is made at once."""
+    cfg = rec.config
+    requested, chosen_by = requested_for(cfg, rec.acquisition)
     #: the parts chosen from the data
     rec._auto_parts = [p for p in PARTS if requested[p] is None]
     parts = {p: bool(requested[p]) for p in PARTS}

@@ -114,6 +114,9 @@ class Plan:
 
     phases: tuple[Phase, ...]
     device_type: str
+    #: seconds more if the choice of model parts keeps one (every stage then runs again, its coarse stages multi-slice
+    #: under ``coarse_model = "auto"``); None where no such choice is to come
+    if_part_kept_s: float | None = None
 
     @property
     def iterations(self) -> int:
@@ -138,7 +141,7 @@ class Plan:
         """The plan with phase ``index`` cut to ``iterations`` (the TV trials that ended early)."""
         phases = list(self.phases)
         phases[index] = replace(phases[index], iterations=int(iterations))
-        return Plan(tuple(phases), self.device_type)
+        return Plan(tuple(phases), self.device_type, self.if_part_kept_s)
 
     def has(self, pass_name: str, stage: int, trials: bool = False) -> bool:
         """Whether the plan holds the phase of ``pass_name`` at ``stage``."""
@@ -154,19 +157,23 @@ class Plan:
             if p.pass_name == RUN and p.stage == stage and p.first_iteration == 0:
                 p = replace(p, iterations=p.iterations - probe, first_iteration=probe)
             phases.append(p)
-        return Plan(tuple(phases), self.device_type)
+        return Plan(tuple(phases), self.device_type, self.if_part_kept_s)
 
     def with_rerun(self, reruns: Sequence[Phase]) -> "Plan":
         """The plan with the phases of the stages run again appended (their ``pass_name`` set to "rerun")."""
-        return Plan(self.phases + tuple(replace(p, pass_name=RERUN) for p in reruns), self.device_type)
+        return Plan(self.phases + tuple(replace(p, pass_name=RERUN) for p in reruns), self.device_type)  # no choice to come
 
     def to_dict(self) -> dict[str, Any]:
         return {"device": self.device_type, "phases": [p.to_dict() for p in self.phases],
-                "iterations": self.iterations, "predicted_total_s": self.predicted_s}
+                "iterations": self.iterations, "predicted_total_s": self.predicted_s,
+                "predicted_extra_s_if_a_part_is_kept": self.if_part_kept_s}
 
     def summary(self) -> str:
         """One line per phase with its iterations and predicted seconds, and the total."""
         lines = [f"  {p.name}: {p.iterations} it, ~{_seconds(p.predicted_s)}" for p in self.phases]
+        if self.if_part_kept_s:
+            lines.append(f"  if the data ask for a model part (pupil, aberrations, ...): every stage again, "
+                         f"~{_seconds(self.if_part_kept_s)} more")
         return "\n".join([f"plan ({self.device_type}): {len(self.phases)} phases, {self.iterations} iterations, "
                           f"about {_seconds(self.predicted_s)}", *lines])
 
@@ -201,13 +208,15 @@ def stage_phase(config: SolverConfig, optics: Optics, image_shape: tuple[int, in
 
 
 def make_plan(config: SolverConfig, optics: Optics, image_shape: tuple[int, int], sources_um: np.ndarray,
-              coarse_model: str, device_type: str, choose_tv_at: int | None, pixel_integration: bool = False) -> Plan:
+              coarse_model: str, device_type: str, choose_tv_at: int | None, pixel_integration: bool = False,
+              parts_to_choose: bool = False) -> Plan:
     """The plan of a run of ``config`` (as run: its stages resolved) on ``device_type`` ("cpu" or "cuda"), with the
     initial ``sources_um`` (N, 3) µm, ``coarse_model`` resolved for the device; ``choose_tv_at``: the stage at whose
     start the ``"auto"`` TV weights are tried (None: no choice), every weight for :func:`probe_iterations` of its
     iterations, after the stages before it without TV; the run's stages follow in full (the stages before run again
     with the chosen weight: :meth:`Plan.keeping_the_stages_before` drops them where the choice is no TV);
-    ``pixel_integration``: the camera model's (as the first pass runs it)."""
+    ``pixel_integration``: the camera model's (as the first pass runs it); ``parts_to_choose``: "auto" model parts will
+    be chosen from the data (:attr:`Plan.if_part_kept_s` then says what keeping one would add)."""
     src = np.asarray(sources_um, dtype=np.float64)
     stages = [stage_phase(config, optics, image_shape, src, i, coarse_model, device_type, pixel_integration=pixel_integration)
               for i in range(len(config.stages))]
@@ -219,7 +228,14 @@ def make_plan(config: SolverConfig, optics: Optics, image_shape: tuple[int, int]
         if choose_tv_at == 0:  # no stage before: the stage goes on from the winner's trial
             stages[0] = replace(stages[0], iterations=stages[0].iterations - probe, first_iteration=probe)
     phases += stages
-    return Plan(tuple(phases), "cuda" if device_type == "cuda" else "cpu")
+    extra = None
+    if parts_to_choose and config.parts_rerun == "stages":
+        again = "multislice" if config.coarse_model == "auto" else coarse_model
+        extra = sum(stage_phase(config, optics, image_shape, src, i, again, device_type, RERUN,
+                                pixel_integration=pixel_integration).predicted_s for i in range(len(config.stages)))
+    elif parts_to_choose:  # parts_rerun "finest": the finest stage again
+        extra = stages[-1].predicted_s
+    return Plan(tuple(phases), "cuda" if device_type == "cuda" else "cpu", extra)
 
 
 def plan_for(acquisition, config: SolverConfig, device_type: str, sources_um: np.ndarray | None = None) -> tuple[Plan, np.ndarray]:
@@ -247,8 +263,12 @@ def plan_for(acquisition, config: SolverConfig, device_type: str, sources_um: np
     o = acquisition.optics
     stated = stated_pixel_integration(cfg, acquisition)
     integrate = stated if stated is not None else (not split and needs_pixel_integration(o.na, o.wavelength_um, o.pixel_size_um))
+    from napari_fdt.recon.parts_switch import requested_for
+
+    requested, _ = requested_for(cfg, acquisition)
     plan = make_plan(cfg, o, acquisition.image_shape, src, resolve_coarse_model(cfg.coarse_model, device_type),
-                     device_type, choose_tv_at, pixel_integration=integrate)
+                     device_type, choose_tv_at, pixel_integration=integrate,
+                     parts_to_choose=split and any(v is None for v in requested.values()))
     return plan, src
 
 

@@ -185,7 +185,8 @@ class Reconstructor:
             choose_tv_at = min(selection_stages(self.config))
         #: the phases of the run, known before its first iteration (revised when a choice adds or shortens phases)
         self.plan = make_plan(self.config, self.acquisition.optics, self.full_shape, self.initial_sources_um, self.coarse_model,
-                              self.device.type, choose_tv_at, pixel_integration=self.parts["pixel_integration"])
+                              self.device.type, choose_tv_at, pixel_integration=self.parts["pixel_integration"],
+                              parts_to_choose=self.parts_choice is None)
         #: the time-left estimate from the plan and the measured times
         self.pace = Pace(self.plan)
         #: the index in :attr:`plan` of the phase now running
