@@ -103,6 +103,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help="average the intensity over each camera pixel (auto: when 2·NA/λ > 1/(2·pixel); default false)")
     m.add_argument("--pupil-edge", type=float, default=None,
                    help="half-width of the pupil's soft edge relative to NA/λ (default 0.03; 0: a hard pupil)")
+    m.add_argument("--sub-slices", type=int, default=None,
+                   help="screens per slice: each slice crossed in this many symmetric steps, so that diffraction inside "
+                        "thick slices is modelled (default 1; --forward-accuracy high: 4)")
+    m.add_argument("--forward-accuracy", choices=("standard", "high"), default="standard",
+                   help="high: every accuracy part of the forward model on (4 sub-slices per slice), for data the "
+                        "thin-screen model cannot fit exactly (docs/physics.md, \"Sub-slices\")")
     m.add_argument("--aberrations", default=None,
                    help="pupil phase, Zernike modes in radians (Noll RMS), e.g. spherical=0.5,defocus=-0.2; modes: defocus, "
                         "astigmatism_oblique, astigmatism_vertical, coma_vertical, coma_horizontal, spherical")
@@ -249,7 +255,8 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
                    noise=not args.no_noise, seed=args.seed, device=args.device, uint16=args.uint16,
                    bandwidth_um=args.bandwidth_um, n_wavelengths=args.n_wavelengths, batch_size=batch,
                    pixel_integration=args.pixel_integration, pupil_edge=args.pupil_edge,
-                   aberrations=parse_aberrations(args.aberrations))
+                   aberrations=parse_aberrations(args.aberrations),
+                   sub_slices=args.sub_slices if args.sub_slices is not None else (4 if args.forward_accuracy == "high" else 1))
     seconds = time.perf_counter() - t0
     sim.acquisition.extra["simulated"].update(scene=args.scene, text=args.text if args.scene == "letters" else None)
     write_acquisition(sim.acquisition, out, overwrite=args.overwrite)

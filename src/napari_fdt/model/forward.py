@@ -57,7 +57,8 @@ class Kernels:
     """Everything the loop needs for one set of optical parameters (all on the model's device).
 
     ``fy``, ``fx``: frequencies (cycles/µm), (Hp, 1) and (1, Wp); ``window``: source band limit (Hp, Wp);
-    ``slice_kernel``: propagation over one slice; ``exit_kernel``: last screen → focal plane, times the
+    ``slice_kernel``: propagation over one step between screens (a slice, or a sub-slice: ``step_um``); ``exit_kernel``:
+    last screen → focal plane, times the
     pupil and its aberration phase; ``pixel_size_um``, ``slice_spacing_um``, ``wavelength_um``: the parameters they
     were built for; ``na``, ``pupil_edge``, ``zernike`` (coefficients of :data:`ZERNIKE_MODES`, radians) those of the
     pupil; ``free_kernel``: first screen → focal plane in the homogeneous medium, times the pupil and the radial
@@ -76,6 +77,8 @@ class Kernels:
     pupil_edge: Scalar = 0.0
     zernike: torch.Tensor | None = None
     free_kernel: torch.Tensor | None = None
+    #: the distance between screens, µm: ``slice_spacing_um / sub_slices`` (the slice spacing itself with one screen per slice)
+    step_um: Scalar = 0.0
 
 
 def _value(x: Scalar) -> float:
@@ -123,6 +126,10 @@ class MultiSliceModel:
         (default): on when ``pupil_edge`` is narrower than the plan's ``pupil_taper``.
     pixel_integration: record the intensity averaged over each pixel's area instead of at its centre
         (:mod:`napari_fdt.physics.camera`).
+    sub_slices: screens per slice (default 1): each slice of constant contrast is crossed in ``sub_slices`` symmetric
+        steps (a screen of ``Δz/sub_slices`` at the centre of each sub-slice, propagation of ``Δz/sub_slices`` between),
+        so that diffraction inside a thick slice is modelled; the thin screen's error falls as ``1/sub_slices²``
+        (``docs/physics.md``, "Sub-slices"). Costs ``sub_slices`` times the slice loop.
 
     Call it as ``model(delta_n, sources_um, gain)`` → images (B, H, W). The optical parameters
     ``pixel_size_um``, ``slice_spacing_um`` and ``wavelength_um`` may be overridden per call, with
@@ -144,6 +151,7 @@ class MultiSliceModel:
         aberrations: dict[str, float] | None = None,
         exact_free_field: bool | str = "auto",
         pixel_integration: bool = False,
+        sub_slices: int = 1,
     ) -> None:
         if dtype not in (torch.float32, torch.float64):
             raise ValueError("dtype must be torch.float32 or torch.float64 (fp16 phases are too coarse)")
@@ -160,6 +168,10 @@ class MultiSliceModel:
             exact_free_field = self.pupil_edge < plan.pupil_taper
         self.exact_free_field = bool(exact_free_field)
         self.pixel_integration = bool(pixel_integration)
+        if isinstance(sub_slices, bool) or int(sub_slices) != sub_slices or int(sub_slices) < 1:
+            raise FDTInputError("sub_slices", f"must be a whole number >= 1, got {sub_slices!r}",
+                                "1 (a thin screen per slice), or 2-4 for thick slices")
+        self.sub_slices = int(sub_slices)
         self._bessel_cache: dict = {}
         self.backward_mode = backward_mode
         self.memory_budget_bytes = memory_budget_bytes
@@ -220,8 +232,9 @@ class MultiSliceModel:
         f2 = fy * fy + fx * fx
         ratio = o.wavelength_um / lam  # band limits are angles: frequencies scale as 1/λ
         window = band_limit(f2, self.plan.f_lo_per_um * ratio, self.plan.f_hi_per_um * ratio)
-        slice_kernel = propagation_kernel(f2, dz, o.n_background, lam)
-        exit_distance = 0.5 * dz - o.image_plane_um  # last screen → camera focal plane
+        step = dz / self.sub_slices  # between screens: a slice, or one of its sub-slices
+        slice_kernel = propagation_kernel(f2, step, o.n_background, lam)
+        exit_distance = 0.5 * step - o.image_plane_um  # last screen → camera focal plane
         na_ = o.na if na is None else na
         edge = self.pupil_edge if pupil_edge is None else pupil_edge
         coeffs = zernike
@@ -239,20 +252,20 @@ class MultiSliceModel:
         exit_kernel = propagation_kernel(f2, exit_distance, o.n_background, lam) * aperture
         free_kernel = None
         if self.exact_free_field:
-            free_distance = o.n_slices * dz - 0.5 * dz - o.image_plane_um  # first screen → focal plane
+            free_distance = o.n_slices * dz - 0.5 * step - o.image_plane_um  # first screen → focal plane
             full = _has_nonradial(coeffs)  # the exact field then holds every mode (angular harmonics)
             free_kernel = propagation_kernel(f2, free_distance, o.n_background, lam) * (aperture if full else radial)
-        return Kernels(fy, fx, window, slice_kernel, exit_kernel, dx, dz, lam, na_, edge, coeffs, free_kernel)
+        return Kernels(fy, fx, window, slice_kernel, exit_kernel, dx, dz, lam, na_, edge, coeffs, free_kernel, step)
 
     # -- pieces -------------------------------------------------------------------------------
     def source_spectrum(self, sources_um: torch.Tensor, kernels: Kernels | None = None) -> torch.Tensor:
-        """(B, Hp, Wp) spectrum of the sources at the first screen (half a slice above the bottom face)."""
+        """(B, Hp, Wp) spectrum of the sources at the first screen (half a step above the bottom face)."""
         k = kernels or self._default
         return point_source_spectrum(
             k.fy,
             k.fx,
             sources_um.to(self.device, self.dtype),
-            0.5 * k.slice_spacing_um,
+            0.5 * k.step_um,
             n_background=self.optics.n_background,
             wavelength_um=k.wavelength_um,
             pixel_size_um=k.pixel_size_um,
@@ -293,6 +306,8 @@ class MultiSliceModel:
         """
         k = k or self._default
         dn = self.pad_volume(delta_n)
+        if self.sub_slices > 1:  # each slice's contrast on each of its sub-slices
+            dn = dn.repeat_interleave(self.sub_slices, dim=0)
         spec0 = self.source_spectrum(sources_um, k)
         v0 = torch.fft.ifft2(spec0)
         if self.obliquity == "per_source" or self.backward_mode == "autograd":  # plain autograd
@@ -301,10 +316,10 @@ class MultiSliceModel:
             for i in range(dn.shape[0]):
                 if i:
                     u = torch.fft.ifft2(torch.fft.fft2(u) * k.slice_kernel)
-                dn_i = dn[i] if self.obliquity == "none" else dn[i] * ray_secant(self, src, (i + 0.5) * k.slice_spacing_um)
-                u = u * phase_screen(dn_i, k.slice_spacing_um, k.wavelength_um)
+                dn_i = dn[i] if self.obliquity == "none" else dn[i] * ray_secant(self, src, (i + 0.5) * k.step_um)
+                u = u * phase_screen(dn_i, k.step_um, k.wavelength_um)
         else:
-            phi = screen_phase(dn, k.slice_spacing_um, k.wavelength_um)
+            phi = screen_phase(dn, k.step_um, k.wavelength_um)
             if self.backward_mode == "fused" and torch.is_grad_enabled() and not k.slice_kernel.requires_grad:
                 u = fused_slice_loop(v0, phi, k.slice_kernel)
             elif torch.is_grad_enabled() and (v0.requires_grad or phi.requires_grad or k.slice_kernel.requires_grad):
@@ -493,7 +508,7 @@ class MultiSliceModel:
                 budget = None if free is None else int(0.8 * free)
             hp, wp = self.plan.padded_shape
             field_bytes = hp * wp * (8 if self.dtype == torch.float32 else 16)
-            self._auto_modes[batch] = choose_mode(field_bytes, self.optics.n_slices, batch, self._unitary, budget)
+            self._auto_modes[batch] = choose_mode(field_bytes, self.optics.n_slices * self.sub_slices, batch, self._unitary, budget)
         return self._auto_modes[batch]
 
     def __call__(

@@ -153,6 +153,7 @@ def simulate(
     pixel_integration: bool | str = False,
     pupil_edge: float | None = None,
     aberrations: dict[str, float] | None = None,
+    sub_slices: int = 1,
 ) -> Simulation:
     """Simulate an acquisition of ``delta_n`` (n_slices, H, W) lit by ``sources_um`` (N, 3).
 
@@ -165,6 +166,9 @@ def simulate(
     (None: the default 0.03; 0: a hard pupil, held exactly); ``aberrations`` ``{Zernike mode: radians}`` a pupil
     phase. ``pixel_integration`` and ``pupil_edge`` go to ``acquisition.json`` (the camera and objective the
     solver models by default); the aberrations only to the ground truth's settings (the solver calibrates them).
+    ``sub_slices``: screens per slice (:class:`~napari_fdt.model.forward.MultiSliceModel`): 4 makes images of a
+    continuous slab to about 0.25 % where one thin screen per 2 µm slice is 5 % off (docs/physics.md, "Sub-slices");
+    recorded in the ground truth's settings only (it is how the data were made, not a property of the microscope).
     """
     wavelengths, weights = emission_spectrum(optics.wavelength_um, bandwidth_um, n_wavelengths)
     delta_n = np.asarray(delta_n, dtype=np.float32)
@@ -175,7 +179,7 @@ def simulate(
     plan = plan_for_sources(optics, shape, src)
     integrate = resolve_pixel_integration(pixel_integration, optics.na, optics.wavelength_um, optics.pixel_size_um)
     model = MultiSliceModel(optics, plan, device=device, pupil_edge=pupil_edge, aberrations=aberrations,
-                            pixel_integration=integrate)
+                            pixel_integration=integrate, sub_slices=sub_slices)
     spectrum = {} if len(wavelengths) == 1 else dict(wavelengths_um=wavelengths, weights=weights)
     clean = render_images(model, delta_n, src, batch_size=batch_size, **spectrum)
     rng = np.random.default_rng(seed)
@@ -196,7 +200,7 @@ def simulate(
                     emission_weights=[float(v) for v in weights],
                     coherence_length_um=_json_length(coherence_length_um(optics.wavelength_um, bandwidth_um, optics.n_background)),
                     pixel_integration=integrate, pupil_edge=model.pupil_edge,
-                    aberrations={k: v for k, v in zip(ZERNIKE_MODES, model.zernike) if v})
+                    aberrations={k: v for k, v in zip(ZERNIKE_MODES, model.zernike) if v}, sub_slices=model.sub_slices)
     extra = {"simulated": settings, "pixel_integration": integrate, "pupil_edge": model.pupil_edge}
     acq = Acquisition(images=images, optics=optics, sources_um=estimate, extra=extra)
     ri = (optics.n_background + delta_n).astype(np.float32)
