@@ -222,6 +222,10 @@ class SolverConfig:
         "\"Model parts\"; without a validation split: on when the intensity's band 2·NA/λ exceeds the camera's Nyquist "
         "1/(2·pixel_size_um)); `true`, `false` (JSON booleans or strings). Multi-slice stages",
         fix="use \"auto\", true or false")
+    sub_slices: int = setting(
+        1, ge=1, le=16, description="screens per slice in multi-slice stages: each slice crossed in this many symmetric steps, "
+        "so that diffraction inside thick slices is modelled (docs/physics.md, \"Sub-slices\"; its error falls as 1/sub_slices²); "
+        "costs as many times the slice loop", fix="1 (one thin screen per slice), or 2-4 for slices thick against the depth of field")
     pupil_edge: Optional[typing.Annotated[float, Field(ge=0.0, lt=0.5)]] = setting(
         None, strict=False, description="half-width of the pupil's raised-cosine edge relative to NA/λ (0: a hard pupil, held "
         "exactly); null: `acquisition.json`'s `pupil_edge`, else 0.03", fix="0 for a hard pupil, 0.03 the default soft edge")

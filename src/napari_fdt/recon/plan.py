@@ -202,7 +202,8 @@ def stage_phase(config: SolverConfig, optics: Optics, image_shape: tuple[int, in
     model = "envelope" if envelope else "multislice"
     dev = "cuda" if device_type == "cuda" else "cpu"
     batch = config.stage_batch(stage)
-    units = iteration_units(batch, optics.n_slices, shape, pixel_integration and not envelope)
+    screens = optics.n_slices * (1 if envelope else config.sub_slices)
+    units = iteration_units(batch, screens, shape, pixel_integration and not envelope)
     per_it = OVERHEAD_S[dev] + SECONDS_PER_UNIT[(dev, model)] * units
     return Phase(pass_name, stage, len(config.stages), sc.factor, model, sc.iterations, shape, per_it, parts=parts)
 

@@ -87,7 +87,7 @@ def finest_stage_bytes(acquisition: Acquisition, config: SolverConfig, sources_u
         mode = leanest_mode(grid_is_unitary(opt.pixel_size_um, o.n_background, o.wavelength_um))
     # the finest stage's images live on a GPU too (float32, all of them); on the CPU they stay in the acquisition's array
     images = 4 * acquisition.n_images * full_shape[0] * full_shape[1] if device_type != "cpu" else 0
-    return training_bytes(plan.padded_shape, o.n_slices, batch, n_wavelengths, mode) + images, plan, batch, mode
+    return training_bytes(plan.padded_shape, o.n_slices * cfg.sub_slices, batch, n_wavelengths, mode) + images, plan, batch, mode
 
 
 def check_memory(acquisition: Acquisition, config: SolverConfig, sources_um: np.ndarray, device: torch.device,
@@ -108,7 +108,7 @@ def check_memory(acquisition: Acquisition, config: SolverConfig, sources_um: np.
     images = 4 * acquisition.n_images * acquisition.image_shape[0] * acquisition.image_shape[1] if torch.device(device).type != "cpu" else 0
     if need <= 0.9 * free:
         return
-    fits = int((0.9 * free - images) // max(1, training_bytes(plan.padded_shape, o.n_slices, 1, k, mode)))
+    fits = int((0.9 * free - images) // max(1, training_bytes(plan.padded_shape, o.n_slices * config.sub_slices, 1, k, mode)))
     gib = 2.0**30
     fix = (f"lower batch_size to {fits}" if fits >= 1 else
            "crop the images, use fewer slices or fewer wavelengths, or a device with more memory")

@@ -332,7 +332,7 @@ class Reconstructor:
         sc = cfg.stages[stage_index]
         return build_stage(stage_index, sc.factor, sc.iterations, self.acquisition.optics, self.images,
                            self.calibration.sources_um(), device=self.device,
-                           coarse_model=self.coarse_model, backward_mode=cfg.backward_mode,
+                           coarse_model=self.coarse_model, backward_mode=cfg.backward_mode, sub_slices=cfg.sub_slices,
                            obliquity="per_source" if self.parts["obliquity"] else "none",
                            **{**camera_model_options(cfg, self.acquisition), "pixel_integration": self.parts["pixel_integration"]})
 
@@ -517,7 +517,8 @@ class Reconstructor:
 
     def evaluation_stage(self) -> Stage:
         """The multi-slice model on the acquisition grid (factor 1) for the current calibrated sources (for :meth:`predict`)."""
-        return build_stage(-1, 1, 0, self.acquisition.optics, self.images, self.sources_um(), device=self.device)
+        return build_stage(-1, 1, 0, self.acquisition.optics, self.images, self.sources_um(), device=self.device,
+                           sub_slices=self.config.sub_slices)
 
     def predict(self, indices: Sequence[int] | np.ndarray | torch.Tensor, stage: Stage | None = None) -> np.ndarray:
         """Images (B, h, w) float32 of images ``indices`` (B,) as the current state predicts them, without autograd.

@@ -146,12 +146,13 @@ def build_stage(
     obliquity: str = "none",
     pupil_edge: float | None = None,
     pixel_integration: bool = False,
+    sub_slices: int = 1,
 ) -> Stage:
     """Set up one stage for the current source estimates (the window gets some slack for calibration moves).
 
     ``coarse_model="envelope"`` uses :class:`~napari_fdt.model.envelope.EnvelopeModel` on the stage grid for
     factors > 1; ``"multislice"`` keeps the multi-slice model on the grid the pupil needs.
-    ``backward_mode``, ``obliquity``, ``pupil_edge``, ``pixel_integration``: see
+    ``backward_mode``, ``obliquity``, ``pupil_edge``, ``pixel_integration``, ``sub_slices``: see
     :class:`~napari_fdt.model.forward.MultiSliceModel` (multi-slice stages only; :func:`camera_model_options`).
     """
     _, big_h, big_w = images_normalised.shape
@@ -169,7 +170,7 @@ def build_stage(
                                           depth_slack_um=depth_slack_um, offset_slack_um=offset_slack_um)
     h, w = plan.image_shape
     model = MultiSliceModel(opt, plan, device=device, backward_mode=backward_mode, obliquity=obliquity,
-                            pupil_edge=pupil_edge, pixel_integration=pixel_integration)
+                            pupil_edge=pupil_edge, pixel_integration=pixel_integration, sub_slices=sub_slices)
     imgs = stage_images(images_normalised, h, w, g, device)
     grid = (big_h // factor, big_w // factor)
     return Stage(index, factor, g, iterations, opt, model, imgs, shift, grid, plan.padded_shape)
