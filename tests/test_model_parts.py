@@ -231,3 +231,21 @@ def test_the_choice_on_more_images_still_keeps_only_what_the_data_has(scenes) ->
     assert n_test > len(rec.validation_indices)
     rec0 = _run(clean, cfg)
     assert not any(rec0.parts_choice.parts.values()), rec0.parts_choice.trials
+
+
+def test_the_reports_predictions_use_the_model_the_run_fitted(scene16) -> None:
+    """The image fit of RI.json and the widget's predicted-vs-measured (Reconstructor.evaluation_stage) use the run's
+    camera, pupil edge and sub-slices: the same images as the finest stage's own model (they used point samples and
+    the default pupil before)."""
+    from napari_fdt.recon.config import SolverConfig, StageConfig
+    from napari_fdt.recon.solver import Reconstructor
+
+    cfg = SolverConfig(stages=[StageConfig(1, 2)], batch_size=4, final_stage_min_passes=0, tv_xy_weight=0.0, tv_z_weight=0.0,
+                       pixel_integration=True, pupil_edge=0.0, sub_slices=2, calibrate_pupil=False,
+                       calibrate_aberrations=False, obliquity_correction=False, coherence="none")
+    rec = Reconstructor(scene16.acquisition, cfg, device="cpu")
+    list(rec.run())
+    model = rec.evaluation_stage().model
+    assert model.pixel_integration and model.pupil_edge == 0.0 and model.sub_slices == 2
+    idx = [0, 5, 9]
+    assert np.allclose(rec.predict(idx), rec.predict(idx, stage=rec._build_stage(0)), rtol=1e-5, atol=1e-7)

@@ -328,13 +328,18 @@ class Reconstructor:
     # -- per-stage set-up -----------------------------------------------------------------------
     def _build_stage(self, stage_index: int) -> Stage:
         """Stage ``stage_index``'s model and images, with its window planned for the current sources."""
-        cfg = self.config
-        sc = cfg.stages[stage_index]
+        sc = self.config.stages[stage_index]
         return build_stage(stage_index, sc.factor, sc.iterations, self.acquisition.optics, self.images,
-                           self.calibration.sources_um(), device=self.device,
-                           coarse_model=self.coarse_model, backward_mode=cfg.backward_mode, sub_slices=cfg.sub_slices,
-                           obliquity="per_source" if self.parts["obliquity"] else "none",
-                           **{**camera_model_options(cfg, self.acquisition), "pixel_integration": self.parts["pixel_integration"]})
+                           self.calibration.sources_um(), device=self.device, coarse_model=self.coarse_model,
+                           **self._model_options())
+
+    def _model_options(self) -> dict[str, Any]:
+        """The multi-slice model's options as the run has them: backward mode, sub-slices, obliquity, pupil edge and
+        pixel integration (the parts as switched)."""
+        cfg = self.config
+        return dict(backward_mode=cfg.backward_mode, sub_slices=cfg.sub_slices,
+                    obliquity="per_source" if self.parts["obliquity"] else "none",
+                    **{**camera_model_options(cfg, self.acquisition), "pixel_integration": self.parts["pixel_integration"]})
 
     def _carry_volume_to(self, stage: Stage) -> None:
         """Make the RI grid on the stage's grid (first stage) or resample it there from the previous stage's."""
@@ -516,9 +521,10 @@ class Reconstructor:
         return self.calibration.gains() * self.image_scale
 
     def evaluation_stage(self) -> Stage:
-        """The multi-slice model on the acquisition grid (factor 1) for the current calibrated sources (for :meth:`predict`)."""
-        return build_stage(-1, 1, 0, self.acquisition.optics, self.images, self.sources_um(), device=self.device,
-                           sub_slices=self.config.sub_slices)
+        """The multi-slice model on the acquisition grid (factor 1) for the current calibrated sources, with the run's model
+        options (its camera, pupil edge, obliquity and sub-slices: the images the run fitted), for :meth:`predict`."""
+        options = {**self._model_options(), "backward_mode": "auto"}
+        return build_stage(-1, 1, 0, self.acquisition.optics, self.images, self.sources_um(), device=self.device, **options)
 
     def predict(self, indices: Sequence[int] | np.ndarray | torch.Tensor, stage: Stage | None = None) -> np.ndarray:
         """Images (B, h, w) float32 of images ``indices`` (B,) as the current state predicts them, without autograd.
