@@ -61,6 +61,19 @@ def test_info_reports_the_window(tmp_path: Path, capsys) -> None:
     assert main(["info", str(out)]) == 0
     text = capsys.readouterr().out
     assert "9 images of 40x48 px" in text and "forward window" in text
+    assert "of the depth of field" in text  # the thin screens' criterion (docs/physics.md, "Sub-slices")
+
+
+def test_depth_of_field_is_the_pupil_edge_rays_defocus_scale() -> None:
+    """λ/(n_b·(1 − cos θ)), sin θ = NA/n_b: 2.37 µm for the suite's optics (λ 0.635 µm, n_b 1.33, NA 0.8)."""
+    import math
+
+    from napari_fdt import Optics
+
+    o = Optics(wavelength_um=0.635, n_background=1.33, na=0.8, pixel_size_um=0.33, n_slices=8, slice_spacing_um=2.0)
+    cos = math.sqrt(1 - (0.8 / 1.33) ** 2)
+    assert o.depth_of_field_um == pytest.approx(0.635 / (1.33 * (1 - cos)), rel=1e-12)
+    assert 2.36 < o.depth_of_field_um < 2.38
 
 
 def test_user_errors_exit_2_with_the_field_named(tmp_path: Path, capsys) -> None:
