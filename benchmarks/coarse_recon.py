@@ -25,7 +25,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def run(scene: str, model: str, device: str) -> dict:
-    from benchmarks.regularisation import SCENES
+    from benchmarks.scenes import SCENES
     from napari_fdt import read_acquisition, read_volume_tiff
     from napari_fdt.model.envelope import EnvelopeModel
     from napari_fdt.recon.config import SolverConfig

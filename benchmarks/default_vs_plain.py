@@ -14,7 +14,7 @@ import argparse
 import json
 import time
 
-from benchmarks.regularisation import SCENE_DIR, SCENES  # noqa: E402
+from benchmarks.scenes import folder_of  # noqa: E402
 from napari_fdt import read_acquisition, read_volume_tiff  # noqa: E402
 from napari_fdt.recon.config import SolverConfig  # noqa: E402
 from napari_fdt.recon.metrics import relative_delta_n_error  # noqa: E402
@@ -28,7 +28,7 @@ def main() -> None:
     ap.add_argument("--plain", type=float, default=None, help="a plain pass at τ_xy PLAIN (τ_z = PLAIN/2)")
     ap.add_argument("--set", default="{}", help="more settings of the plain pass, as JSON")
     args = ap.parse_args()
-    folder = SCENES[args.scene][0] if args.scene in SCENES else SCENE_DIR / args.scene
+    folder = folder_of(args.scene)
     acq = read_acquisition(folder)
     truth, _ = read_volume_tiff(folder / "ground_truth_ri.tif")
     extra = {} if args.plain is None else {"tv_xy_weight": args.plain, "tv_z_weight": args.plain / 2, **json.loads(args.set)}

@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from benchmarks.regularisation import SCENE_DIR, SCENES
+from benchmarks.scenes import folder_of
 from napari_fdt import read_acquisition, read_volume_tiff
 from napari_fdt.recon.config import SolverConfig
 from napari_fdt.recon.metrics import relative_delta_n_error
@@ -142,7 +142,7 @@ def main() -> None:
                          "selection stage's start as the automatic choice runs (the stages before without TV; probes only: "
                          "the final errors of runs at each τ come from benchmarks/results/regularisation_cpu.jsonl)")
     args = ap.parse_args()
-    folder = SCENES[args.scene][0] if args.scene in SCENES else SCENE_DIR / args.scene
+    folder = folder_of(args.scene)
     acq = read_acquisition(folder)
     truth, _ = read_volume_tiff(folder / "ground_truth_ri.tif")
     tau0 = 1.0 if args.at == "finest" else 0.0

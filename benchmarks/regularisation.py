@@ -14,7 +14,7 @@ one JSON object per line, to ``benchmarks/results/regularisation_<device>.jsonl`
 setting replaces its row in the table). ``table`` ranks each scene's settings by validation error and by true
 error (Spearman's ρ over the suite) and writes the Markdown section of ``docs/ablation.md``.
 
-The scenes (``make-scenes``; the commands are in :data:`SCENES`): the bundled sample; issue 12's 128² letters
+The scenes (``make-scenes``; the commands are in :data:`benchmarks.scenes.SUITE`): the bundled sample; issue 12's 128² letters
 scene with 196 sources 50 µm deep; beads and cells (64²×8, 49 sources 30 µm deep); deep sources (120 µm) with the
 camera focused 8 µm inside the volume (NA 0.5, 0.5 µm pixels). On a GPU, ``demo`` is the authors' 512²×14 geometry with 1521 sources.
 """
@@ -24,45 +24,23 @@ from __future__ import annotations
 import argparse
 import json
 import platform
-import shlex
 import subprocess
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from benchmarks.scenes import SCENE_DIR, SUITE, make_scenes  # noqa: F401 (re-exported)
+
 ROOT = Path(__file__).resolve().parents[1]
-SCENE_DIR = ROOT / "out" / "scenes"
 RESULTS = ROOT / "benchmarks" / "results"
 DOC = ROOT / "docs" / "ablation.md"
 SWEEP = ("0", "1", "5", "10", "50", "200")
 
 #: name → (acquisition folder, the ``fdt simulate`` arguments that make it; None: bundled)
-SCENES: dict[str, tuple[Path, str | None]] = {
-    "sample": (ROOT / "sample_data" / "letters", None),
-    "letters128": (SCENE_DIR / "letters128", "letters --shape 128 128 --n-slices 10 --slice-spacing-um 1.5 --wavelength-um 0.6 "
-                                             "--na 0.65 --sources 14 --span-um 60 --depth-um 50 --delta-n 0.03"),
-    "beads": (SCENE_DIR / "beads", "beads --shape 64 64 --n-slices 8 --sources 7 --depth-um 30"),
-    "cells": (SCENE_DIR / "cells", "cells --shape 64 64 --n-slices 8 --sources 7 --depth-um 30"),
-    "deep": (SCENE_DIR / "deep", "letters --shape 64 64 --n-slices 8 --na 0.5 --pixel-size-um 0.5 --sources 7 --depth-um 120 "
-                                 "--image-plane-um 8 --delta-n 0.03"),
-    # the authors' demo geometry as benchmarks/suite.py builds it (GPU only: 1521 images of 512²)
-    "demo": (SCENE_DIR / "demo", "letters --shape 512 512 --n-slices 14 --slice-spacing-um 1.5 --wavelength-um 0.6 --na 0.65 "
-                                 "--image-plane-um 10.5 --sources 39 --span-um 84 --depth-um 50 --delta-n 0.03 --letter-height-px 100"),
-}
-
-
-def make_scenes(names: list[str], device: str) -> None:
-    """Simulate the named scenes with ``fdt simulate`` (seed 0) where they are missing."""
-    for name in names:
-        folder, args = SCENES[name]
-        if args is None or (folder / "acquisition.json").is_file():
-            continue
-        cmd = [sys.executable, "-m", "napari_fdt.cli", "simulate", *shlex.split(args), str(folder), "--device", device]
-        print(" ".join(cmd[2:]), flush=True)
-        subprocess.run(cmd, check=True)
+# the suite's scenes and how to make them: benchmarks/scenes.py (the one registry)
+SCENES = SUITE
 
 
 def config_for(setting: str, base: dict | None = None):
