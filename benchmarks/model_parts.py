@@ -99,7 +99,7 @@ def make_scenes(names: list[str], device: str) -> None:
             (folder / "acquisition.json").write_text(json.dumps(meta, indent=1))
             continue
         args = BASE[base] + (" " + EFFECTS if version == "effects" else "")
-        cmd = [sys.executable, "-m", "napari_fdt.cli", "simulate", *shlex.split(args), str(folder), "--device", device]
+        cmd = [sys.executable, "-m", "napari_fdt", "simulate", *shlex.split(args), str(folder), "--device", device]
         print(" ".join(cmd[2:]), flush=True)
         subprocess.run(cmd, check=True)
 
