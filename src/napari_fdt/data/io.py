@@ -352,14 +352,12 @@ def _quiet_tifffile() -> Iterator[None]:
         log.setLevel(level)
 
 
-def check_fits_in_memory(name: str, shape: tuple[int, ...], dtype: Any, copies: int = 2) -> None:
-    """Refuse, from the stack's shape alone, a stack whose ``copies`` arrays (each at least float32) would not fit in
-    the memory that is free: 2 for a stack read into memory (the pixels and the float32 copy every run makes), 1 for
-    the float32 copy of a memory-mapped one."""
+def check_fits_in_memory(name: str, shape: tuple[int, int, int], dtype: Any) -> None:
+    """Refuse, from the TIFF's header alone, a stack that could not be held in memory (twice: read and a float copy)."""
     from napari_fdt.device import available_bytes
 
-    n, h, w = (int(s) for s in shape[-3:]) if len(shape) >= 3 else (1, *(int(s) for s in shape))
-    need = copies * n * h * w * max(np.dtype(dtype).itemsize, 4)
+    n, h, w = shape
+    need = 2 * n * h * w * max(np.dtype(dtype).itemsize, 4)  # the pixels, and the float32 copy every run makes
     free = available_bytes("cpu")
     if free is not None and need > 0.9 * free:
         gib = 2.0**30

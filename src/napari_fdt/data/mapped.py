@@ -3,7 +3,7 @@
 A full-size acquisition (1521 images of 512×512 px, 0.8 GB as uint16) is opened without reading its pixels: the
 stack is a :class:`numpy.memmap` of the file's pixel data (where the TIFF stores it uncompressed, in order and in
 the machine's byte order), so ``fdt info``, the napari reader and the acquisition widget touch only what they show.
-What must see every pixel (the checks for NaN and negative values, the mean, the float32 copy the solver trains on)
+What must see every pixel (the checks for NaN and negative values, the mean, the float32 rows the solver trains on)
 goes through the stack in chunks of :data:`CHUNK_BYTES`, so it never holds a temporary of the stack's size.
 
 A mapped stack crosses to another process (the napari plugin's computation) as its file reference

@@ -18,6 +18,8 @@ import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
+from napari_fdt.recon.checkpoint import latest_checkpoint
+
 __all__ = ["ResumeOffer", "checkpoint_folder", "interrupted_run", "clear"]
 
 _STAGE = re.compile(r"stage_(\d+)(?:_it(\d+))?\.pt$")
@@ -61,13 +63,13 @@ class ResumeOffer:
 
 def interrupted_run(folder: Path | None) -> ResumeOffer | None:
     """The interrupted run whose checkpoints ``folder`` holds, or None (no folder, or no checkpoint in it)."""
-    if folder is None or not folder.is_dir():
+    if folder is None or not folder.is_dir() or not any(p.is_file() for p in folder.glob("stage_*.pt")):
         return None
-    found = [p for p in folder.glob("stage_*.pt") if p.is_file() and _STAGE.search(p.name)]
-    if not found:
+    latest = latest_checkpoint(folder)  # the one resuming picks
+    match = _STAGE.search(latest.name)
+    if match is None:
         return None
-    latest = max(found, key=lambda p: (p.stat().st_mtime_ns, p.name))  # as recon.checkpoint.latest_checkpoint picks
-    stage, iteration = _STAGE.search(latest.name).groups()
+    stage, iteration = match.groups()
     done = int(stage) + 1 if iteration is None else int(stage)
     return ResumeOffer(folder, latest, done, None if iteration is None else int(iteration),
                        datetime.datetime.fromtimestamp(latest.stat().st_mtime))

@@ -17,7 +17,6 @@ import torch
 from napari_fdt.recon import losses
 
 __all__ = [
-    "stack_image_metrics",
     "image_metrics",
     "paper_normalised_metrics",
     "psnr",
@@ -185,32 +184,6 @@ def ri_metrics(
     }
 
 
-def stack_image_metrics(pred_images: np.ndarray, measured_images: np.ndarray) -> dict[str, float]:
-    """:func:`image_metrics` of ``(N, H, W)`` stacks computed chunk by chunk (a memory-mapped measured stack of any
-    pixel type is read once, without float64 copies of its size); the same numbers to float64 rounding."""
-    from napari_fdt.data.mapped import chunks
-
-    if pred_images.shape != measured_images.shape or pred_images.ndim != 3:
-        return image_metrics(pred_images, measured_images)
-    parts = list(chunks(measured_images, 2**24))
-    lo = min(float(np.min(measured_images[s])) for s in parts)
-    hi = max(float(np.max(measured_images[s])) for s in parts)
-    data_range = hi - lo if hi > lo else 1.0
-    sq_err = sq_meas = 0.0
-    ssim = []
-    for s in parts:
-        p, m = _pair(pred_images[s], measured_images[s], ("pred_images", "measured_images"))
-        sq_err += float(np.sum((p - m) ** 2))
-        sq_meas += float(np.sum(m * m))
-        ssim.append(_ssim_per_image(p, m, data_range))
-    n = measured_images.size
-    return {
-        "image_psnr": _psnr_from_mse(sq_err / n, data_range),
-        "image_ssim": float(np.mean(np.concatenate(ssim))),
-        "image_relative_error": math.sqrt(sq_err) / math.sqrt(sq_meas) if sq_meas > 0 else math.nan,
-    }
-
-
 def image_metrics(pred_images: np.ndarray, measured_images: np.ndarray) -> dict[str, float]:
     """Agreement of predicted and measured images ``(N, H, W)`` (or one ``(H, W)``; ``H, W ≥ 11``).
 
@@ -223,14 +196,31 @@ def image_metrics(pred_images: np.ndarray, measured_images: np.ndarray) -> dict[
         ``"image_relative_error"``: ``‖pred − meas‖₂ / ‖meas‖₂`` over the stack (``nan`` when the
         measured images are zero everywhere).
     """
-    p, m = _pair(pred_images, measured_images, ("pred_images", "measured_images"))
-    data_range = float(m.max() - m.min())
-    if data_range <= 0:
-        data_range = 1.0
-    norm = float(np.linalg.norm(m))
-    rel = float(np.linalg.norm(p - m)) / norm if norm > 0 else math.nan
+    from napari_fdt.data.mapped import chunks
+
+    pred, meas = np.asarray(pred_images), np.asarray(measured_images)
+    if pred.shape != meas.shape:
+        raise ValueError(f"shapes differ: pred_images has shape {pred.shape}, measured_images has shape {meas.shape}")
+    if meas.size == 0:
+        raise ValueError(f"pred_images and measured_images are empty (shape {meas.shape})")
+    if meas.ndim == 2:
+        pred, meas = pred[None], meas[None]
+    if meas.ndim != 3:
+        raise ValueError(f"expected images (N, H, W) or (H, W), got shape {meas.shape}")
+    # chunk by chunk: a memory-mapped measured stack of any pixel type is read once, without float64 copies of its size
+    parts = list(chunks(meas, 2**24))
+    lo = min(float(np.min(meas[s])) for s in parts)
+    hi = max(float(np.max(meas[s])) for s in parts)
+    data_range = hi - lo if hi > lo else 1.0
+    sq_err = sq_meas = 0.0
+    ssim = []
+    for s in parts:
+        p, m = _pair(pred[s], meas[s], ("pred_images", "measured_images"))
+        sq_err += float(np.sum((p - m) ** 2))
+        sq_meas += float(np.sum(m * m))
+        ssim.append(_ssim_per_image(p, m, data_range))
     return {
-        "image_psnr": _psnr_from_mse(_mse(p, m), data_range),
-        "image_ssim": float(np.mean(_ssim_per_image(p, m, data_range))),
-        "image_relative_error": rel,
+        "image_psnr": _psnr_from_mse(sq_err / meas.size, data_range),
+        "image_ssim": float(np.mean(np.concatenate(ssim))),
+        "image_relative_error": math.sqrt(sq_err) / math.sqrt(sq_meas) if sq_meas > 0 else math.nan,
     }

@@ -69,10 +69,17 @@ def check_backward_mode(acquisition: Acquisition, config: SolverConfig, sources_
                                 "use 'auto' (the fused kernels need CUDA with Triton and power-of-two windows of at least 256)")
 
 
+def images_on_device(acquisition: Acquisition, device_type: str) -> int:
+    """Bytes the measured images take on the device: on a GPU the whole stack as float32; on the CPU none beyond a batch
+    (they are read from the acquisition's array, :mod:`napari_fdt.recon.stage_images`)."""
+    h, w = acquisition.image_shape
+    return 4 * acquisition.n_images * h * w if device_type != "cpu" else 0
+
+
 def finest_stage_bytes(acquisition: Acquisition, config: SolverConfig, sources_um: np.ndarray, n_wavelengths: int = 1,
                        device_type: str = "cuda"):
-    """Bytes the finest multi-slice stage needs on its device (a training step of one batch, and, on a GPU, every image
-    as float32; on the CPU the images are read batch by batch from the acquisition's array, :mod:`napari_fdt.recon.stage_images`),
+    """Bytes the finest multi-slice stage needs on its device (a training step of one batch, and the images there:
+    :func:`images_on_device`),
     with its window plan, batch and backward mode: ``(bytes, plan, batch, mode)``. ``sources_um`` (N, 3) µm set the
     window."""
     from napari_fdt.model.memory import grid_is_unitary, leanest_mode, training_bytes
@@ -85,9 +92,7 @@ def finest_stage_bytes(acquisition: Acquisition, config: SolverConfig, sources_u
     mode = cfg.backward_mode
     if mode == "auto":  # auto falls back to the leanest mode when one field per slice does not fit
         mode = leanest_mode(grid_is_unitary(opt.pixel_size_um, o.n_background, o.wavelength_um))
-    # the finest stage's images live on a GPU too (float32, all of them); on the CPU they stay in the acquisition's array
-    images = 4 * acquisition.n_images * full_shape[0] * full_shape[1] if device_type != "cpu" else 0
-    return training_bytes(plan.padded_shape, o.n_slices * cfg.sub_slices, batch, n_wavelengths, mode) + images, plan, batch, mode
+    return training_bytes(plan.padded_shape, o.n_slices * cfg.sub_slices, batch, n_wavelengths, mode) + images_on_device(acquisition, device_type), plan, batch, mode
 
 
 def check_memory(acquisition: Acquisition, config: SolverConfig, sources_um: np.ndarray, device: torch.device,
@@ -105,7 +110,7 @@ def check_memory(acquisition: Acquisition, config: SolverConfig, sources_um: np.
         return
     need, plan, batch, mode = finest_stage_bytes(acquisition, config, sources_um, n_wavelengths, torch.device(device).type)
     o, k = acquisition.optics, n_wavelengths
-    images = 4 * acquisition.n_images * acquisition.image_shape[0] * acquisition.image_shape[1] if torch.device(device).type != "cpu" else 0
+    images = images_on_device(acquisition, torch.device(device).type)
     if need <= 0.9 * free:
         return
     fits = int((0.9 * free - images) // max(1, training_bytes(plan.padded_shape, o.n_slices * config.sub_slices, 1, k, mode)))

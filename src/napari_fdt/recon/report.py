@@ -18,7 +18,7 @@ import torch
 from napari_fdt.data.io import check_report_free, report_path, write_json_atomic
 from napari_fdt.data.volumes import write_volume
 from napari_fdt.model.render import iter_batches
-from napari_fdt.recon.metrics import ri_metrics, stack_image_metrics
+from napari_fdt.recon.metrics import image_metrics, ri_metrics
 from napari_fdt.recon.solver import Reconstructor
 
 __all__ = ["evaluate_images", "plan_report", "describe_plan", "build_report", "write_result", "source_errors"]
@@ -35,7 +35,7 @@ def evaluate_images(rec: Reconstructor, batch_size: int | None = None) -> tuple[
     bs = batch_size or rec.config.batch_size
     for sl in iter_batches(acq.n_images, bs):
         preds[sl] = rec.predict(np.arange(sl.start, sl.stop), stage)
-    return preds, stack_image_metrics(preds, acq.images)
+    return preds, image_metrics(preds, acq.images)
 
 
 def source_errors(calibrated_um: np.ndarray, true_um: np.ndarray) -> dict[str, float]:

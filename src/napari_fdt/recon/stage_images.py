@@ -16,7 +16,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from napari_fdt.data.mapped import chunks
+from napari_fdt.data.mapped import chunks, scaled_float32
 
 __all__ = ["LazyImages", "stage_images", "block_average"]
 
@@ -54,9 +54,7 @@ class LazyImages:
         return int(self.array.shape[0])
 
     def _convert(self, rows: np.ndarray) -> torch.Tensor:
-        out = np.empty(rows.shape, dtype=np.float32)
-        np.divide(rows, self.scale, out=out, dtype=np.float32, casting="unsafe")  # as data.mapped.scaled_float32
-        return torch.from_numpy(out)
+        return torch.from_numpy(scaled_float32(rows, self.scale))
 
     def __getitem__(self, key: Any) -> torch.Tensor:
         if isinstance(key, torch.Tensor):
