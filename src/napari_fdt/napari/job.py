@@ -96,10 +96,10 @@ def reconstruction_job(
                 last = time.perf_counter()
             yield Update("snapshot", snapshot=snap, ri=ri)
         cancelled = stop.is_set() and rec.completed_stages < len(rec.config.stages)
-        if not cancelled and not (closing is not None and closing.is_set()):
-            clear(folder)  # the run ended: nothing to resume
-        if closing is not None and closing.is_set():
+        if closing is not None and closing.is_set():  # the checkpoints stay: the run can be resumed
             return JobResult(rec, True, rec.completed_stages)
+        if not cancelled:
+            clear(folder)  # the run ended: nothing to resume
         if cancelled and rec.completed_stages == 0:
             return JobResult(rec, True, 0)  # nothing to keep
         yield Update("evaluating")
