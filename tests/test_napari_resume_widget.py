@@ -22,7 +22,8 @@ def test_an_interrupted_run_is_offered_and_resumed(make_napari_viewer, qtbot, ti
     folder = checkpoint_folder(acq_layer.metadata[META_PATH])
     assert folder.is_dir() and not str(folder).startswith(str(tiny_dir))  # checkpoints beside the user's cache, not the input
     assert w.resume_offer is not None and not w.resume_run.native.isHidden() and not w.resume_run.value
-    assert "resume the interrupted run (1 stage done" in w.resume_run.text and "with its own settings" in w.resume_run.text
+    assert "resume the interrupted run (1 stage done, " in w.resume_run.text  # short: a docked widget is ~400 px wide
+    assert "1 stage done; saved" in w.resume_run.tooltip and "with its own settings" in w.resume_run.tooltip
     w.resume_run.value = True
     w.stages.value = "1x2"  # not what runs: the resumed run keeps its own stages
     w.run_button.clicked.emit()

@@ -43,6 +43,7 @@ def test_checkpoint_folder_is_per_acquisition_and_outside_it(tmp_path, monkeypat
     offer = resume.interrupted_run(a)
     assert offer.latest.name == "stage_1_it40.pt" and offer.stages_done == 1 and offer.in_stage_iteration == 40
     assert offer.describe().startswith("1 stage done, in stage 2 at iteration 40; saved ")
+    assert offer.short().startswith("stage 2, it. 40, ")
     os.utime(a / "stage_0.pt", ns=(time.time_ns() + 10**9, time.time_ns() + 10**9))  # a later write wins, as resuming picks
     assert resume.interrupted_run(a).stages_done == 1 and resume.interrupted_run(a).in_stage_iteration is None
     resume.clear(a)

@@ -60,6 +60,12 @@ class ResumeOffer:
             where += f", in stage {self.stages_done + 1} at iteration {self.in_stage_iteration}"
         return f"{where}; saved {self.saved_at:%H:%M (%b %d)}"
 
+    def short(self) -> str:
+        """e.g. "1 stage done, 14:02" or "stage 3, it. 80, 14:02": what fits beside a checkbox in a docked widget."""
+        where = (f"{self.stages_done} stage{'s' if self.stages_done != 1 else ''} done" if self.in_stage_iteration is None
+                 else f"stage {self.stages_done + 1}, it. {self.in_stage_iteration}")
+        return f"{where}, {self.saved_at:%H:%M}"
+
 
 def interrupted_run(folder: Path | None) -> ResumeOffer | None:
     """The interrupted run whose checkpoints ``folder`` holds, or None (no folder, or no checkpoint in it)."""

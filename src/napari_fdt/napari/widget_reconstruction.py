@@ -254,8 +254,9 @@ class ReconstructionWidget(ResultActions, Container):
         if offer is None:
             self.resume_run.value = False
         else:
-            self.resume_run.text = f"resume the interrupted run ({offer.describe()}, with its own settings)"
-            self.resume_run.tooltip = f"its checkpoints: {offer.folder}; unticked, Reconstruct starts afresh and deletes them"
+            self.resume_run.text = f"resume the interrupted run ({offer.short()})"  # fits a docked widget's width
+            self.resume_run.tooltip = (f"{offer.describe()}; it goes on with its own settings. Its checkpoints: {offer.folder}; "
+                                       "unticked, Reconstruct starts afresh and deletes them")
 
     def _clear_stale_error(self, _value=None) -> None:
         if self.feedback.last_error is not None:
