@@ -22,13 +22,12 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import platform
 import time
 from pathlib import Path
 
 import numpy as np
-import torch
 
+from benchmarks._results import write_document
 from napari_fdt import read_acquisition, read_volume_tiff, simulate, source_grid
 from napari_fdt.recon.config import SolverConfig, StageConfig
 from napari_fdt.recon.metrics import ri_metrics
@@ -111,10 +110,7 @@ def main() -> None:
     add(q, "spectral model (3 wavelengths, 40 nm)", pc_acq, dataclasses.replace(base, coherence="spectral", bandwidth_um=0.04, n_wavelengths=3))
     add(q, "masks + spectral model", pc_acq, dataclasses.replace(base, coherence="mask+spectral", bandwidth_um=0.04, n_wavelengths=3))
 
-    hardware = {"device": args.device, "cpu": platform.processor() or platform.machine(), "threads": torch.get_num_threads(),
-                "torch": torch.__version__}
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.with_suffix(".json").write_text(json.dumps({"hardware": hardware, "rows": rows}, indent=1))
+    hardware = json.loads(write_document(args.out.with_suffix(".json"), {"rows": rows}, args.device).read_text())["hardware"]
     lines = [
         "| data | configuration | relative Δn error | RI RMSE | norm. PSNR (dB) | norm. SSIM | image rel. error | source RMS (µm) | wall time (s) |",
         "|---|---|---|---|---|---|---|---|---|",

@@ -17,12 +17,11 @@ to the stage grid) inside its coverage. c = 1/(2·f·dx)/(NA/λ) is what a field
 
 from __future__ import annotations
 
-import json
-import time
 from pathlib import Path
 
 import torch
 
+from benchmarks._results import RESULTS, write_document
 from napari_fdt import Optics, source_grid
 from napari_fdt.model.forward import MultiSliceModel
 from napari_fdt.physics.grid import plan_for_sources
@@ -98,9 +97,8 @@ def main() -> None:
                              "covered_fraction": float(cov.mean())}
             print(f"envelope model f={fct}: error inside its coverage ({envelope[fct]['covered_fraction']:.2f} of the pixels) "
                   f"{envelope[fct]['relative_error_inside_coverage']:.3f}, after a gain per image {envelope[fct]['after_gain']:.3f}", flush=True)
-    out = ROOT / "benchmarks" / "results" / "coarse_field_band.json"
-    out.write_text(json.dumps({"date": time.strftime("%Y-%m-%d"), "image": side, "sources": len(src),
-                               "object_signal": signal, "envelope": envelope, "rows": rows}, indent=1))
+    out = write_document(RESULTS / "coarse_field_band.json", {"image": side, "sources": len(src), "object_signal": signal,
+                                                              "envelope": envelope, "rows": rows})
     print(f"wrote {out}")
 
 

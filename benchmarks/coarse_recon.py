@@ -15,11 +15,10 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
 import time
 from pathlib import Path
 
-import torch
+from benchmarks._results import append_row, results_file
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -55,8 +54,7 @@ def run(scene: str, model: str, device: str) -> dict:
             "validation_error": rec.stages[-1].validation_error if rec.stages else None,
             "seconds_per_iteration": {f"x{r.factor}": r.seconds_per_iteration for r in rec.stages},
             "stage_models": [r.model for r in rec.stages], "wall_s": wall,
-            "tv": None if rec.tv_choice is None else rec.tv_choice.to_dict(), "threads": torch.get_num_threads(),
-            "cpu": platform.processor() or platform.machine(), "torch": torch.__version__, "date": time.strftime("%Y-%m-%d %H:%M")}
+            "tv": None if rec.tv_choice is None else rec.tv_choice.to_dict()}  # + the machine's fields (append_row)
 
 
 def main() -> None:
@@ -65,13 +63,12 @@ def main() -> None:
     p.add_argument("--models", default="envelope,envelope_batched,multislice")
     p.add_argument("--device", default="cpu")
     args = p.parse_args()
-    out = ROOT / "benchmarks" / "results" / f"coarse_recon_{args.device}.jsonl"
+    out = results_file("coarse_recon", args.device)
     for scene in args.scenes.split(","):
         for model in args.models.split(","):
             row = run(scene, model, args.device)
             print(json.dumps(row), flush=True)
-            with out.open("a") as fh:
-                fh.write(json.dumps(row) + "\n")
+            append_row(out, row, args.device)
 
 
 if __name__ == "__main__":

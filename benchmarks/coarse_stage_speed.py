@@ -24,8 +24,6 @@ the right shape: only the timing matters here. Writes ``benchmarks/results/coars
 from __future__ import annotations
 
 import argparse
-import json
-import platform
 import statistics
 import time
 from pathlib import Path
@@ -33,6 +31,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from benchmarks._results import results_file, write_document
 from napari_fdt import Optics, read_acquisition, resolve_device, source_grid
 from napari_fdt.recon.stages import build_stage
 
@@ -179,12 +178,7 @@ def main() -> None:
                 rows.append(row)
                 print(f"{geo:7s} ×{factor} {name:19s} field {stage.image_shape} window {stage.window}: "
                       f"{1e3 * sec:8.1f} ms/it, {ops:5d} ops", flush=True)
-    meta = {"device": str(device), "torch": torch.__version__, "threads": torch.get_num_threads(),
-            "cpu": platform.processor() or platform.machine(), "date": time.strftime("%Y-%m-%d %H:%M"),
-            "gpu": torch.cuda.get_device_name(device) if device.type == "cuda" else None}
-    out = args.out or ROOT / "benchmarks" / "results" / f"coarse_stage_{device.type}.json"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps({"meta": meta, "rows": rows}, indent=1))
+    out = write_document(args.out or results_file("coarse_stage", device, table=False), {"rows": rows}, device)
     print(f"wrote {out}")
 
 

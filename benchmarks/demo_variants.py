@@ -12,13 +12,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
-import torch
 
+from benchmarks._results import results_file, write_document  # noqa: E402
 from benchmarks.suite import _letters_scene, run_scene  # noqa: E402
 from napari_fdt import resolve_device  # noqa: E402
 from napari_fdt.recon.config import SolverConfig, StageConfig  # noqa: E402
@@ -56,7 +55,7 @@ def main() -> None:
     t = time.perf_counter()
     acq, truth = _letters_scene(512, 14, 39, 84.0, 100, device, text="UCDAVIS")
     print(f"demo data in {time.perf_counter() - t:.1f} s", flush=True)
-    results = {"hardware": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu", "command": "python " + " ".join(sys.argv), "runs": []}
+    results = {"runs": []}
     for name in a.variants.split(","):
         over = dict(variants[name])
         batches = over.pop("_batches", [None, None, None])
@@ -78,9 +77,7 @@ def main() -> None:
         best = min(results["runs"], key=lambda r: (first_hit(r), -r["final"]["paper_psnr"]))
         a.best_config.write_text(json.dumps(best["config"], indent=1))
         print(f"best variant: {best['variant']} (first at PSNR >= 24 and SSIM >= 0.59 after {first_hit(best):.1f} s)")
-    out = a.out or Path(__file__).parent / "results" / f"demo_variants_{device.type}.json"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(results, indent=1, default=float))
+    out = write_document(a.out or results_file("demo_variants", device, table=False), results, device)
     print(f"wrote {out}")
 
 

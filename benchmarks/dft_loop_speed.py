@@ -12,8 +12,6 @@ Writes ``benchmarks/results/dft_loop_<device>.json``.
 from __future__ import annotations
 
 import argparse
-import json
-import platform
 import statistics
 import time
 from pathlib import Path
@@ -21,6 +19,7 @@ from pathlib import Path
 import torch
 
 from benchmarks._dft_loop import DftPlan, dft_slice_loop
+from benchmarks._results import results_file, write_document
 from napari_fdt import resolve_device
 from napari_fdt.model.slice_loop import slice_loop
 from napari_fdt.physics.propagation import propagation_kernel
@@ -82,11 +81,7 @@ def main() -> None:
         print(f"{n}² ({plan.h.n1}·{plan.h.n2}) ×{args.batch}, {n_slices} slices: transform pair FFT {row['fft_pair_ms']:.1f} ms, "
               f"DFT products {row['dft_pair_ms']:.1f} ms ({t_dft_pair / t_fft_pair:.1f}×); loop step FFT "
               f"{row['fft_loop_step_ms']:.0f} ms, DFT {row['dft_loop_step_ms']:.0f} ms ({t_dft_loop / t_fft_loop:.1f}×)", flush=True)
-    meta = {"device": str(device), "torch": torch.__version__, "threads": torch.get_num_threads(),
-            "cpu": platform.processor() or platform.machine(), "date": time.strftime("%Y-%m-%d %H:%M"),
-            "gpu": torch.cuda.get_device_name(device) if device.type == "cuda" else None}
-    out = args.out or ROOT / "benchmarks" / "results" / f"dft_loop_{device.type}.json"
-    out.write_text(json.dumps({"meta": meta, "rows": rows}, indent=1))
+    out = write_document(args.out or results_file("dft_loop", device, table=False), {"rows": rows}, device)
     print(f"wrote {out}")
 
 

@@ -22,7 +22,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import subprocess
 import sys
 import tempfile
@@ -31,6 +30,8 @@ from pathlib import Path
 
 import numpy as np
 import torch
+
+from benchmarks._results import results_file, write_document
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -114,14 +115,12 @@ def main() -> None:
         r["max_abs_delta_sources_um_vs_first"] = float(np.abs(r["sources_um"] - base["sources_um"]).max())
     for r in results:
         del r["ri"], r["sources_um"]
-    hw = {"machine": platform.machine(), "cpu_count": os.cpu_count(), "torch": torch.__version__, "python": platform.python_version(),
-          "gpu": torch.cuda.get_device_name(0) if args.device.startswith("cuda") and torch.cuda.is_available() else None,
-          "load_average_before_after": [load_before, list(os.getloadavg())]}  # other jobs on a shared machine
-    out = ROOT / "benchmarks" / "results" / f"distributed_{args.device.split(':')[0]}.json"
+    hw = {"load_average_before_after": [load_before, list(os.getloadavg())]}  # other jobs on a shared machine
     acq = args.acquisition.resolve()
     acq_name = str(acq.relative_to(ROOT)) if acq.is_relative_to(ROOT) else str(acq)
-    out.write_text(json.dumps({"hardware": hw, "acquisition": acq_name, "n_images": n_images,
-                               "batch_size": cfg.batch_size, "iterations_per_stage": args.iterations, "runs": results}, indent=1) + "\n")
+    out = write_document(results_file("distributed", args.device, table=False),
+                   {"hardware": hw, "acquisition": acq_name, "n_images": n_images, "batch_size": cfg.batch_size,
+                    "iterations_per_stage": args.iterations, "runs": results}, args.device)
     print("| processes | backend | threads each | " + " | ".join(f"x{s['factor']} s/it" for s in base["stages"])
           + " | run s | wall s | load imbalance | max ΔRI vs first | max Δsources µm |")
     print("|" + "---|" * (7 + len(base["stages"])))

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import platform
 import statistics
 import time
@@ -25,6 +24,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from benchmarks._results import results_file, write_document
 from napari_fdt import MultiSliceModel, Optics, plan_for_sources, resolve_device, source_grid
 
 CPU_SCENES = [(256, 14, 8), (512, 14, 8)]
@@ -100,19 +100,11 @@ def main() -> None:
     args = parser.parse_args()
     device = resolve_device(args.device)
     scenes = GPU_SCENES if args.gpu else CPU_SCENES
-    hardware = {
-        "device": str(device),
-        "device_name": torch.cuda.get_device_name(device) if device.type == "cuda" else _cpu_name(),
-        "cpu_count": os.cpu_count(),
-        "torch_threads": torch.get_num_threads(),
-        "torch": torch.__version__,
-        "python": platform.python_version(),
-    }
+    hardware = {"name": torch.cuda.get_device_name(device) if device.type == "cuda" else _cpu_name()}
     results = {"hardware": hardware, "scenes": [bench_scene(s, n, b, device, args.repeats) for s, n, b in scenes]}
-    out = args.out or Path(__file__).parent / "results" / f"forward_{device.type}.json"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(results, indent=1))
-    print(f"hardware: {hardware['device_name']} ({hardware['device']}, {hardware['torch_threads']} threads, torch {hardware['torch']})")
+    out = write_document(args.out or results_file("forward", device, table=False), results, device)
+    hardware = json.loads(out.read_text())["hardware"]
+    print(f"hardware: {hardware['name']} ({hardware['device']}, {hardware['threads']} threads, torch {hardware['torch']})")
     print("| image | window | slices | batch | forward: s/batch | image-slices/s | fwd+bwd: s/batch | image-slices/s |")
     print("|---|---|---|---|---|---|---|---|")
     for r in results["scenes"]:

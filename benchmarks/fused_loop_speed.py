@@ -15,14 +15,13 @@ compilation, reported separately as ``first_ms``). Writes ``benchmarks/results/f
 from __future__ import annotations
 
 import argparse
-import json
-import platform
 import statistics
 import time
 from pathlib import Path
 
 import torch
 
+from benchmarks._results import results_file, write_document
 from napari_fdt import resolve_device
 from napari_fdt.model.fused_loop import PRECISIONS, fused_slice_loop, supports
 from napari_fdt.model.slice_loop import slice_loop
@@ -103,18 +102,14 @@ def main() -> None:
             line += f"; fused {precision} {1e3 * t:.2f} ms ({t / t_fft:.2f}×, gradients {diff:.1e} from the FFT loop)"
         rows.append(row)
         print(line, flush=True)
-    meta = {"device": str(device), "torch": torch.__version__, "threads": torch.get_num_threads(),
-            "cpu": platform.processor() or platform.machine(), "date": time.strftime("%Y-%m-%d %H:%M"),
-            "gpu": torch.cuda.get_device_name(device) if device.type == "cuda" else None,
-            "interpreter": interpret}
+    meta = {"interpreter": interpret}
     try:
         import triton
 
         meta["triton"] = triton.__version__
     except ImportError:
         pass
-    out = args.out or ROOT / "benchmarks" / "results" / f"fused_loop_{device.type}.json"
-    out.write_text(json.dumps({"meta": meta, "rows": rows}, indent=1))
+    out = write_document(args.out or results_file("fused_loop", device, table=False), {"hardware": meta, "rows": rows}, device)
     print(f"wrote {out}")
 
 

@@ -22,11 +22,11 @@ import argparse
 import dataclasses
 import json
 import time
-from pathlib import Path
 
 import numpy as np
 import torch
 
+from benchmarks._results import append_row, results_file
 from benchmarks.scenes import folder_of
 from napari_fdt import read_acquisition, read_volume_tiff
 from napari_fdt.recon.config import SolverConfig
@@ -36,7 +36,7 @@ from napari_fdt.recon.run_validation import validation
 from napari_fdt.recon.solver import Reconstructor
 from napari_fdt.recon.stage_loop import Verdict, capture_branch, new_optimiser, restore_branch
 
-OUT = Path(__file__).resolve().parent / "results" / "half_sets_cpu.jsonl"
+OUT = results_file("half_sets", "cpu")
 
 
 def halves(sources_um: np.ndarray, train: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray]:
@@ -123,7 +123,7 @@ def reference_finals(scene: str, seed: int) -> dict[float, float]:
     """Final relative Δn errors of full runs at fixed τ (τ_z = τ/2), the latest row per τ, from the regularisation
     benchmark's results (benchmarks/results/regularisation_cpu.jsonl)."""
     finals: dict[float, float] = {}
-    path = Path(__file__).resolve().parent / "results" / "regularisation_cpu.jsonl"
+    path = results_file("regularisation", "cpu")
     for line in path.read_text().splitlines():
         r = json.loads(line)
         if r["scene"] == scene and r["setting"] != "auto" and r.get("config_overrides", {}).get("seed", 0) == seed:
@@ -169,9 +169,7 @@ def main() -> None:
         summary[f"ratio_{crit}"] = round(pick["truth_final"] / best["truth_final"], 3)
     line = {**summary, "rows": rows}
     print(json.dumps(summary), flush=True)
-    OUT.parent.mkdir(exist_ok=True)
-    with OUT.open("a") as f:
-        f.write(json.dumps(line) + "\n")
+    append_row(OUT, line)
 
 
 if __name__ == "__main__":

@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
 import shlex
 import shutil
 import subprocess
@@ -30,11 +29,11 @@ import time
 from pathlib import Path
 
 import numpy as np
-import torch
+
+from benchmarks._results import append_row, read_rows, results_file
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENE_DIR = ROOT / "out" / "parts"
-RESULTS = ROOT / "benchmarks" / "results"
 DOC = ROOT / "docs" / "decisions" / "model-parts.md"
 EFFECTS = "--pixel-integration true --pupil-edge 0 --aberrations spherical=0.5"
 BASE = {"letters": "letters --seed 0", "beads": "beads --shape 64 64 --n-slices 8 --sources 7 --depth-um 30 --seed 0"}
@@ -136,19 +135,13 @@ def run_one(scene: str, setting: str, device: str) -> dict:
         "source_lateral_rms_um": source_errors(rec.sources_um(), truth_src)["lateral_rms_um"],
         "calibration": rec.calibration.summary(), "model_parts": parts, "wall_s": wall,
         "tv_xy_weight": None if rec.tv_choice is None else rec.tv_choice.tv_xy_weight, "overrides": overrides(setting),
-        "stage_seconds": [r.seconds for r in rec.stages], "threads": torch.get_num_threads(),
-        "cpu": platform.processor() or platform.machine(), "torch": torch.__version__, "date": time.strftime("%Y-%m-%d"),
-    }
+        "stage_seconds": [r.seconds for r in rec.stages], "date": time.strftime("%Y-%m-%d"),
+    }  # with the machine's fields (benchmarks._results.append_row)
 
 
 def load_rows(path: Path) -> list[dict]:
-    rows: dict[tuple, dict] = {}
-    if path.is_file():
-        for line in path.read_text().splitlines():
-            if line.strip():
-                r = json.loads(line)
-                rows[(r["scene"], r["setting"])] = r
-    return list(rows.values())
+    """The table's rows, the last of each (scene, setting) kept."""
+    return list({(r["scene"], r["setting"]): r for r in read_rows(path)}.values())
 
 
 def table(rows: list[dict]) -> str:
@@ -253,17 +246,15 @@ def main(argv: list[str] | None = None) -> None:
         make_scenes(args.scenes.split(","), args.device)
     elif args.cmd == "run":
         make_scenes(args.scenes.split(","), args.device)
-        out = RESULTS / f"model_parts_{args.device}.jsonl"
-        out.parent.mkdir(parents=True, exist_ok=True)
+        out = results_file("model_parts", args.device)
         for scene in args.scenes.split(","):
             for setting in args.settings.split(","):
                 row = run_one(scene, setting, args.device)
-                with out.open("a") as f:
-                    f.write(json.dumps(row) + "\n")
+                append_row(out, row, args.device)
                 print(f"{scene:16s} {setting:5s} err {row['relative_delta_n_error']:.3f} val {row['validation_error']:.4f} "
                       f"parts {row['model_parts']['needed']} {row['wall_s']:.0f} s", flush=True)
     else:
-        rows = load_rows(RESULTS / f"model_parts_{args.device}.jsonl")
+        rows = load_rows(results_file("model_parts", args.device))
         print(table(rows))
         print(seed_table(rows))
         if args.write:

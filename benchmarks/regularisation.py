@@ -23,18 +23,15 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
-import subprocess
 import time
 from pathlib import Path
 
 import numpy as np
-import torch
 
+from benchmarks._results import append_row, code_version, results_file
 from benchmarks.scenes import SCENE_DIR, SUITE, make_scenes  # noqa: F401 (re-exported)
 
 ROOT = Path(__file__).resolve().parents[1]
-RESULTS = ROOT / "benchmarks" / "results"
 DOC = ROOT / "docs" / "ablation.md"
 SWEEP = ("0", "1", "5", "10", "50", "200")
 
@@ -93,23 +90,12 @@ def run_one(scene: str, setting: str, device: str, base: dict | None = None, on_
         "parts_needed": [] if rec.parts_choice is None else rec.parts_choice.needed,
         "finest_iterations": rec.config.stages[-1].iterations, "image_relative_error": fit["image_relative_error"],
         "source_lateral_rms_um": src["lateral_rms_um"], "source_depth_rms_um": src["depth_rms_um"], "wall_s": wall,
-        "iterations": cfg.total_iterations, "threads": torch.get_num_threads(),
-        "cpu": platform.processor() or platform.machine(), "torch": torch.__version__,
-        "date": time.strftime("%Y-%m-%d"), "commit": commit,
-    }
-
-
-def code_version() -> str:
-    """The commit the row was made with (``git describe --always --dirty``), so that rows of older code can be told apart."""
-    try:
-        return subprocess.run(["git", "describe", "--always", "--dirty"], cwd=ROOT, capture_output=True, text=True,
-                              check=True).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
+        "iterations": cfg.total_iterations, "date": time.strftime("%Y-%m-%d"), "commit": commit,
+    }  # with the machine's fields (benchmarks._results.append_row)
 
 
 def results_path(device: str) -> Path:
-    return RESULTS / f"regularisation_{device}.jsonl"
+    return results_file("regularisation", device)
 
 
 def _effective_overrides(overrides: dict) -> dict:
@@ -281,13 +267,11 @@ def main(argv: list[str] | None = None) -> None:
     elif args.cmd == "run":
         make_scenes(args.scenes.split(","), args.device)
         out = results_path(args.device)
-        out.parent.mkdir(parents=True, exist_ok=True)
         base = json.loads(args.set)
         for scene in args.scenes.split(","):
             for setting in args.settings.split(","):
                 row = run_one(scene, setting, args.device, base)
-                with out.open("a") as f:
-                    f.write(json.dumps(row) + "\n")
+                append_row(out, row, args.device)
                 st = " ".join(f"x{s['factor']}:{s['relative_delta_n_error']:.3f}/{(s['validation_error'] or 0):.4f}" for s in row["stages"])
                 print(f"{scene:10s} {setting:5s} err {row['relative_delta_n_error']:.3f} val {row['validation_error'] or float('nan'):.4f} "
                       f"src {row['source_lateral_rms_um']:.3f} µm {row['wall_s']:.0f} s  [{st}] {row['tv'] or ''}", flush=True)

@@ -29,6 +29,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from benchmarks._results import append_row, results_file
+
 
 def errors(sources_um: np.ndarray, truth_um: np.ndarray) -> dict[str, float]:
     """Lateral RMS, its mean shift, depth RMS about the mean depth error, and the mean depth error (µm)."""
@@ -140,13 +142,12 @@ def main(argv: list[str] | None = None) -> None:
     r.add_argument("--scene", required=True, help="a scene of benchmarks/regularisation.py (sample, letters128, beads, cells, deep)")
     r.add_argument("--setting", default="auto", help='TV setting as in regularisation.py: "auto" or a weight τ_xy')
     r.add_argument("--set", default="{}", help="JSON object of other settings")
-    r.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "source_positions_runs_cpu.jsonl")
+    r.add_argument("--out", type=Path, default=results_file("source_positions_runs", "cpu"))
     args = p.parse_args(argv)
     overrides = json.loads(args.set)
     if args.cmd == "run":
         row = traced_run(args.scene, args.setting, overrides, verbose=True)
-        with args.out.open("a") as fh:
-            fh.write(json.dumps(row) + "\n")
+        append_row(args.out, row)
         print(f"{args.scene} {args.setting} {overrides}: Δn error {row['relative_delta_n_error']:.3f}, sources lateral "
               f"{row['source_lateral_rms_um']:.3f} µm, depth {row['source_depth_rms_um']:.3f} µm, {row['wall_s']:.0f} s", flush=True)
         return
@@ -154,9 +155,8 @@ def main(argv: list[str] | None = None) -> None:
                             args.volume, args.every, overrides=overrides, verbose=True,
                             freeze_depth=args.freeze_depth)
     if args.out:
-        with args.out.open("a") as fh:
-            fh.write(json.dumps({"scene": str(args.scene), "factor": args.factor, "model": args.model, "start": args.start,
-                                 "volume": args.volume, "batch_size": args.batch_size, "set": overrides, "rows": rows}) + "\n")
+        append_row(args.out, {"scene": str(args.scene), "factor": args.factor, "model": args.model, "start": args.start,
+                              "volume": args.volume, "batch_size": args.batch_size, "set": overrides, "rows": rows})
 
 
 if __name__ == "__main__":

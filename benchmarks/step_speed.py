@@ -19,15 +19,13 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
-import platform
 import statistics
-import sys
 import time
 from pathlib import Path
 
 import torch
 
+from benchmarks._results import results_file, write_document  # noqa: E402
 from benchmarks.naive_step import naive_step  # noqa: E402
 from napari_fdt import MultiSliceModel, Optics, plan_for_sources, resolve_device, source_grid  # noqa: E402
 from napari_fdt.model.slice_loop import slice_loop  # noqa: E402
@@ -185,9 +183,7 @@ def main() -> None:
     args = p.parse_args()
     device = resolve_device(args.device)
     modes = ("stored", "reversible", "checkpoint")
-    res = {"hardware": {"device": str(device), "name": torch.cuda.get_device_name(device) if device.type == "cuda" else platform.processor(),
-                        "cpu_count": os.cpu_count(), "torch": torch.__version__, "threads": torch.get_num_threads()},
-           "command": "python " + " ".join(sys.argv), "sizes": [], "model": []}
+    res = {"sizes": [], "model": []}
     if args.quick:
         sizes, mem_sizes, model_sizes = [(128, 14, 8)], [(128, 48, 8)], [(128, 14, 8)]
     else:
@@ -200,10 +196,8 @@ def main() -> None:
                                        graphs=False, naive=True))
     for side, n, b in model_sizes:
         res["model"].append(bench_model(side, n, b, device, args.repeats, modes))
-    out = args.out or Path(__file__).parent / "results" / f"step_speed_{device.type}.json"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(res, indent=1))
-    print(f"\n{res['hardware']['name']} ({device}), torch {torch.__version__}")
+    out = write_document(args.out or results_file("step_speed", device, table=False), res, device)
+    print(f"\n{json.loads(out.read_text())['hardware']['name']} ({device}), torch {torch.__version__}")
     print("| grid | window | slices | batch | variant | ms / step | vs naive | peak GiB |")
     print("|---|---|---|---|---|---|---|---|")
     for r in res["sizes"] + res["model"]:

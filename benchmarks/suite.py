@@ -22,16 +22,13 @@ between iterations while the solver's generator is paused). Writes ``benchmarks/
 from __future__ import annotations
 
 import argparse
-import json
-import os
-import platform
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from benchmarks._results import results_file, write_document
 from napari_fdt import Optics, read_acquisition, read_volume_tiff, resolve_device, source_grid
 from napari_fdt.recon.config import SolverConfig, StageConfig
 from napari_fdt.recon.metrics import paper_normalised_metrics, relative_delta_n_error
@@ -137,12 +134,8 @@ def main() -> None:
     p.add_argument("--out", type=Path, default=None)
     args = p.parse_args()
     device = resolve_device(args.device)
-    hw = {"device": str(device), "name": torch.cuda.get_device_name(device) if device.type == "cuda" else platform.processor(),
-          "cpu_count": os.cpu_count(), "torch_threads": torch.get_num_threads(), "torch": torch.__version__,
-          "python": platform.python_version()}
-    out = {"hardware": hw, "command": "python " + " ".join(sys.argv), "scenes": []}
-    path = args.out or ROOT / "benchmarks" / "results" / f"suite_{device.type}.json"
-    path.parent.mkdir(parents=True, exist_ok=True)
+    out = {"scenes": []}
+    path = args.out or results_file("suite", device, table=False)
     demo_cfg = None
     if args.demo_config is not None:
         from napari_fdt.recon.config import load_config
@@ -164,7 +157,7 @@ def main() -> None:
         res = run_scene(name, acq, truth, cfg, device, args.eval_every)
         res.pop("_delta_n", None)
         out["scenes"].append(res)
-        path.write_text(json.dumps(out, indent=1, default=float))  # after every scene: a cut-off run keeps what it did
+        write_document(path, dict(out), device)  # after every scene: a cut-off run keeps what it did
         f = res["final"]
         print(f"{name}: {res['wall_s']:.1f} s, rel err {f['relative_delta_n_error']:.3f}, PSNR {f['paper_psnr']:.2f}, "
               f"SSIM {f['paper_ssim']:.3f}, peak {res['peak_memory_gib']} GiB; s/it per stage "

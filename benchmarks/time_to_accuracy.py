@@ -20,11 +20,11 @@ import time
 PROCESS_START = time.perf_counter()
 
 import argparse  # noqa: E402
-import json  # noqa: E402
-import platform  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import torch  # noqa: E402
+
+from benchmarks._results import append_row, results_file  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -87,11 +87,8 @@ def main() -> None:
     row = {"scene": args.scene, "device": str(device), "gpu": torch.cuda.get_device_name(device) if device.type == "cuda" else None,
            "torch": torch.__version__, "coarse_model": cfg.coarse_model, "iterations": list(its), "eval_every": args.eval_every,
            "targets": {"psnr": args.psnr, "ssim": args.ssim}, "reached": reached,
-           "speed_up_vs_720s": AUTHORS_S / reached["solver_s"] if reached else None, "history": history,
-           "cpu": platform.processor() or platform.machine(), "date": time.strftime("%Y-%m-%d %H:%M")}
-    out = ROOT / "benchmarks" / "results" / f"time_to_accuracy_{device.type}.jsonl"
-    with out.open("a") as fh:
-        fh.write(json.dumps(row) + "\n")
+           "speed_up_vs_720s": AUTHORS_S / reached["solver_s"] if reached else None, "history": history}
+    append_row(results_file("time_to_accuracy", device), row, device)
     if reached:
         print(f"targets reached at {reached['solver_s']:.2f} s of solver time ({reached['process_s']:.1f} s since the process "
               f"started): {AUTHORS_S / reached['solver_s']:.0f}× sooner than 720 s")

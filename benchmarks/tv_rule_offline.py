@@ -22,7 +22,8 @@ import argparse
 
 import numpy as np
 
-from benchmarks.regularisation import RESULTS, SCENES, load_rows  # noqa: E402
+from benchmarks._results import RESULTS  # noqa: E402
+from benchmarks.regularisation import SCENES, load_rows  # noqa: E402
 from napari_fdt.recon.regularisation import pick  # noqa: E402
 
 RULES = {"argmin (0 SE)": 0.0, "1 SE (default)": 1.0, "2 SE": 2.0}

@@ -28,3 +28,27 @@ def test_no_import_path_edits() -> None:
     files = [*(ROOT / "benchmarks").glob("*.py"), *(ROOT / "tests").glob("*.py")]
     assert not [f.name for f in files if edit.search(f.read_text(encoding="utf-8"))]
 
+
+
+def test_results_are_written_in_one_format(tmp_path: Path) -> None:
+    """Every result goes through ``benchmarks._results``: a table row carries the machine's fields unless it sets them,
+    a document is ``{"hardware": ..., ...}`` written atomically; no benchmark opens a results file by itself."""
+    import json
+
+    from benchmarks._results import append_row, read_rows, results_file, write_document
+
+    table = tmp_path / "t.jsonl"
+    append_row(table, {"scene": "a", "date": "2026-01-01"})
+    append_row(table, {"scene": "b"})
+    rows = read_rows(table)
+    assert [r["scene"] for r in rows] == ["a", "b"]
+    assert rows[0]["date"] == "2026-01-01"  # the row's own value wins
+    assert {"device", "cpu", "threads", "torch", "commit", "command"} <= set(rows[1])
+    doc = write_document(tmp_path / "d.json", {"hardware": {"name": "mine"}, "rows": [1, 2]})
+    data = json.loads(doc.read_text())
+    assert data["rows"] == [1, 2] and data["hardware"]["name"] == "mine" and data["hardware"]["threads"] >= 1
+    assert not list(tmp_path.glob("*.tmp"))
+    assert results_file("suite", "cuda:0", table=False).name == "suite_cuda.json"
+    by_hand = re.compile(r'open\("a"\)|/ "results"')
+    writers = [p.name for p in (ROOT / "benchmarks").glob("*.py") if p.name != "_results.py" and by_hand.search(p.read_text())]
+    assert not writers, f"write results through benchmarks._results: {writers}"
