@@ -21,22 +21,16 @@ from __future__ import annotations
 
 import argparse
 import json
-import shlex
-import shutil
-import subprocess
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
 from benchmarks._results import append_row, read_rows, results_file
+from benchmarks.scenes import PARTS_SCENES, make_scenes
 
 ROOT = Path(__file__).resolve().parents[1]
-SCENE_DIR = ROOT / "out" / "parts"
 DOC = ROOT / "docs" / "decisions" / "model-parts.md"
-EFFECTS = "--pixel-integration true --pupil-edge 0 --aberrations spherical=0.5"
-BASE = {"letters": "letters --seed 0", "beads": "beads --shape 64 64 --n-slices 8 --sources 7 --depth-um 30 --seed 0"}
 SETTINGS = {
     "auto": {},
     # the rule before parts_rerun "stages": only the finest stage runs again with the kept parts (and the held-out test)
@@ -79,28 +73,8 @@ def overrides(setting: str) -> dict:
 
 
 def scene_names() -> list[str]:
-    return [f"{b}_{v}" for b in BASE for v in ("clean", "effects", "real")]
-
-
-def make_scenes(names: list[str], device: str) -> None:
-    """Simulate the named scenes where missing (``_real`` copies ``_effects`` without the optics statements)."""
-    for name in names:
-        base, version = name.rsplit("_", 1)
-        folder = SCENE_DIR / name
-        if (folder / "acquisition.json").is_file():
-            continue
-        if version == "real":
-            make_scenes([f"{base}_effects"], device)
-            shutil.copytree(SCENE_DIR / f"{base}_effects", folder)
-            meta = json.loads((folder / "acquisition.json").read_text())
-            for key in ("pixel_integration", "pupil_edge", "simulated"):
-                meta.pop(key, None)
-            (folder / "acquisition.json").write_text(json.dumps(meta, indent=1))
-            continue
-        args = BASE[base] + (" " + EFFECTS if version == "effects" else "")
-        cmd = [sys.executable, "-m", "napari_fdt", "simulate", *shlex.split(args), str(folder), "--device", device]
-        print(" ".join(cmd[2:]), flush=True)
-        subprocess.run(cmd, check=True)
+    """The model-parts scenes of the registry (:data:`benchmarks.scenes.PARTS_SCENES`)."""
+    return list(PARTS_SCENES)
 
 
 def run_one(scene: str, setting: str, device: str) -> dict:
@@ -111,7 +85,7 @@ def run_one(scene: str, setting: str, device: str) -> dict:
     from napari_fdt.recon.report import model_parts_summary, source_errors
     from napari_fdt.recon.solver import Reconstructor
 
-    folder = SCENE_DIR / scene
+    folder = PARTS_SCENES[scene][0]
     acq = read_acquisition(folder)
     truth, _ = read_volume_tiff(folder / "ground_truth_ri.tif")
     true_dn = truth - acq.optics.n_background

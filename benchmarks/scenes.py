@@ -1,12 +1,17 @@
-"""The named scenes of the benchmarks, in one registry: where each lives and the `fdt simulate` line that makes it.
+"""The named scenes of the benchmarks and the tests, in one registry: where each lives and how it is made.
 
     python -m benchmarks run scenes list                       # every scene, its folder and whether it exists
-    python -m benchmarks run scenes make NAME [NAME ...]       # simulate the missing ones (seed 0) into out/scenes/
+    python -m benchmarks run scenes make NAME [NAME ...]       # simulate the missing ones (seed 0) into out/
 
 :data:`SUITE` is the regularisation suite (docs/ablation.md); the others were made for one investigation each and are
 named in its record: *cells_pupil* (issue 24: a hard pupil and pixel integration the files do not state),
-*beads_high* and *cells_high* (issue 27: the suite's beads and cells made with 4 sub-slices per slice). The model-parts
-scenes (`benchmarks/model_parts.py`, out/parts/) are built in Python with their aberrations and stay there.
+*beads_high* and *cells_high* (issue 27: the suite's beads and cells made with 4 sub-slices per slice), and the
+model-parts scenes :data:`PARTS_SCENES` (issue 13, docs/decisions/model-parts.md; out/parts/): the sample's geometry
+(``letters``) and 64² beads, each ``_clean``, with real-optics ``_effects`` (pixel integration, a hard pupil and
+0.5 rad of spherical aberration; the first two stated in acquisition.json) and ``_real`` (the ``_effects`` images
+with those statements removed, as a microscope's files would be).
+
+:func:`tiny_scene` is the tests' scene (32×32 px, 4 slices, seconds to reconstruct), made in memory.
 """
 
 from __future__ import annotations
@@ -14,6 +19,7 @@ from __future__ import annotations
 import argparse
 import json
 import shlex
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -44,9 +50,24 @@ SCENES: dict[str, tuple[Path, str | None]] = {
     "cells_high": (SCENE_DIR / "cells_high", "cells --shape 64 64 --n-slices 8 --sources 7 --depth-um 30 --forward-accuracy high"),
 }
 
+#: the model-parts scenes (benchmarks/model_parts.py): the sample's geometry and 64² beads, clean and with the
+#: real-optics effects; ``_real`` is made from ``_effects`` (:data:`COPIES`)
+PARTS_DIR = ROOT / "out" / "parts"
+EFFECTS = "--pixel-integration true --pupil-edge 0 --aberrations spherical=0.5"
+_PARTS_BASE = {"letters": "letters --seed 0", "beads": "beads --shape 64 64 --n-slices 8 --sources 7 --depth-um 30 --seed 0"}
+PARTS_SCENES: dict[str, tuple[Path, str | None]] = {
+    f"{base}_{version}": (PARTS_DIR / f"{base}_{version}", args + ("" if version == "clean" else " " + EFFECTS))
+    for base, args in _PARTS_BASE.items() for version in ("clean", "effects", "real")
+}
+SCENES.update(PARTS_SCENES)
+
+#: scenes made by copying another scene's folder (the same images) before the keys of :data:`UNSTATED` are removed
+COPIES: dict[str, str] = {f"{base}_real": f"{base}_effects" for base in _PARTS_BASE}
+
 #: keys removed from acquisition.json after simulating, so that the solver does not know them (a real microscope's
 #: files would not state them)
-UNSTATED: dict[str, tuple[str, ...]] = {"cells_pupil": ("pupil_edge",)}
+UNSTATED: dict[str, tuple[str, ...]] = {"cells_pupil": ("pupil_edge",),
+                                        **{name: ("pixel_integration", "pupil_edge", "simulated") for name in COPIES}}
 
 
 def folder_of(name: str) -> Path:
@@ -60,14 +81,36 @@ def make_scenes(names: list[str], device: str = "cpu") -> None:
         folder, args = SCENES[name]
         if args is None or (folder / "acquisition.json").is_file():
             continue
-        cmd = [sys.executable, "-m", "napari_fdt", "simulate", *shlex.split(args), str(folder), "--device", device]
-        print(" ".join(cmd[2:]), flush=True)
-        subprocess.run(cmd, check=True)
+        if name in COPIES:
+            make_scenes([COPIES[name]], device)
+            shutil.copytree(SCENES[COPIES[name]][0], folder)
+        else:
+            cmd = [sys.executable, "-m", "napari_fdt", "simulate", *shlex.split(args), str(folder), "--device", device]
+            print(" ".join(cmd[2:]), flush=True)
+            subprocess.run(cmd, check=True)
         drop = UNSTATED.get(name, ())
         if drop:
             meta_path = folder / "acquisition.json"
             meta = json.loads(meta_path.read_text())
             meta_path.write_text(json.dumps({k: v for k, v in meta.items() if k not in drop}, indent=1))
+
+
+def tiny_optics():
+    """The tests' optics: λ 0.635 µm, n_b 1.33, NA 0.8, 0.33 µm pixels, 4 slices of 2 µm, the camera at the top face."""
+    from napari_fdt import Optics
+
+    return Optics(wavelength_um=0.635, n_background=1.33, na=0.8, pixel_size_um=0.33, n_slices=4, slice_spacing_um=2.0)
+
+
+def tiny_scene(grid: int = 3, seed: int = 1, **simulate_options):
+    """The tests' scene, in memory: the letters "UC" (Δn 0.05) on 32×32 px and 4 slices (:func:`tiny_optics`),
+    ``grid``² sources 8 µm apart 15 µm below the volume; ``seed`` the noise's; more :func:`napari_fdt.simulate` options
+    (``noise``, ``photons``, ...) as keywords. Returns its :class:`~napari_fdt.sim.simulate.Simulation`."""
+    from napari_fdt import simulate, source_grid
+    from napari_fdt.sim.phantoms import text_phantom
+
+    return simulate(text_phantom((32, 32), 4, text="UC", delta_n=0.05), tiny_optics(), source_grid(grid, 8.0, 15.0),
+                    seed=seed, device="cpu", **simulate_options)
 
 
 def main() -> None:
@@ -81,7 +124,9 @@ def main() -> None:
     if args.cmd == "list":
         for name, (folder, recipe) in SCENES.items():
             state = "present" if (folder / "acquisition.json").is_file() else "missing"
-            print(f"{name:<12} {state:<8} {folder.relative_to(ROOT)}  {recipe or '(bundled)'}")
+            if name in COPIES:
+                recipe = f"a copy of {COPIES[name]} without {', '.join(UNSTATED[name])} in acquisition.json"
+            print(f"{name:<15} {state:<8} {folder.relative_to(ROOT)}  {recipe or '(bundled)'}")
         return
     make_scenes(args.names, args.device)
 

@@ -7,13 +7,10 @@ import pytest
 
 @pytest.fixture(scope="module")
 def scene16():
-    """A 32×32, 4-slice letters scene with 16 noisy images: 3 can be held out (tests of the TV choice and its pilot)."""
-    from napari_fdt import Optics, simulate, source_grid
-    from napari_fdt.sim.phantoms import text_phantom
+    """The registry's tiny scene with 16 noisy images: 3 can be held out (tests of the TV choice and its pilot)."""
+    from benchmarks.scenes import tiny_scene
 
-    o = Optics(wavelength_um=0.635, n_background=1.33, na=0.8, pixel_size_um=0.33, n_slices=4,
-               slice_spacing_um=2.0, image_plane_um=0.0)
-    return simulate(text_phantom((32, 32), 4, text="UC", delta_n=0.05), o, source_grid(4, 8.0, 15.0), seed=2, device="cpu")
+    return tiny_scene(grid=4, seed=2)
 
 
 # -- the napari plugin tests' scene and napari's notifications (tests/test_napari_plugin*.py) --
@@ -21,12 +18,10 @@ def scene16():
 
 @pytest.fixture(scope="module")
 def tiny_sim():
-    """A 32×32, 4-slice letters scene with 9 sources (the napari plugin tests)."""
-    from napari_fdt import Optics, simulate, source_grid
-    from napari_fdt.sim.phantoms import text_phantom
+    """The registry's tiny scene (32×32 px, 4 slices, 9 sources; ``benchmarks.scenes.tiny_scene``): the plugin tests'."""
+    from benchmarks.scenes import tiny_scene
 
-    o = Optics(wavelength_um=0.635, n_background=1.33, na=0.8, pixel_size_um=0.33, n_slices=4, slice_spacing_um=2.0)
-    return simulate(text_phantom((32, 32), 4, text="UC", delta_n=0.05), o, source_grid(3, 8.0, 15.0), seed=1, device="cpu")
+    return tiny_scene(grid=3, seed=1)
 
 
 @pytest.fixture()

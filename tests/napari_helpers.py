@@ -65,4 +65,7 @@ def _wait_tasks(qtbot, widget, timeout_ms=60_000):
 
 
 def tiny_sim_optics() -> Optics:
-    return Optics(wavelength_um=0.635, n_background=1.33, na=0.8, pixel_size_um=0.33, n_slices=4, slice_spacing_um=2.0)
+    """The registry's tiny scene's optics (``benchmarks.scenes.tiny_optics``)."""
+    from benchmarks.scenes import tiny_optics
+
+    return tiny_optics()

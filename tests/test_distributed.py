@@ -25,14 +25,13 @@ import pytest
 import torch
 
 import napari_fdt
-from napari_fdt import Optics, simulate, source_grid
+from benchmarks.scenes import tiny_scene
 from napari_fdt.cli import main
 from napari_fdt.data.io import read_volume_tiff, write_acquisition
 from napari_fdt.errors import FDTInputError
 from napari_fdt.recon import distributed
 from napari_fdt.recon.config import SolverConfig, StageConfig
 from napari_fdt.recon.losses import BatchShare, LossWeights, total_loss
-from napari_fdt.sim.phantoms import text_phantom
 
 TESTS = Path(__file__).resolve().parent
 DN_TOL = 4e-6  # absolute, on Δn
@@ -272,9 +271,7 @@ def _torchrun(root: Path, audit: Path, out: Path, *extra: str, fail: str = "") -
 def runs(tmp_path_factory):
     """One scene (32×32 px, 4 slices, 9 images), reconstructed by one process and by two gloo ranks."""
     root = tmp_path_factory.mktemp("dist")
-    o = Optics(wavelength_um=0.635, n_background=N_BG, na=0.8, pixel_size_um=0.33, n_slices=4,
-               slice_spacing_um=2.0, image_plane_um=0.0)
-    sim = simulate(text_phantom((32, 32), 4, text="UC", delta_n=0.05), o, source_grid(3, 8.0, 15.0), seed=1, device="cpu")
+    sim = tiny_scene(grid=3, seed=1)  # n_background N_BG
     write_acquisition(sim.acquisition, root / "acq")
     _config().save(root / "cfg.json")
     assert main(["reconstruct", str(root / "acq"), "--config", str(root / "cfg.json"), "--device", "cpu",

@@ -17,7 +17,8 @@ import numpy as np
 import pytest
 import tifffile
 
-from napari_fdt import Optics, simulate, source_grid, write_acquisition
+from benchmarks.scenes import tiny_scene
+from napari_fdt import Optics, write_acquisition
 from napari_fdt.data.io import read_volume_tiff
 from napari_fdt.errors import FDTInputError
 from napari_fdt.napari.compute import forward_preview, illumination_coverage, mask_stack, predicted_vs_measured
@@ -37,7 +38,6 @@ from napari_fdt.napari.settings import format_stages, merge_config, parse_stages
 from napari_fdt.napari.writer import write_ri
 from napari_fdt.recon.config import SolverConfig, StageConfig
 from napari_fdt.recon.solver import Reconstructor
-from napari_fdt.sim.phantoms import text_phantom
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -45,8 +45,7 @@ ROOT = Path(__file__).resolve().parents[1]
 @pytest.fixture(scope="module")
 def tiny():
     """32×32 px, 4 slices, 9 sources: the plugin tests' scene."""
-    o = Optics(wavelength_um=0.635, n_background=1.33, na=0.8, pixel_size_um=0.33, n_slices=4, slice_spacing_um=2.0)
-    return simulate(text_phantom((32, 32), 4, text="UC", delta_n=0.05), o, source_grid(3, 8.0, 15.0), seed=1, device="cpu")
+    return tiny_scene(grid=3, seed=1)
 
 
 @pytest.fixture()

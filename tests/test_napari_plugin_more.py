@@ -11,6 +11,7 @@ import sys
 import numpy as np
 import pytest
 
+from benchmarks.scenes import tiny_scene
 from tests.napari_helpers import (
     META_ACQUISITION,
     META_KIND,
@@ -28,10 +29,6 @@ from tests.napari_helpers import (
     _wait_done,
     _wait_tasks,
     read_volume_tiff,
-    simulate,
-    source_grid,
-    text_phantom,
-    tiny_sim_optics,
     write_acquisition,
 )
 
@@ -296,8 +293,7 @@ def test_settings_widgets_are_generated_from_the_schema(make_napari_viewer) -> N
 
 def test_error_curve_updates_during_a_run(make_napari_viewer, qtbot, tmp_path) -> None:
     """With a validation share, the widget's curve gets training and validation points while the worker runs."""
-    sim = simulate(text_phantom((32, 32), 4, text="UC", delta_n=0.05), tiny_sim_optics(), source_grid(4, 8.0, 15.0), seed=3,
-                   device="cpu")
+    sim = tiny_scene(grid=4, seed=3)
     folder = write_acquisition(sim.acquisition, tmp_path / "sixteen")
     viewer = make_napari_viewer()
     _open(viewer, folder)

@@ -10,20 +10,18 @@ import threading
 import numpy as np
 import pytest
 
-from napari_fdt import Optics, simulate, source_grid
+from benchmarks.scenes import tiny_scene
 from napari_fdt.errors import FDTInputError
 from napari_fdt.napari.compute_process import ComputeError, portable_exception
 from napari_fdt.napari.job import reconstruction_job
 from napari_fdt.napari.remote_job import ComputeProcessDied, RunResult, describe_exit, remote_reconstruction
 from napari_fdt.napari.result_view import content_slice, results_line, ri_contrast_limits
 from napari_fdt.recon.config import SolverConfig, StageConfig
-from napari_fdt.sim.phantoms import text_phantom
 
 
 @pytest.fixture(scope="module")
 def tiny():
-    o = Optics(wavelength_um=0.635, n_background=1.33, na=0.8, pixel_size_um=0.33, n_slices=4, slice_spacing_um=2.0)
-    return simulate(text_phantom((32, 32), 4, text="UC", delta_n=0.05), o, source_grid(3, 8.0, 15.0), seed=1, device="cpu")
+    return tiny_scene(grid=3, seed=1)
 
 
 def _drain(gen):
