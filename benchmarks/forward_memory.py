@@ -13,6 +13,7 @@ CPU the growth of the process's peak resident set (``VmHWM``) in a fresh subproc
 
 from __future__ import annotations
 
+import argparse
 import json
 import subprocess
 import sys
@@ -70,8 +71,12 @@ def fit(rows: list[tuple[int, int, int, int]]) -> tuple[float, float]:
 
 
 def main() -> int:
-    if len(sys.argv) == 5 and sys.argv[1] == "--one":
-        print(json.dumps(measure(int(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4]), "cpu")))
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--one", nargs=3, type=int, metavar=("SIDE", "SLICES", "BATCH"),
+                    help="measure one window (CPU) in this process and print its peak bytes (the sweep runs each so)")
+    args = ap.parse_args()
+    if args.one:
+        print(json.dumps(measure(*args.one, "cpu")))
         return 0
     import torch
 

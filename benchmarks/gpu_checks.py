@@ -19,6 +19,7 @@ Prints one line per check with the measured relative error and exits non-zero if
 
 from __future__ import annotations
 
+import argparse
 import math
 import sys
 
@@ -236,6 +237,7 @@ def check_fused_loop(dev) -> None:
 
 
 def main() -> None:
+    argparse.ArgumentParser(description=__doc__.splitlines()[0]).parse_args()
     if not torch.cuda.is_available():
         print("no CUDA device: nothing to check")
         return

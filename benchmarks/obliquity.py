@@ -20,6 +20,7 @@ aside), an exact reference for any source.
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import math
 import sys
@@ -205,6 +206,7 @@ def measure_image(na: float, n_slices: int, dn: float, refit: bool = True) -> di
 
 
 def main() -> int:
+    argparse.ArgumentParser(description=__doc__.splitlines()[0]).parse_args()
     torch.set_num_threads(2)
     t0 = time.perf_counter()
     dn = 0.02
