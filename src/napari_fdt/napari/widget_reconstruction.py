@@ -1,7 +1,8 @@
 """The FDT reconstruction widget: solver settings, a background run streaming the RI volume, and results.
 
-The run is :func:`napari_fdt.napari.job.reconstruction_job` (the solver loop of ``fdt reconstruct``) in a napari
-``thread_worker``. The GUI thread only receives updates: the RI layer (absolute RI, physical scale) is
+The run is :func:`napari_fdt.napari.job.reconstruction_job` (the solver loop of ``fdt reconstruct``), in a process of
+its own relayed by a napari worker thread (:meth:`~napari_fdt.napari.widget_tasks.BackgroundTasks.stream`, the widgets'
+one way to run background work). The GUI thread only receives updates: the RI layer (absolute RI, physical scale) is
 updated in place at every stage end and at most every ``UPDATE_INTERVAL_S`` in between; the progress
 bar, time left and loss terms at every snapshot; the sources points layer with the calibrated positions.
 *Cancel* takes effect at the next iteration and leaves the last complete stage. Errors appear in the
@@ -40,7 +41,7 @@ from napari_fdt.napari.widget_curve import ErrorCurveWidget
 from napari_fdt.napari.widget_layers import acquisition_layer_choices, acquisition_of, follow_layers, refresh_layer_choice, set_sources, sources_for
 from napari_fdt.napari.widget_layout import claim_dock_height, follow_ndisplay, sections_panel, tighten
 from napari_fdt.napari.widget_results import ResultActions, with_tiff_suffix
-from napari_fdt.napari.widget_tasks import BackgroundTasks, CloseWatcher, Feedback, track_thread
+from napari_fdt.napari.widget_tasks import BackgroundTasks, CloseWatcher, Feedback
 from napari_fdt.recon.config import SolverConfig, load_config, resolve_stage_lengths
 from napari_fdt.recon.phases import TV_CHOICE
 from napari_fdt.recon.report import describe_parts
@@ -333,8 +334,6 @@ class ReconstructionWidget(ResultActions, Container):
 
     def start(self) -> None:
         """Check everything, then start the reconstruction in a worker thread (a new RI layer for this run)."""
-        from superqt.utils import GeneratorWorker  # public superqt API: errors and warnings are shown below
-
         if self.running:
             return
         worker = None
@@ -361,17 +360,14 @@ class ReconstructionWidget(ResultActions, Container):
             self._ri_layer = None
             self._close_result()  # the previous run's computation process (its solver, its GPU memory)
             self._n_stages = len(run_config.stages)
-            worker = GeneratorWorker(  # the solver runs in a process of its own (napari_fdt.napari.remote_job: why)
+            worker = self.tasks.stream(  # the solver runs in a process of its own (napari_fdt.napari.remote_job: why)
                 remote_reconstruction, acq, config, device=device, initial_sources_um=sources, stop=stop,
                 done=done, closing=closing, min_interval_s=UPDATE_INTERVAL_S,
                 acquisition_path=layer.metadata.get(META_PATH), target=self.job_target,
                 checkpoint_dir=None if folder is None else str(folder), resume=resume,
+                on_yield=self._on_update, on_result=self._on_returned, on_error=self._on_error,
+                on_warning=self._on_warning, on_finished=self._on_finished,
             )
-            worker.yielded.connect(self._on_update)
-            worker.returned.connect(self._on_returned)
-            worker.errored.connect(self._on_error)
-            worker.warned.connect(self._on_warning)
-            worker.finished.connect(self._on_finished)
             self._worker = worker
             self._stop, self._done, self._closing = stop, done, closing
             #: where along the run's plan the last complete stage ended (the bar goes back there after a cancel)
@@ -391,7 +387,6 @@ class ReconstructionWidget(ResultActions, Container):
             self._watch_close()
             self._t0 = time.perf_counter()
         if worker is not None:  # started outside the guard's warning capture (see widget_tasks._THREADS)
-            track_thread(worker, self._done)
             worker.start()
 
     def cancel(self) -> None:

@@ -1,5 +1,6 @@
 """Background work and messages of the widgets (imports napari): the core's errors and warnings shown in the widget and as
-napari notifications (:class:`Feedback`), short computations in napari worker threads (:class:`BackgroundTasks`), the
+napari notifications (:class:`Feedback`), work in napari worker threads (:class:`BackgroundTasks`: short computations, and
+the reconstruction's run as a stream of updates), the
 threads the plugin runs (warnings go to the running one), and a watcher of the main window's closing
 (:class:`CloseWatcher`), and the hint when another reader opened an acquisition file.
 """
@@ -32,6 +33,16 @@ def track_thread(worker, done: threading.Event) -> None:
     key = id(worker)
     _THREADS[key] = lambda: not done.is_set() or bool(worker.is_running)
     worker.finished.connect(lambda: _THREADS.pop(key, None))  # emitted after run() left its warning capture
+
+
+def new_worker(function: Callable, *args, **kwargs):
+    """An unstarted napari worker for ``function(*args, **kwargs)`` (``napari.qt.threading.create_worker``: a
+    ``FunctionWorker`` for a function, a ``GeneratorWorker`` for a generator function): the one way the plugin's widgets
+    run work in the background (:meth:`BackgroundTasks.start`, :meth:`BackgroundTasks.stream`)."""
+    from napari.qt.threading import create_worker
+
+    # _ignore_errors: the widgets show a worker's errors themselves (napari would re-raise them in the event loop)
+    return create_worker(function, *args, _start_thread=False, _ignore_errors=True, **kwargs)
 
 
 def _threads_running() -> bool:
@@ -201,8 +212,6 @@ class BackgroundTasks:
 
         Returns None (and does nothing) while a task of the same name runs.
         """
-        from superqt.utils import FunctionWorker  # public superqt API: errors and warnings are shown here
-
         if self.is_running(name) or self._closing.is_set():
             return None
         done = threading.Event()
@@ -213,7 +222,7 @@ class BackgroundTasks:
             finally:
                 done.set()
 
-        worker = FunctionWorker(job)
+        worker = new_worker(job)
         task = _Task(name, worker, tuple(buttons), done)
         worker.returned.connect(lambda result: self._on_returned(task, on_result, result))
         worker.errored.connect(lambda exc: self._on_error(task, exc))
@@ -227,6 +236,26 @@ class BackgroundTasks:
         self._watch_close(task)
         track_thread(worker, done)
         worker.start()
+        return worker
+
+    def stream(self, function: Callable[..., Iterator], *args, done: threading.Event, on_yield: Callable[[Any], None],
+               on_result: Callable[[Any], None], on_error: Callable[[Exception], None],
+               on_warning: Callable[[tuple], None], on_finished: Callable[[], None], **kwargs):
+        """A long run: generator function ``function(*args, **kwargs)`` in a napari worker thread, wired and returned
+        unstarted (start it outside :meth:`Feedback.guard`'s warning capture: see ``_THREADS``).
+
+        Each value it yields goes to ``on_yield``, its return value to ``on_result``, its exception to ``on_error``,
+        warnings to ``on_warning``, then ``on_finished``, all on the GUI thread. ``done`` is passed on to the function, which
+        sets it when it ends; the thread counts as running until then (:func:`track_thread`). Stopping it and the viewer's closing are the caller's (the run
+        has its own stop event and asks before the viewer closes): :meth:`close` leaves it alone.
+        """
+        worker = new_worker(function, *args, done=done, **kwargs)
+        worker.yielded.connect(on_yield)
+        worker.returned.connect(on_result)
+        worker.errored.connect(on_error)
+        worker.warned.connect(on_warning)
+        worker.finished.connect(on_finished)
+        track_thread(worker, done)
         return worker
 
     # -- signals (GUI thread) ---------------------------------------------------------------------
