@@ -13,3 +13,15 @@ def test_no_import_cycles_in_the_package() -> None:
     cycles = [(a, b) for a in sorted(graph.modules) for b in graph.find_modules_directly_imported_by(a)
               if b.startswith("napari_fdt") and graph.chain_exists(importer=b, imported=a)]
     assert not cycles, cycles
+
+
+def test_no_source_file_over_600_lines() -> None:
+    """Small modules with one job each (issue 26's 'no source file is over 600 lines'): the package, the benchmarks,
+    the tests and the scripts."""
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    files = [p for d in ("src", "benchmarks", "tests", "scripts", "docs") for p in (root / d).rglob("*.py")]
+    assert len(files) > 100
+    long = {str(p.relative_to(root)): n for p in files if (n := len(p.read_text(encoding="utf-8").splitlines())) > 600}
+    assert not long, long
