@@ -188,7 +188,7 @@ def source_spectrum(optics: dict, Hp: int, Wp: int, source_um) -> np.ndarray:
     return np.where(keep, S, 0.0).astype(np.complex128)
 
 
-def forward_images(optics: dict, ri_volume, sources_um, gains) -> np.ndarray:
+def forward_images(optics: dict, ri_volume, sources_um, gains, window: dict | None = None) -> np.ndarray:
     """Camera images (N, H, W) float64 of the multi-slice model (physics.md §3-4).
 
     Parameters
@@ -202,6 +202,9 @@ def forward_images(optics: dict, ri_volume, sources_um, gains) -> np.ndarray:
         ``[x, y, depth]`` per image, µm.
     gains : array (N,)
         Gain g_i per image.
+    window : dict, optional
+        ``Hp``, ``Wp`` (even), ``offset_y``, ``offset_x`` of the periodic window (default: :func:`plan_window`'s), e.g.
+        a coarser grid's window in µm, to compare two samplings of one periodic problem.
     """
     ri = np.asarray(ri_volume, dtype=np.float64)
     src = np.asarray(sources_um, dtype=np.float64).reshape(-1, 3)
@@ -219,7 +222,7 @@ def forward_images(optics: dict, ri_volume, sources_um, gains) -> np.ndarray:
     z_img = float(optics.get("image_plane_um", 0.0) or 0.0)
     k_b = n_b / lam
 
-    win = plan_window(optics, (H, W), src)
+    win = plan_window(optics, (H, W), src) if window is None else window
     Hp, Wp, oy, ox = win["Hp"], win["Wp"], win["offset_y"], win["offset_x"]
 
     # Phase screens on the window (background outside the image).

@@ -54,8 +54,12 @@ def _wide_window(optics: dict, shape, src, grow: float) -> tuple[int, int, int, 
 
 def forward_images_optics(optics: dict, ri_volume, sources_um, gains, *, pupil_edge: float = 0.0,
                           aberrations: dict | None = None, pixel_integration: bool = False, grow: float = 5.0,
-                          order: int = 4) -> np.ndarray:
-    """Camera images (N, H, W) float64 with the pupil edge ε (0: hard), a Zernike phase and pixel averaging."""
+                          order: int = 4, camera_step: int = 1) -> np.ndarray:
+    """Camera images (N, H, W) float64 with the pupil edge ε (0: hard), a Zernike phase and pixel averaging.
+
+    ``camera_step`` > 1: the field's grid (``optics["pixel_size_um"]``, the RI given on it) is that many times finer
+    than the camera's; the camera's pixels are centred on every ``camera_step``-th grid point from the first and are
+    ``camera_step`` grid pixels wide; images (N, H // camera_step, W // camera_step)."""
     ri = np.asarray(ri_volume, dtype=np.float64)
     src = np.asarray(sources_um, dtype=np.float64).reshape(-1, 3)
     g = np.asarray(gains, dtype=np.float64).reshape(-1)
@@ -77,10 +81,11 @@ def forward_images_optics(optics: dict, ri_volume, sources_um, gains, *, pupil_e
     H_out = base.propagator(f2, k_b, dz / 2.0 - z_img) * P
     if pixel_integration:  # Gauss–Legendre nodes over the pixel [−dx/2, dx/2]², weights summing to 1
         t, wt = np.polynomial.legendre.leggauss(order)
-        shifts = [(a * dx / 2, b * dx / 2, wa * wb / 4) for a, wa in zip(t, wt) for b, wb in zip(t, wt)]
+        half = camera_step * dx / 2
+        shifts = [(a * half, b * half, wa * wb / 4) for a, wa in zip(t, wt) for b, wb in zip(t, wt)]
     else:
         shifts = [(0.0, 0.0, 1.0)]
-    out = np.zeros((src.shape[0], H, W))
+    out = np.zeros((src.shape[0], -(-H // camera_step), -(-W // camera_step)))
     for i in range(src.shape[0]):
         u = np.fft.ifft2(base.source_spectrum(optics, Hp, Wp, src[i]))
         for k in range(n_slices):
@@ -90,6 +95,6 @@ def forward_images_optics(optics: dict, ri_volume, sources_um, gains, *, pupil_e
         spec = np.fft.fft2(u) * H_out
         for sy, sx, wgt in shifts:  # E(x + s): spectrum times exp(+i·2π·f·s)
             E = np.fft.ifft2(spec * np.exp(2j * np.pi * (fy * sy + fx * sx)))
-            out[i] += wgt * np.abs(E[oy:oy + H, ox:ox + W]) ** 2
+            out[i] += wgt * np.abs(E[oy:oy + H:camera_step, ox:ox + W:camera_step]) ** 2
         out[i] *= g[i]
     return out
