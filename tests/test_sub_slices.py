@@ -89,8 +89,9 @@ def test_sub_slices_must_be_a_whole_number(bad) -> None:
 
 
 def test_fdt_simulate_forward_accuracy_high_makes_the_sub_sliced_images(tmp_path) -> None:
-    """`fdt simulate --forward-accuracy high` renders with 4 screens per slice: its noise-free images are the
-    independent reference's with each slice cut in 4 (read with tifffile and json only), and it says so."""
+    """`fdt simulate --forward-accuracy high` renders with 4 screens per slice on a field grid twice as fine: its
+    noise-free images are the independent reference's with each slice cut in 4 and the RI interpolated onto the fine
+    grid (read with tifffile and json only), and it says so."""
     import json
     import subprocess
     import sys
@@ -103,13 +104,20 @@ def test_fdt_simulate_forward_accuracy_high_makes_the_sub_sliced_images(tmp_path
                    check=True, capture_output=True, timeout=300)
     meta = json.loads((out / "acquisition.json").read_text())
     truth = json.loads((out / "ground_truth_sources_um.json").read_text())
-    assert meta["simulated"]["sub_slices"] == 4
+    assert meta["simulated"]["sub_slices"] == 4 and meta["simulated"]["field_oversampling"] == 2
     ri = np.asarray(tifffile.imread(out / "ground_truth_ri.tif"), dtype=np.float64)
     images = np.asarray(tifffile.imread(out / meta["images"]), dtype=np.float64)
     optics = {k: meta[k] for k in ("wavelength_um", "n_background", "na", "pixel_size_um", "n_slices", "slice_spacing_um",
                                    "image_plane_um")}
-    fine = {**optics, "n_slices": 4 * optics["n_slices"], "slice_spacing_um": optics["slice_spacing_um"] / 4}
-    expected = ref.forward_images(fine, np.repeat(ri, 4, axis=0), truth["sources_um"], truth["gain"])
+    fine = {**optics, "n_slices": 4 * optics["n_slices"], "slice_spacing_um": optics["slice_spacing_um"] / 4,
+            "pixel_size_um": optics["pixel_size_um"] / 2}
+    dn = np.repeat(ri, 4, axis=0) - optics["n_background"]
+    for axis in (1, 2):  # the fine grid: the samples, and the mean of neighbours between (background beyond the image)
+        nxt = np.concatenate([np.delete(dn, 0, axis=axis), np.zeros_like(np.take(dn, [0], axis=axis))], axis=axis)
+        dn = np.stack([dn, (dn + nxt) / 2], axis=axis + 1).reshape(*[2 * n if a == axis else n for a, n in enumerate(dn.shape)])
+    win = ref.plan_window(optics, ri.shape[1:], np.asarray(truth["sources_um"]))  # the camera grid's window, in µm
+    win = {k: 2 * v for k, v in win.items()}
+    expected = ref.forward_images(fine, optics["n_background"] + dn, truth["sources_um"], truth["gain"], window=win)[:, ::2, ::2]
     thin = ref.forward_images(optics, ri, truth["sources_um"], truth["gain"])
     assert _rel(images, expected) < 1e-4 < _rel(images, thin)
 

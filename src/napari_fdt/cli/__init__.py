@@ -106,9 +106,13 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--sub-slices", type=int, default=None,
                    help="screens per slice: each slice crossed in this many symmetric steps, so that diffraction inside "
                         "thick slices is modelled (default 1; --forward-accuracy high: 4)")
+    m.add_argument("--field-oversampling", type=int, choices=(1, 2), default=None,
+                   help="2: the field on a grid twice as fine as the camera's, so that light scattered beyond the camera "
+                        "grid's Nyquist is propagated, not aliased (about 4x the cost; default 1; --forward-accuracy high: 2)")
     m.add_argument("--forward-accuracy", choices=("standard", "high"), default="standard",
-                   help="high: every accuracy part of the forward model on (4 sub-slices per slice), for data the "
-                        "thin-screen model cannot fit exactly (docs/physics.md, \"Sub-slices\")")
+                   help="high: every accuracy part of the forward model on (4 sub-slices per slice, a field grid twice as "
+                        "fine), for data the solver's model cannot fit exactly (docs/physics.md, \"Sub-slices\", "
+                        "\"A finer field grid\")")
     m.add_argument("--aberrations", default=None,
                    help="pupil phase, Zernike modes in radians (Noll RMS), e.g. spherical=0.5,defocus=-0.2; modes: defocus, "
                         "astigmatism_oblique, astigmatism_vertical, coma_vertical, coma_horizontal, spherical")
@@ -256,7 +260,9 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
                    bandwidth_um=args.bandwidth_um, n_wavelengths=args.n_wavelengths, batch_size=batch,
                    pixel_integration=args.pixel_integration, pupil_edge=args.pupil_edge,
                    aberrations=parse_aberrations(args.aberrations),
-                   sub_slices=args.sub_slices if args.sub_slices is not None else (4 if args.forward_accuracy == "high" else 1))
+                   sub_slices=args.sub_slices if args.sub_slices is not None else (4 if args.forward_accuracy == "high" else 1),
+                   field_oversampling=(args.field_oversampling if args.field_oversampling is not None
+                                       else (2 if args.forward_accuracy == "high" else 1)))
     seconds = time.perf_counter() - t0
     sim.acquisition.extra["simulated"].update(scene=args.scene, text=args.text if args.scene == "letters" else None)
     write_acquisition(sim.acquisition, out, overwrite=args.overwrite)

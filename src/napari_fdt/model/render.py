@@ -12,6 +12,7 @@ import torch
 
 from napari_fdt.model.coherence import spectral_images
 from napari_fdt.model.forward import MultiSliceModel
+from napari_fdt.model.oversampled import OversampledModel
 
 __all__ = ["iter_batches", "render_images"]
 
@@ -23,7 +24,7 @@ def iter_batches(n: int, batch_size: int) -> Iterator[slice]:
 
 
 def render_images(
-    model: MultiSliceModel,
+    model: MultiSliceModel | OversampledModel,
     delta_n: np.ndarray | torch.Tensor,
     sources_um: np.ndarray,
     gain: np.ndarray | None = None,

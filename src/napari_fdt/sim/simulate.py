@@ -21,6 +21,7 @@ from napari_fdt.data.acquisition import Acquisition
 from napari_fdt.errors import FDTInputError
 from napari_fdt.model.coherence import coherence_length_um, emission_spectrum
 from napari_fdt.model.forward import MultiSliceModel
+from napari_fdt.model.oversampled import OversampledModel
 from napari_fdt.model.render import render_images
 from napari_fdt.physics.aberrations import ZERNIKE_MODES
 from napari_fdt.physics.camera import resolve_pixel_integration
@@ -154,6 +155,7 @@ def simulate(
     pupil_edge: float | None = None,
     aberrations: dict[str, float] | None = None,
     sub_slices: int = 1,
+    field_oversampling: int = 1,
 ) -> Simulation:
     """Simulate an acquisition of ``delta_n`` (n_slices, H, W) lit by ``sources_um`` (N, 3).
 
@@ -169,6 +171,9 @@ def simulate(
     ``sub_slices``: screens per slice (:class:`~napari_fdt.model.forward.MultiSliceModel`): 4 makes images of a
     continuous slab to about 0.25 % where one thin screen per 2 µm slice is 5 % off (docs/physics.md, "Sub-slices");
     recorded in the ground truth's settings only (it is how the data were made, not a property of the microscope).
+    ``field_oversampling`` 2: the field on a grid twice as fine as the camera's
+    (:class:`~napari_fdt.model.oversampled.OversampledModel`; the camera grid is percents off where the sample scatters
+    beyond its Nyquist, docs/physics.md, "A finer field grid"); recorded in the ground truth's settings only.
     """
     wavelengths, weights = emission_spectrum(optics.wavelength_um, bandwidth_um, n_wavelengths)
     delta_n = np.asarray(delta_n, dtype=np.float32)
@@ -178,8 +183,12 @@ def simulate(
     shape = delta_n.shape[1:]
     plan = plan_for_sources(optics, shape, src)
     integrate = resolve_pixel_integration(pixel_integration, optics.na, optics.wavelength_um, optics.pixel_size_um)
-    model = MultiSliceModel(optics, plan, device=device, pupil_edge=pupil_edge, aberrations=aberrations,
-                            pixel_integration=integrate, sub_slices=sub_slices)
+    if field_oversampling not in (1, 2):
+        raise FDTInputError("field_oversampling", f"must be 1 or 2, got {field_oversampling!r}",
+                            "1 (the field on the camera grid) or 2 (a grid twice as fine)")
+    model_class = OversampledModel if field_oversampling == 2 else MultiSliceModel
+    model = model_class(optics, plan, device=device, pupil_edge=pupil_edge, aberrations=aberrations,
+                        pixel_integration=integrate, sub_slices=sub_slices)
     spectrum = {} if len(wavelengths) == 1 else dict(wavelengths_um=wavelengths, weights=weights)
     clean = render_images(model, delta_n, src, batch_size=batch_size, **spectrum)
     rng = np.random.default_rng(seed)
@@ -200,7 +209,8 @@ def simulate(
                     emission_weights=[float(v) for v in weights],
                     coherence_length_um=_json_length(coherence_length_um(optics.wavelength_um, bandwidth_um, optics.n_background)),
                     pixel_integration=integrate, pupil_edge=model.pupil_edge,
-                    aberrations={k: v for k, v in zip(ZERNIKE_MODES, model.zernike) if v}, sub_slices=model.sub_slices)
+                    aberrations={k: v for k, v in zip(ZERNIKE_MODES, model.zernike) if v}, sub_slices=model.sub_slices,
+                    field_oversampling=int(field_oversampling))
     extra = {"simulated": settings, "pixel_integration": integrate, "pupil_edge": model.pupil_edge}
     acq = Acquisition(images=images, optics=optics, sources_um=estimate, extra=extra)
     ri = (optics.n_background + delta_n).astype(np.float32)
