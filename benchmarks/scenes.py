@@ -46,8 +46,8 @@ SCENES: dict[str, tuple[Path, str | None]] = {
     **SUITE,
     "cells_pupil": (SCENE_DIR / "cells_pupil", "cells --shape 96 96 --n-slices 6 --sources 11 --depth-um 25 --pupil-edge 0 "
                                                "--pixel-integration true"),
-    "beads_high": (SCENE_DIR / "beads_high", "beads --shape 64 64 --n-slices 8 --sources 7 --depth-um 30 --forward-accuracy high"),
-    "cells_high": (SCENE_DIR / "cells_high", "cells --shape 64 64 --n-slices 8 --sources 7 --depth-um 30 --forward-accuracy high"),
+    "beads_high": (SCENE_DIR / "beads_high", "beads --shape 64 64 --n-slices 8 --sources 7 --depth-um 30 --sub-slices 4"),
+    "cells_high": (SCENE_DIR / "cells_high", "cells --shape 64 64 --n-slices 8 --sources 7 --depth-um 30 --sub-slices 4"),
 }
 
 #: the model-parts scenes (benchmarks/model_parts.py): the sample's geometry and 64² beads, clean and with the
