@@ -5,7 +5,8 @@
 
 :data:`SUITE` is the regularisation suite (docs/ablation.md); the others were made for one investigation each and are
 named in its record: *cells_pupil* (issue 24: a hard pupil and pixel integration the files do not state),
-*beads_high* and *cells_high* (issue 27: the suite's beads and cells made with 4 sub-slices per slice), and the
+*beads_high* and *cells_high* (issue 27: the suite's beads and cells made with 4 sub-slices per slice), *beads_fine* and
+*cells_fine* (the same with the field on a 2× grid too: `--forward-accuracy high`), and the
 model-parts scenes :data:`PARTS_SCENES` (issue 13, docs/decisions/model-parts.md; out/parts/): the sample's geometry
 (``letters``) and 64² beads, each ``_clean``, with real-optics ``_effects`` (pixel integration, a hard pupil and
 0.5 rad of spherical aberration; the first two stated in acquisition.json) and ``_real`` (the ``_effects`` images
@@ -48,6 +49,9 @@ SCENES: dict[str, tuple[Path, str | None]] = {
                                                "--pixel-integration true"),
     "beads_high": (SCENE_DIR / "beads_high", "beads --shape 64 64 --n-slices 8 --sources 7 --depth-um 30 --sub-slices 4"),
     "cells_high": (SCENE_DIR / "cells_high", "cells --shape 64 64 --n-slices 8 --sources 7 --depth-um 30 --sub-slices 4"),
+    # the same with every accuracy part of the simulator: 4 sub-slices and the field on a 2x grid (issue 27)
+    "beads_fine": (SCENE_DIR / "beads_fine", "beads --shape 64 64 --n-slices 8 --sources 7 --depth-um 30 --forward-accuracy high"),
+    "cells_fine": (SCENE_DIR / "cells_fine", "cells --shape 64 64 --n-slices 8 --sources 7 --depth-um 30 --forward-accuracy high"),
 }
 
 #: the model-parts scenes (benchmarks/model_parts.py): the sample's geometry and 64² beads, clean and with the
