@@ -122,3 +122,32 @@ def test_gradients_reach_the_camera_grid_volume(pixel_integration: bool) -> None
     minus[i] -= h
     fd = (np.square(_images(model, plus, src)).sum() - np.square(_images(model, minus, src)).sum()) / (2 * h)
     assert abs(fd - float(x.grad[i])) < 1e-5 * max(1.0, abs(fd))
+
+
+def test_the_solver_runs_its_finest_stage_on_the_fine_grid(scene16) -> None:
+    """`field_oversampling = 2` reaches the finest stage (not the coarse ones) and the evaluation, the plan and the
+    memory estimate price the fine grid, the parts' test (which fits a pupil on exit spectra) runs through it, and a
+    short run stays finite."""
+    from napari_fdt.recon.config import SolverConfig, StageConfig
+    from napari_fdt.recon.preflight import finest_stage_bytes
+    from napari_fdt.recon.solver import Reconstructor
+
+    base = dict(stages=[StageConfig(2, 3), StageConfig(1, 4)], batch_size=4, final_stage_min_passes=0,
+                tv_xy_weight=0.0, tv_z_weight=0.0, calibrate_pupil="auto")
+    import dataclasses
+
+    acq = scene16.acquisition  # without its stated pupil, so that the parts' test fits one
+    acq = dataclasses.replace(acq, extra={k: v for k, v in acq.extra.items() if k != "pupil_edge"})
+    one = Reconstructor(acq, SolverConfig(**base), device="cpu")
+    two = Reconstructor(acq, SolverConfig(**base, field_oversampling=2), device="cpu")
+    assert isinstance(two._build_stage(1).model, OversampledModel) and isinstance(two.evaluation_stage().model, OversampledModel)
+    assert not isinstance(two._build_stage(0).model, OversampledModel)
+    assert two.plan.phases[-1].seconds_per_iteration > 3 * one.plan.phases[-1].seconds_per_iteration
+    src = scene16.acquisition.sources_um
+    need_1 = finest_stage_bytes(acq, one.config, src, 1, "cpu")[0]
+    need_2 = finest_stage_bytes(acq, two.config, src, 1, "cpu")[0]
+    assert need_2 > 3 * need_1
+    list(two.run())
+    assert np.isfinite(two.delta_n_full()).all() and two.completed_stages == 2
+    assert two.parts_choice is not None
+    assert any(t.get("part") == "pupil" for t in two.parts_choice.trials), two.parts_choice.trials

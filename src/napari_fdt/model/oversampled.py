@@ -13,9 +13,9 @@ finer over the same window in µm and returns images on the camera grid:
   over each camera pixel is exact from the fine field (:func:`napari_fdt.physics.camera.pixel_average_from_fine`:
   the fine grid holds the intensity's whole band ``2·NA/λ`` whenever the camera grid holds the field's).
 
-It costs about 4× a camera-grid model per slice (4× the pixels) and the fine volume's memory. It is a model for
-simulating data (``fdt simulate --field-oversampling 2``, part of ``--forward-accuracy high``) and for measuring the
-camera grid's error; the solver keeps the camera-grid model.
+It costs about 4× a camera-grid model per slice (4× the pixels) and the fine volume's memory. The simulator uses it
+with ``fdt simulate --field-oversampling 2`` (part of ``--forward-accuracy high``), the solver's finest stage with the
+setting ``field_oversampling = 2`` (advanced; default 1, the camera grid).
 """
 
 from __future__ import annotations
@@ -115,12 +115,29 @@ class OversampledModel:
             out["pixel_size_um"] = out["pixel_size_um"] / self.factor
         return out
 
+    def kernels(self, **optics_overrides):
+        """The fine-grid model's kernels (:meth:`MultiSliceModel.kernels`; a camera ``pixel_size_um`` is halved)."""
+        return self.inner.kernels(**self._overrides(optics_overrides))
+
+    def exit_spectra(self, delta_n: torch.Tensor, sources_um: torch.Tensor, k=None) -> tuple[torch.Tensor, torch.Tensor]:
+        """:meth:`MultiSliceModel.exit_spectra` on the fine grid (``delta_n`` on the camera grid or the fine window)."""
+        return self.inner.exit_spectra(self.pad_volume(delta_n), sources_um, k)
+
+    def intensity_from_exit(self, exit_spec: torch.Tensor, spec0: torch.Tensor, sources_um: torch.Tensor,
+                            **optics_overrides) -> torch.Tensor:
+        """:meth:`intensity` from :meth:`exit_spectra` (the pupil and camera applied here; see the camera-grid model's)."""
+        k = self.kernels(**optics_overrides)
+        return self._camera(self._field(*self.inner._pupil_spectra(exit_spec, spec0, k), sources_um, k))
+
     def fine_field(self, delta_n: torch.Tensor, sources_um: torch.Tensor, **optics_overrides) -> torch.Tensor:
         """The camera field on the whole fine window, (B, 2Hp, 2Wp) complex; exact (non-periodic) homogeneous part on
         the image and a margin where the model uses it (a pupil edge below the plan's taper)."""
+        k = self.kernels(**optics_overrides)
+        spec, free = self.inner._camera_spectra(self.pad_volume(delta_n), sources_um, k)
+        return self._field(spec, free, sources_um, k)
+
+    def _field(self, spec: torch.Tensor, free: torch.Tensor | None, sources_um: torch.Tensor, k) -> torch.Tensor:
         inner = self.inner
-        k = inner.kernels(**self._overrides(optics_overrides))
-        spec, free = inner._camera_spectra(self.pad_volume(delta_n), sources_um, k)
         field = torch.fft.ifft2(spec)
         if free is None:
             return field
@@ -136,7 +153,9 @@ class OversampledModel:
 
     def intensity(self, delta_n: torch.Tensor, sources_um: torch.Tensor, **optics_overrides) -> torch.Tensor:
         """``|E|²`` on the camera's image, (B, H, W): at the pixel centres, or averaged over each pixel."""
-        field = self.fine_field(delta_n, sources_um, **optics_overrides)
+        return self._camera(self.fine_field(delta_n, sources_um, **optics_overrides))
+
+    def _camera(self, field: torch.Tensor) -> torch.Tensor:
         if self.pixel_integration:
             camera = pixel_average_from_fine(field)
         else:

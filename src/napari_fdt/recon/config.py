@@ -226,6 +226,10 @@ class SolverConfig:
         1, ge=1, le=16, description="screens per slice in multi-slice stages: each slice crossed in this many symmetric steps, "
         "so that diffraction inside thick slices is modelled (docs/physics.md, \"Sub-slices\"; its error falls as 1/sub_slices²); "
         "costs as many times the slice loop", fix="1 (one thin screen per slice), or 2-4 for slices thick against the depth of field")
+    field_oversampling: int = setting(
+        1, ge=1, le=2, description="the finest stage's field on a grid this many times finer than the camera's (2: light the "
+        "sample scatters beyond the camera grid's Nyquist is propagated, not aliased; docs/physics.md, \"A finer field grid\"); "
+        "about 4× the finest stage's cost and memory", fix="1 (the camera grid) or 2")
     pupil_edge: Optional[typing.Annotated[float, Field(ge=0.0, lt=0.5)]] = setting(
         None, strict=False, description="half-width of the pupil's raised-cosine edge relative to NA/λ (0: a hard pupil, held "
         "exactly); null: `acquisition.json`'s `pupil_edge`, else 0.03", fix="0 for a hard pupil, 0.03 the default soft edge")

@@ -203,6 +203,8 @@ def stage_phase(config: SolverConfig, optics: Optics, image_shape: tuple[int, in
     dev = "cuda" if device_type == "cuda" else "cpu"
     batch = config.stage_batch(stage)
     screens = optics.n_slices * (1 if envelope else config.sub_slices)
+    if not envelope and sc.factor == 1 and config.field_oversampling == 2:  # the field on a grid twice as fine
+        shape = (2 * shape[0], 2 * shape[1])
     units = iteration_units(batch, screens, shape, pixel_integration and not envelope)
     per_it = OVERHEAD_S[dev] + SECONDS_PER_UNIT[(dev, model)] * units
     return Phase(pass_name, stage, len(config.stages), sc.factor, model, sc.iterations, shape, per_it, parts=parts)

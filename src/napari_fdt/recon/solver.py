@@ -337,7 +337,7 @@ class Reconstructor:
         """The multi-slice model's options as the run has them: backward mode, sub-slices, obliquity, pupil edge and
         pixel integration (the parts as switched)."""
         cfg = self.config
-        return dict(backward_mode=cfg.backward_mode, sub_slices=cfg.sub_slices,
+        return dict(backward_mode=cfg.backward_mode, sub_slices=cfg.sub_slices, field_oversampling=cfg.field_oversampling,
                     obliquity="per_source" if self.parts["obliquity"] else "none",
                     **{**camera_model_options(cfg, self.acquisition), "pixel_integration": self.parts["pixel_integration"]})
 

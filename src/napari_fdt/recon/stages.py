@@ -25,6 +25,7 @@ import torch
 from napari_fdt.errors import FDTInputError
 from napari_fdt.model.envelope import EnvelopeModel
 from napari_fdt.model.forward import MultiSliceModel
+from napari_fdt.model.oversampled import OversampledModel
 from napari_fdt.model.protocol import ImageModel
 from napari_fdt.physics.grid import DEFAULT_PUPIL_TAPER, GridPlan, plan_grid
 from napari_fdt.physics.optics import Optics
@@ -147,6 +148,7 @@ def build_stage(
     pupil_edge: float | None = None,
     pixel_integration: bool = False,
     sub_slices: int = 1,
+    field_oversampling: int = 1,
 ) -> Stage:
     """Set up one stage for the current source estimates (the window gets some slack for calibration moves).
 
@@ -154,6 +156,8 @@ def build_stage(
     factors > 1; ``"multislice"`` keeps the multi-slice model on the grid the pupil needs.
     ``backward_mode``, ``obliquity``, ``pupil_edge``, ``pixel_integration``, ``sub_slices``: see
     :class:`~napari_fdt.model.forward.MultiSliceModel` (multi-slice stages only; :func:`camera_model_options`).
+    ``field_oversampling`` 2: a factor-1 stage runs :class:`~napari_fdt.model.oversampled.OversampledModel` (the field on
+    a grid twice as fine; coarse stages keep their grids).
     """
     _, big_h, big_w = images_normalised.shape
     dx = optics.pixel_size_um
@@ -169,8 +173,9 @@ def build_stage(
     g, opt, shift, plan = multislice_plan(optics, factor, (big_h, big_w), sources_um,
                                           depth_slack_um=depth_slack_um, offset_slack_um=offset_slack_um)
     h, w = plan.image_shape
-    model = MultiSliceModel(opt, plan, device=device, backward_mode=backward_mode, obliquity=obliquity,
-                            pupil_edge=pupil_edge, pixel_integration=pixel_integration, sub_slices=sub_slices)
+    model_class = OversampledModel if field_oversampling == 2 and factor == 1 else MultiSliceModel
+    model = model_class(opt, plan, device=device, backward_mode=backward_mode, obliquity=obliquity,
+                        pupil_edge=pupil_edge, pixel_integration=pixel_integration, sub_slices=sub_slices)
     imgs = stage_images(images_normalised, h, w, g, device)
     grid = (big_h // factor, big_w // factor)
     return Stage(index, factor, g, iterations, opt, model, imgs, shift, grid, plan.padded_shape)
