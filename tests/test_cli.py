@@ -62,6 +62,7 @@ def test_info_reports_the_window(tmp_path: Path, capsys) -> None:
     text = capsys.readouterr().out
     assert "9 images of 40x48 px" in text and "forward window" in text
     assert "of the depth of field" in text  # the thin screens' criterion (docs/physics.md, "Sub-slices")
+    assert "field grid: the camera's pixels hold waves up to" in text  # the camera grid's (docs/physics.md)
 
 
 def test_depth_of_field_is_the_pupil_edge_rays_defocus_scale() -> None:
