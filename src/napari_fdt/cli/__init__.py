@@ -452,10 +452,13 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
         if side.exists():
             truth_src = np.asarray(json.loads(side.read_text())["sources_um"], dtype=np.float64)
     group = distributed.setup(args.device, args.dist_backend)
+    completed = False
     try:
-        return _run_and_write(args, config, acq, out, json_out, truth, truth_src, group)
+        code = _run_and_write(args, config, acq, out, json_out, truth, truth_src, group)
+        completed = True
+        return code
     finally:
-        distributed.teardown(group)
+        distributed.teardown(group, completed=completed)
 
 
 def _run_and_write(args, config, acq, out: Path, json_out: Path, truth, truth_src, group) -> int:

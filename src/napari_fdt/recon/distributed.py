@@ -250,11 +250,24 @@ def setup(device: str | torch.device = "auto", backend: str | None = None, *, ti
     return Group(rank=rank, world_size=world, local_rank=local_rank, backend=name, device=dev)
 
 
-def teardown(group: Group | None) -> None:
-    """Leave the process group (nothing when ``group`` is None)."""
+def teardown(group: Group | None, completed: bool = False) -> None:
+    """Leave the process group (nothing when ``group`` is None).
+
+    ``completed``: every rank ended its run and reaches this call; they first wait for each other, so that no rank
+    tears down its connections while a peer still writes or holds them (a gloo rank leaving early was seen to abort
+    at exit, "terminate called without an active exception", after a run that had written its result). After a
+    failure the ranks leave at once (a peer may be gone)."""
     if group is None:
         return
     import torch.distributed as dist
 
     if dist.is_initialized():
+        if completed:
+            try:
+                if group.backend == "gloo":
+                    dist.monitored_barrier(timeout=datetime.timedelta(seconds=120))
+                else:
+                    dist.barrier()
+            except Exception:  # noqa: BLE001 (a peer that is gone: leave anyway)
+                pass
         dist.destroy_process_group()
