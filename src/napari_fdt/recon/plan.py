@@ -191,7 +191,7 @@ def stage_phase(config: SolverConfig, optics: Optics, image_shape: tuple[int, in
                 pixel_integration: bool = False) -> Phase:
     """The phase of stage ``stage`` (its model, FFT grid and predicted seconds per iteration; ``pixel_integration``: the
     multi-slice model's camera integrates over its pixels)."""
-    from napari_fdt.recon.stages import multislice_plan
+    from napari_fdt.recon.stages import fine_field_grid, multislice_plan
 
     sc = config.stages[stage]
     envelope = sc.factor > 1 and coarse_model == "envelope"
@@ -203,7 +203,7 @@ def stage_phase(config: SolverConfig, optics: Optics, image_shape: tuple[int, in
     dev = "cuda" if device_type == "cuda" else "cpu"
     batch = config.stage_batch(stage)
     screens = optics.n_slices * (1 if envelope else config.sub_slices)
-    if not envelope and sc.factor == 1 and config.field_oversampling == 2:  # the field on a grid twice as fine
+    if not envelope and fine_field_grid(config.field_oversampling, sc.factor):  # the field on a grid twice as fine
         shape = (2 * shape[0], 2 * shape[1])
     units = iteration_units(batch, screens, shape, pixel_integration and not envelope)
     per_it = OVERHEAD_S[dev] + SECONDS_PER_UNIT[(dev, model)] * units

@@ -84,7 +84,7 @@ def finest_stage_bytes(acquisition: Acquisition, config: SolverConfig, sources_u
     window."""
     from napari_fdt.model.memory import grid_is_unitary, leanest_mode, training_bytes
     from napari_fdt.model.oversampled import fine_plan
-    from napari_fdt.recon.stages import multislice_plan
+    from napari_fdt.recon.stages import fine_field_grid, multislice_plan
 
     cfg, o, full_shape = config, acquisition.optics, acquisition.image_shape
     finest_index = min(range(len(cfg.stages)), key=lambda i: cfg.stages[i].factor)
@@ -93,7 +93,7 @@ def finest_stage_bytes(acquisition: Acquisition, config: SolverConfig, sources_u
     mode = cfg.backward_mode
     if mode == "auto":  # auto falls back to the leanest mode when one field per slice does not fit
         mode = leanest_mode(grid_is_unitary(opt.pixel_size_um, o.n_background, o.wavelength_um))
-    if cfg.field_oversampling == 2 and cfg.stages[finest_index].factor == 1:  # the field on a grid twice as fine
+    if fine_field_grid(cfg.field_oversampling, cfg.stages[finest_index].factor):  # the field on a grid twice as fine
         plan = fine_plan(plan)
     return training_bytes(plan.padded_shape, o.n_slices * cfg.sub_slices, batch, n_wavelengths, mode) + images_on_device(acquisition, device_type), plan, batch, mode
 

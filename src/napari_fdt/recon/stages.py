@@ -32,7 +32,7 @@ from napari_fdt.physics.optics import Optics
 from napari_fdt.recon.stage_images import LazyImages, block_average, stage_images
 from napari_fdt.recon.volume import upsample_to
 
-__all__ = ["Stage", "build_stage", "block_average", "stage_optics", "field_factor", "multislice_plan", "camera_model_options",
+__all__ = ["Stage", "build_stage", "fine_field_grid", "block_average", "stage_optics", "field_factor", "multislice_plan", "camera_model_options",
            "stated_pixel_integration"]
 
 #: Fraction of the coarse grid's Nyquist frequency the stage pupil's outer edge may reach.
@@ -131,6 +131,12 @@ def multislice_plan(
     return g, opt, shift, plan
 
 
+def fine_field_grid(field_oversampling: int, factor: int) -> bool:
+    """Whether a multi-slice stage of ``factor`` runs its field on the 2× grid (:class:`OversampledModel`):
+    ``field_oversampling`` 2 applies to factor-1 stages only (coarse stages keep their grids)."""
+    return field_oversampling == 2 and factor == 1
+
+
 def build_stage(
     index: int,
     factor: int,
@@ -173,7 +179,7 @@ def build_stage(
     g, opt, shift, plan = multislice_plan(optics, factor, (big_h, big_w), sources_um,
                                           depth_slack_um=depth_slack_um, offset_slack_um=offset_slack_um)
     h, w = plan.image_shape
-    model_class = OversampledModel if field_oversampling == 2 and factor == 1 else MultiSliceModel
+    model_class = OversampledModel if fine_field_grid(field_oversampling, factor) else MultiSliceModel
     model = model_class(opt, plan, device=device, backward_mode=backward_mode, obliquity=obliquity,
                         pupil_edge=pupil_edge, pixel_integration=pixel_integration, sub_slices=sub_slices)
     imgs = stage_images(images_normalised, h, w, g, device)
