@@ -477,20 +477,24 @@ class MultiSliceModel:
     def _integrated(self, spec: torch.Tensor, free: torch.Tensor | None, sources_um: torch.Tensor, k: Kernels) -> torch.Tensor:
         """Pixel-averaged intensity (B, H, W) from :meth:`_pupil_spectra`."""
         fine = fine_field(spec)
-        if free is not None:
-            # exact homogeneous field on the image and a margin of FREE_FIELD_MARGIN fine pixels (the box filter's reach)
-            oy, ox = self.plan.offset
-            h, w = self.plan.image_shape
-            hp, wp = self.plan.padded_shape
-            m = FREE_FIELD_MARGIN
-            r0, r1 = max(0, 2 * oy - m), min(2 * hp, 2 * (oy + h) + m)
-            c0, c1 = max(0, 2 * ox - m), min(2 * wp, 2 * (ox + w) + m)
-            ys = self._window_coordinates(r0, r1, 0, 0.5, k.pixel_size_um)
-            xs = self._window_coordinates(c0, c1, 1, 0.5, k.pixel_size_um)
-            periodic = fine_field(free)[..., r0:r1, c0:c1]
-            corr = self.free_field_exact(sources_um, k, ys, xs) - periodic
-            fine = fine + F.pad(corr, (c0, 2 * wp - c1, r0, 2 * hp - r1))
+        if free is not None:  # exact homogeneous field on the image and a margin (the box filter's reach)
+            fine = fine + self.free_field_correction(fine_field(free), sources_um, k, 2)
         return self.crop(pixel_average_from_fine(fine))
+
+    def free_field_correction(self, periodic: torch.Tensor, sources_um: torch.Tensor, k: Kernels, scale: int) -> torch.Tensor:
+        """Exact minus periodic homogeneous field, (B, scale·Hp, scale·Wp), on the image and a margin of
+        :data:`FREE_FIELD_MARGIN` pixels of a grid ``scale``× finer than the window's, zero elsewhere; ``periodic``
+        is the periodic homogeneous field on that grid."""
+        oy, ox = self.plan.offset
+        h, w = self.plan.image_shape
+        hp, wp = self.plan.padded_shape
+        m = FREE_FIELD_MARGIN
+        r0, r1 = max(0, scale * oy - m), min(scale * hp, scale * (oy + h) + m)
+        c0, c1 = max(0, scale * ox - m), min(scale * wp, scale * (ox + w) + m)
+        ys = self._window_coordinates(r0, r1, 0, 1.0 / scale, k.pixel_size_um)
+        xs = self._window_coordinates(c0, c1, 1, 1.0 / scale, k.pixel_size_um)
+        corr = self.free_field_exact(sources_um, k, ys, xs) - periodic[..., r0:r1, c0:c1]
+        return F.pad(corr, (c0, scale * wp - c1, r0, scale * hp - r1))
 
     def loop_mode(self, batch: int) -> str:
         """The backward mode used for a batch of ``batch`` images (see ``backward_mode``; ``"fused"`` runs

@@ -23,9 +23,8 @@ from __future__ import annotations
 import dataclasses
 
 import torch
-import torch.nn.functional as F
 
-from napari_fdt.model.forward import FREE_FIELD_MARGIN, MultiSliceModel
+from napari_fdt.model.forward import MultiSliceModel
 from napari_fdt.physics.camera import pixel_average_from_fine
 from napari_fdt.physics.grid import GridPlan
 from napari_fdt.physics.optics import Optics
@@ -137,19 +136,10 @@ class OversampledModel:
         return self._field(spec, free, sources_um, k)
 
     def _field(self, spec: torch.Tensor, free: torch.Tensor | None, sources_um: torch.Tensor, k) -> torch.Tensor:
-        inner = self.inner
         field = torch.fft.ifft2(spec)
         if free is None:
             return field
-        oy, ox = inner.plan.offset
-        h, w = inner.plan.image_shape
-        hp, wp = inner.plan.padded_shape
-        m = FREE_FIELD_MARGIN
-        r0, r1, c0, c1 = max(0, oy - m), min(hp, oy + h + m), max(0, ox - m), min(wp, ox + w + m)
-        ys = inner._window_coordinates(r0, r1, 0, 1.0, k.pixel_size_um)
-        xs = inner._window_coordinates(c0, c1, 1, 1.0, k.pixel_size_um)
-        corr = inner.free_field_exact(sources_um, k, ys, xs) - torch.fft.ifft2(free)[..., r0:r1, c0:c1]
-        return field + F.pad(corr, (c0, wp - c1, r0, hp - r1))
+        return field + self.inner.free_field_correction(torch.fft.ifft2(free), sources_um, k, 1)
 
     def intensity(self, delta_n: torch.Tensor, sources_um: torch.Tensor, **optics_overrides) -> torch.Tensor:
         """``|E|²`` on the camera's image, (B, H, W): at the pixel centres, or averaged over each pixel."""
