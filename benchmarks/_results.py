@@ -89,7 +89,7 @@ def read_rows(path: Path) -> list[dict[str, Any]]:
 def write_document(path: Path, payload: dict[str, Any], device: str | torch.device = "cpu") -> Path:
     """Write ``{"hardware": machine(device), **payload}`` to ``path`` atomically (a temporary file, then a rename)."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    doc = {"hardware": {**machine(device), **payload.pop("hardware", {})}, **payload}
+    doc = {**payload, "hardware": {**machine(device), **payload.get("hardware", {})}}
     tmp = path.with_name(path.name + ".tmp")
     tmp.write_text(json.dumps(doc, indent=1, default=float) + "\n", encoding="utf-8")
     os.replace(tmp, path)

@@ -74,10 +74,15 @@ def median_error(pred: np.ndarray, ref: np.ndarray) -> float:
     return float(np.median(errs))
 
 
-def write_block(start: str, end: str, block: str) -> None:
-    text = DOC.read_text(encoding="utf-8")
-    text = re.sub(re.escape(start) + ".*?" + re.escape(end), lambda _: block, text, flags=re.S)
-    DOC.write_text(text, encoding="utf-8")
+def publish(lines: list[str], write: bool) -> None:
+    """Print a table block (its first and last lines are its markers) and, with ``write``, replace it in docs/physics.md."""
+    block = "\n".join(lines)
+    print(block)
+    if write:
+        start, end = lines[0], lines[-1]
+        text = DOC.read_text(encoding="utf-8")
+        text = re.sub(re.escape(start) + ".*?" + re.escape(end), lambda _: block, text, flags=re.S)
+        DOC.write_text(text, encoding="utf-8")
 
 
 def field_grid(names: list[str], every: int, write: bool) -> None:
@@ -108,11 +113,7 @@ def field_grid(names: list[str], every: int, write: bool) -> None:
     for name, peak, e, s, n_img in rows:
         lines.append(f"| {name} ({peak:.3f}, {n_img}) | {100 * e[1, 1]:.2f} % | {100 * e[1, 4]:.2f} % | {100 * e[2, 1]:.2f} % | "
                      f"{100 * e[2, 4]:.3f} % | {s[1, 1]:.2f} / {s[1, 4]:.2f} / {s[2, 1]:.2f} / {s[2, 4]:.2f} |")
-    lines += ["", GRID_END]
-    block = "\n".join(lines)
-    print(block)
-    if write:
-        write_block(GRID_START, GRID_END, block)
+    publish([*lines, "", GRID_END], write)
 
 
 def main() -> None:
@@ -150,11 +151,7 @@ def main() -> None:
     for name, peak, e, s, signal in rows:
         lines.append(f"| {name} ({peak:.3f}) | {100 * e[1]:.2f} % | {100 * e[2]:.2f} % | {100 * e[4]:.3f} % | "
                      f"{s[1]:.2f} / {s[2]:.2f} / {s[4]:.2f} | {100 * signal:.0f} % |")
-    lines += ["", END]
-    block = "\n".join(lines)
-    print(block)
-    if args.write:
-        write_block(START, END, block)
+    publish([*lines, "", END], args.write)
 
 
 if __name__ == "__main__":

@@ -157,7 +157,7 @@ def main() -> None:
         res = run_scene(name, acq, truth, cfg, device, args.eval_every)
         res.pop("_delta_n", None)
         out["scenes"].append(res)
-        write_document(path, dict(out), device)  # after every scene: a cut-off run keeps what it did
+        write_document(path, out, device)  # after every scene: a cut-off run keeps what it did
         f = res["final"]
         print(f"{name}: {res['wall_s']:.1f} s, rel err {f['relative_delta_n_error']:.3f}, PSNR {f['paper_psnr']:.2f}, "
               f"SSIM {f['paper_ssim']:.3f}, peak {res['peak_memory_gib']} GiB; s/it per stage "

@@ -14,19 +14,9 @@ from napari_fdt.model.oversampled import OversampledModel, upsample_volume
 from napari_fdt.physics.grid import plan_for_sources
 from tests import independent_reference as ref
 from tests import independent_reference_optics as ref_optics
+from tests.test_sub_slices import OPTICS, _rel, _scene  # the same 32² bead scene (2 µm slices, NA 0.8)
 
-OPTICS = dict(wavelength_um=0.635, n_background=1.33, na=0.8, pixel_size_um=0.33, n_slices=4, slice_spacing_um=2.0,
-              image_plane_um=0.0)
 FINE = {**OPTICS, "pixel_size_um": OPTICS["pixel_size_um"] / 2}
-
-
-def _scene():
-    h = w = 32
-    yy, xx = np.mgrid[:h, :w]
-    bead = ((yy - 15.5) ** 2 + (xx - 17.0) ** 2 < 7.0**2).astype(np.float64)
-    dn = np.stack([0.04 * bead, 0.04 * bead, 0.02 * bead, np.zeros_like(bead)])
-    sources = np.array([[0.0, 0.0, 15.0], [3.0, -2.0, 18.0], [-4.0, 3.0, 16.0]])
-    return dn, sources
 
 
 def _plan(dn, src):
@@ -42,10 +32,6 @@ def _images(model, dn, src) -> np.ndarray:
 def _window(plan, factor: int) -> dict:
     (hp, wp), (oy, ox) = plan.padded_shape, plan.offset
     return {"Hp": factor * hp, "Wp": factor * wp, "offset_y": factor * oy, "offset_x": factor * ox}
-
-
-def _rel(a: np.ndarray, b: np.ndarray) -> float:
-    return float(np.linalg.norm(a - b) / np.linalg.norm(b))
 
 
 def test_upsampling_keeps_the_samples_and_interpolates_between() -> None:
