@@ -111,7 +111,12 @@ def free_field_profile(
     spec = torch.complex(mag * torch.cos(phase), mag * torch.sin(phase)) * amplitude[None, :]  # (B, F)
     if bessel is None:
         bessel = bessel_j0(2.0 * math.pi * f[:, None] * rho_um[None, :])
-    return spec @ bessel.to(spec.dtype)
+    if bessel.is_complex():
+        return spec @ bessel.to(spec.dtype)
+    # a real table: one real product of the stacked real and imaginary parts (half a complex product's work, no copy
+    # of the table as complex)
+    both = torch.cat([spec.real, spec.imag]) @ bessel.to(spec.real.dtype)
+    return torch.complex(both[: spec.shape[0]], both[spec.shape[0]:])
 
 
 def interpolate_profile(profile: torch.Tensor, rho_step_um: float, rho_um: torch.Tensor) -> torch.Tensor:
