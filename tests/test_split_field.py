@@ -1,0 +1,145 @@
+"""The split-field model (``model.split_field``): the sources' field exact and non-periodic, the sample's on a window of
+the image and its light cone. Held against the independent reference (tests/independent_reference.py, float64, numpy)
+on a window twice as wide as the plan's, where the periodic copies are far: the converged answer both models
+approximate."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+
+from napari_fdt import Optics
+from napari_fdt.errors import FDTInputError
+from napari_fdt.model.forward import MultiSliceModel
+from napari_fdt.model.split_field import SplitFieldModel, split_plan
+from napari_fdt.physics.grid import plan_for_sources
+from tests import independent_reference as ref
+from tests.test_sub_slices import OPTICS, _rel, _scene  # a 32² bead (Δn 0.04), 3 sources 15-18 µm deep, NA 0.8
+
+
+def _setup():
+    dn, src = _scene()
+    o = Optics(**OPTICS)
+    return dn, src, o, plan_for_sources(o, dn.shape[1:], src, warn=False)
+
+
+def _images(model, dn, src) -> np.ndarray:
+    with torch.no_grad():
+        return model(torch.from_numpy(dn), torch.from_numpy(src)).numpy()
+
+
+def _wide_reference(dn, src, plan) -> np.ndarray:
+    (hp, wp), (h, w) = plan.padded_shape, plan.image_shape
+    window = {"Hp": 2 * hp, "Wp": 2 * wp, "offset_y": hp - h // 2, "offset_x": wp - w // 2}
+    return ref.forward_images(OPTICS, OPTICS["n_background"] + dn, src, np.ones(len(src)), window=window)
+
+
+def test_the_split_window_holds_the_image_and_its_light_cone_and_is_smaller() -> None:
+    dn, src, o, plan = _setup()
+    small = split_plan(plan, o)
+    for n, p, s in zip(plan.image_shape, plan.padded_shape, small.padded_shape):
+        assert s < p and s % 2 == 0
+        assert (s - n) / 2 * o.pixel_size_um >= plan.margin_um  # the cone's margin on each side
+    assert small.offset == (small.padded_shape[0] // 2 - 16, small.padded_shape[1] // 2 - 16)
+
+
+def test_the_split_model_is_as_close_to_the_converged_answer_as_the_full_window() -> None:
+    dn, src, o, plan = _setup()
+    truth = _wide_reference(dn, src, plan)
+    full = _rel(_images(MultiSliceModel(o, plan, device="cpu", dtype=torch.float64), dn, src), truth)
+    split = _rel(_images(SplitFieldModel(o, plan, device="cpu", dtype=torch.float64), dn, src), truth)
+    print(f"full window {full:.2e}, split {split:.2e}")
+    assert split < 3e-4  # measured 1.8e-4 (the full window: 1.8e-3, its periodic copies' pupil tails)
+    assert split < full
+
+
+def test_the_sources_field_at_every_screen_is_the_propagated_point_source() -> None:
+    """The radial tables against FFT propagation of the band-limited source on a window twice the plan's (its copies'
+    roll-off far from the image: on the plan's own window they differ by 2.6e-4)."""
+    dn, src, o, plan = _setup()
+    split = SplitFieldModel(o, plan, device="cpu", dtype=torch.float64)
+    (hp, wp), (h, w) = plan.padded_shape, plan.image_shape
+    wide = dataclasses.replace(plan, padded_shape=(2 * hp, 2 * wp), offset=(hp - h // 2, wp - w // 2))
+    full = MultiSliceModel(o, wide, device="cpu", dtype=torch.float64)
+    k = full.kernels()
+    u = torch.fft.ifft2(full.source_spectrum(torch.from_numpy(src), k))
+    expected = []
+    for i in range(o.n_slices):
+        if i:
+            u = torch.fft.ifft2(torch.fft.fft2(u) * k.slice_kernel)
+        expected.append(full.crop(u))
+    expected = torch.stack(expected, 1)
+    got = split.incident_fields(torch.from_numpy(src))
+    assert got.shape == expected.shape
+    assert float(torch.linalg.norm(got - expected) / torch.linalg.norm(expected)) < 1e-4  # measured 3e-5
+
+
+@pytest.mark.parametrize("options", [
+    {"pixel_integration": True},
+    {"sub_slices": 2},
+    {"aberrations": {"spherical": 0.5}},
+    {"aberrations": {"coma_horizontal": 0.4, "defocus": 0.3}},  # a non-radial phase: the full window's free field
+])
+def test_the_model_parts_agree_with_a_wide_full_window(options) -> None:
+    """Against the full-window model on twice the plan's window (converged: the plan's own is 1-2e-3 off here)."""
+    dn, src, o, plan = _setup()
+    (hp, wp), (h, w) = plan.padded_shape, plan.image_shape
+    wide = dataclasses.replace(plan, padded_shape=(2 * hp, 2 * wp), offset=(hp - h // 2, wp - w // 2))
+    full = _images(MultiSliceModel(o, wide, device="cpu", dtype=torch.float64, **options), dn, src)
+    split = _images(SplitFieldModel(o, plan, device="cpu", dtype=torch.float64, **options), dn, src)
+    if "coma_horizontal" in options.get("aberrations", {}):  # the camera's free field from the plan's window: as good
+        planned = _images(MultiSliceModel(o, plan, device="cpu", dtype=torch.float64, **options), dn, src)
+        assert _rel(split, full) < 1.2 * _rel(planned, full)
+    else:
+        assert _rel(split, full) < 5e-4
+
+
+def test_gradients_are_those_of_the_images() -> None:
+    """Finite differences of a loss in the contrast, a source's position and depth, the pixel and the wavelength."""
+    dn, src, o, plan = _setup()
+    model = SplitFieldModel(o, plan, device="cpu", dtype=torch.float64)
+    target = torch.from_numpy(_images(model, 1.1 * dn, src))
+
+    def loss(d, s, dx, lam):
+        return (model(d, s, pixel_size_um=dx, wavelength_um=lam) - target).square().sum()
+
+    d = torch.from_numpy(dn).requires_grad_(True)
+    s = torch.from_numpy(src).requires_grad_(True)
+    dx = torch.tensor(o.pixel_size_um, dtype=torch.float64, requires_grad=True)
+    lam = torch.tensor(o.wavelength_um, dtype=torch.float64, requires_grad=True)
+    loss(d, s, dx, lam).backward()
+    checks = [
+        ("contrast", d.grad[1, 15, 17], lambda e: (d.detach() + e * _unit(d, (1, 15, 17)), s.detach(), dx.detach(), lam.detach())),
+        ("x", s.grad[1, 0], lambda e: (d.detach(), s.detach() + e * _unit(s, (1, 0)), dx.detach(), lam.detach())),
+        ("depth", s.grad[2, 2], lambda e: (d.detach(), s.detach() + e * _unit(s, (2, 2)), dx.detach(), lam.detach())),
+        ("pixel", dx.grad, lambda e: (d.detach(), s.detach(), dx.detach() + e, lam.detach())),
+        ("wavelength", lam.grad, lambda e: (d.detach(), s.detach(), dx.detach(), lam.detach() + e)),
+    ]
+    for name, analytic, at in checks:
+        eps = 1e-5
+        with torch.no_grad():
+            numeric = (loss(*at(eps)) - loss(*at(-eps))) / (2 * eps)
+        assert float(abs(analytic - numeric)) < 2e-3 * float(abs(numeric)) + 1e-9, (name, float(analytic), float(numeric))
+
+
+def _unit(t: torch.Tensor, index: tuple) -> torch.Tensor:
+    u = torch.zeros_like(t.detach())
+    u[index] = 1.0
+    return u
+
+
+def test_the_solver_uses_it_where_it_holds() -> None:
+    from napari_fdt.recon.stages import uses_split_field
+
+    assert uses_split_field("split", 1)
+    assert not uses_split_field("full", 1)
+    assert not uses_split_field("split", 1, obliquity="per_source")
+    assert not uses_split_field("split", 1, field_oversampling=2)
+    assert not uses_split_field("split", 1, pupil_edge=0.0)  # a hard pupil's tails wrap on the small window
+    assert uses_split_field("split", 1, pupil_edge=0.05)
+    dn, src, o, plan = _setup()
+    with pytest.raises(FDTInputError, match="obliquity"):
+        SplitFieldModel(o, plan, device="cpu", obliquity="per_source")
