@@ -34,7 +34,8 @@ from napari_fdt.recon.config import SolverConfig, StageConfig
 from napari_fdt.recon.losses import BatchShare, LossWeights, total_loss
 
 TESTS = Path(__file__).resolve().parent
-DN_TOL = 4e-6  # absolute, on Δn
+DN_TOL = 1e-5  # absolute, on Δn (4e-6 held with the full-window model; the split-field model's table products round
+# differently with the number of rows a rank's batch gives them (BLAS blocking): 5.5e-6 measured, 1e-4 of the largest Δn)
 SOURCES_TOL_UM = 6e-5
 GAIN_RTOL = 4e-6
 N_BG = 1.33

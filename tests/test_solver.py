@@ -223,27 +223,35 @@ def test_cli_reconstruct_writes_volume_and_report(tiny, tmp_path: Path, capsys) 
     assert "would overwrite an input" in capsys.readouterr().err
 
 
-def test_a_batch_that_cannot_fit_is_refused_before_running(tiny, monkeypatch) -> None:
+@pytest.mark.parametrize("window", ["full", "split"])
+def test_a_batch_that_cannot_fit_is_refused_before_running(tiny, monkeypatch, window) -> None:
     import napari_fdt.device as device_module
     import napari_fdt.model.memory as memory
+    from napari_fdt.model.split_field import split_plan
     from napari_fdt.recon.stages import multislice_plan
 
     o = tiny.acquisition.optics
     _, opt, _, plan = multislice_plan(o, 1, tiny.acquisition.image_shape, tiny.acquisition.sources_um)
     mode = memory.leanest_mode(memory.grid_is_unitary(opt.pixel_size_um, o.n_background, o.wavelength_um))
     images = 4 * tiny.acquisition.n_images * tiny.acquisition.image_shape[0] * tiny.acquisition.image_shape[1]
-    need9 = memory.training_bytes(plan.padded_shape, o.n_slices, 9, 1, mode) + images
-    need1 = memory.training_bytes(plan.padded_shape, o.n_slices, 1, 1, mode)
+    if window == "full":
+        need9 = memory.training_bytes(plan.padded_shape, o.n_slices, 9, 1, mode) + images
+        need1 = memory.training_bytes(plan.padded_shape, o.n_slices, 1, 1, mode)
+    else:  # the split model's window and its own estimate (the camera: pixel integration off, as the files state)
+        small = split_plan(plan, opt).padded_shape
+        need9 = memory.split_training_bytes(small, plan.image_shape, o.n_slices, 9) + images
+        need1 = memory.split_training_bytes(small, plan.image_shape, o.n_slices, 1)
+        mode = "split field"
     assert need9 > 4 * need1
     monkeypatch.setattr(device_module, "available_bytes", lambda device: need9 // 2)  # about half of batch 9 fits
     with pytest.raises(FDTInputError) as exc:
-        Reconstructor(tiny.acquisition, _tiny_config(batch_size=9), device="cpu")
+        Reconstructor(tiny.acquisition, _tiny_config(batch_size=9, field_window=window), device="cpu")
     fits = int((0.9 * (need9 // 2) - images) // need1)
     assert exc.value.field == "batch_size" and "GiB" in str(exc.value) and f"lower batch_size to {fits}" in str(exc.value)
     assert mode in str(exc.value)
     monkeypatch.setattr(device_module, "available_bytes", lambda device: need1 // 2)  # not even one image
     with pytest.raises(FDTInputError) as exc:
-        Reconstructor(tiny.acquisition, _tiny_config(batch_size=9), device="cpu")
+        Reconstructor(tiny.acquisition, _tiny_config(batch_size=9, field_window=window), device="cpu")
     assert "crop the images" in str(exc.value)
 
 

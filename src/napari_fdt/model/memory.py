@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from napari_fdt.model.slice_loop import leanest_mode, loop_bytes
 
-__all__ = ["BYTES_PER_PIXEL_SLICE_IMAGE", "GRAPH_FIELDS_PER_IMAGE", "training_bytes", "leanest_mode",
+__all__ = ["BYTES_PER_PIXEL_SLICE_IMAGE", "GRAPH_FIELDS_PER_IMAGE", "training_bytes", "split_training_bytes", "leanest_mode",
            "grid_is_unitary", "FORWARD_BYTES_PER_PIXEL_IMAGE", "forward_bytes"]
 
 #: Upper estimate of plain-autograd memory, bytes per window pixel per slice per image (complex64).
@@ -53,6 +53,32 @@ def training_bytes(
         return per_image * b + 64 * pixels
     volume = 5 * 4 * pixels * n  # Δn, phases, their gradients, Adam moments (float32)
     return loop_bytes(mode, field, n, b) + GRAPH_FIELDS_PER_IMAGE * field * b + volume + 64 * pixels
+
+
+#: The split-field model's training memory (its loop on plain autograd), bytes per screen per image: per pixel of its
+#: window (the loop's fields) and per pixel of the image (the sources' fields: the tables' lookups keep ~40 bytes per
+#: point for the backward); per window pixel per image with pixel integration (fields on the 2x grid). Upper estimates
+#: of the peak resident growth of one training step (torch 2.13, complex64, batch 16, 2026-11-26; /proc VmHWM; the same
+#: step reads differently from run to run, as the allocator keeps or returns blocks): the sample 182 and 270 MiB (192²
+#: window, 96² image, 8 screens; estimate 320), letters128 324 and 455 MiB (200², 128², 10; 569), cells_pupil with pixel
+#: means 310 and 366 MiB (180², 96², 6; 462).
+SPLIT_BYTES_PER_WINDOW_PIXEL = 36
+SPLIT_BYTES_PER_IMAGE_PIXEL = 140
+SPLIT_BYTES_PIXEL_INTEGRATION = 480
+
+
+def split_training_bytes(window_shape: tuple[int, int], image_shape: tuple[int, int], screens: int, batch: int,
+                         n_wavelengths: int = 1, pixel_integration: bool = False) -> int:
+    """Estimated peak bytes of one training iteration of :class:`~napari_fdt.model.split_field.SplitFieldModel`
+    (forward + backward) on a ``window_shape`` window for ``image_shape`` images with ``screens`` screens."""
+    window = int(window_shape[0]) * int(window_shape[1])
+    image = int(image_shape[0]) * int(image_shape[1])
+    n = max(1, int(screens))
+    per_image = n * (SPLIT_BYTES_PER_WINDOW_PIXEL * window + SPLIT_BYTES_PER_IMAGE_PIXEL * image)
+    if pixel_integration:
+        per_image += SPLIT_BYTES_PIXEL_INTEGRATION * window
+    volume = 5 * 4 * image * n  # Δn, phases, their gradients, Adam moments (float32)
+    return per_image * int(batch) * max(1, int(n_wavelengths)) + volume + 64 * window
 
 
 #: Upper estimate of inference memory (``torch.no_grad``: ``fdt forward``, ``fdt simulate``), bytes per window

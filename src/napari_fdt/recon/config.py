@@ -22,13 +22,15 @@ from napari_fdt.errors import FDTInputError
 from napari_fdt.schema import markdown_table, schema_dataclass, setting
 
 __all__ = ["StageConfig", "SolverConfig", "AutoWeight", "AUTO", "load_config", "COHERENCE_MODELS", "BACKWARD_MODES", "COARSE_MODELS",
-           "resolve_coarse_model", "settings_markdown"]
+           "resolve_coarse_model", "resolve_field_window", "settings_markdown"]
 
 #: "auto": the spectral model where the validation error shows it (:mod:`napari_fdt.recon.model_parts`), else none.
 CoherenceModel = Literal["auto", "none", "mask", "spectral", "mask+spectral"]
 #: Model of the coarse stages; "auto": the envelope model on a CPU (12× cheaper than multi-slice there),
 #: multi-slice on a GPU (where the envelope model's many small kernels made it slower; docs/benchmarks.md).
 CoarseModel = Literal["auto", "envelope", "multislice"]
+#: Window of the multi-slice model's fields (``field_window``).
+FieldWindow = Literal["auto", "full", "split"]
 #: How the multi-slice model forms gradients (:mod:`napari_fdt.model.slice_loop`); "autograd" is the plain reference.
 BackwardMode = Literal["auto", "stored", "reversible", "checkpoint", "autograd", "fused"]
 Activation = Literal["paper", "signed"]
@@ -230,6 +232,13 @@ class SolverConfig:
         1, ge=1, le=2, description="the finest stage's field on a grid this many times finer than the camera's (2: light the "
         "sample scatters beyond the camera grid's Nyquist is propagated, not aliased; docs/physics.md, \"A finer field grid\"); "
         "about 4× the finest stage's cost and memory", fix="1 (the camera grid) or 2")
+    field_window: FieldWindow = setting(
+        "auto", strict=False, description="window the multi-slice model's fields run on: `\"full\"` (each source's whole field, on a "
+        "window that keeps its periodic copies off the image: 7-16x the image's area on the suite), `\"split\"` (the sources' "
+        "field exact and non-periodic, only what the sample adds on the image and its light cone: 25-50 % of the pixels, "
+        "as accurate; docs/decisions/split-field.md), `\"auto\"`: split on CPU, full on CUDA (not yet measured there); "
+        "the per-source obliquity screens, the 2x field grid and the fused kernels run on the full window",
+        fix="use \"auto\", \"full\" or \"split\"")
     pupil_edge: Optional[typing.Annotated[float, Field(ge=0.0, lt=0.5)]] = setting(
         None, strict=False, description="half-width of the pupil's raised-cosine edge relative to NA/λ (0: a hard pupil, held "
         "exactly); null: `acquisition.json`'s `pupil_edge`, else 0.03", fix="0 for a hard pupil, 0.03 the default soft edge")
@@ -323,6 +332,13 @@ def resolve_coarse_model(coarse_model: str, device_type: str) -> str:
     if coarse_model != "auto":
         return coarse_model
     return "multislice" if device_type == "cuda" else "envelope"
+
+
+def resolve_field_window(field_window: str, device_type: str) -> str:
+    """``"auto"`` → ``"split"`` on CPU, ``"full"`` on CUDA (the split model is measured on CPU only); others pass."""
+    if field_window != "auto":
+        return field_window
+    return "full" if device_type == "cuda" else "split"
 
 
 def load_config(path: str | Path) -> SolverConfig:

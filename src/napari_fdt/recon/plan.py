@@ -28,7 +28,7 @@ from napari_fdt.recon.config import SolverConfig
 from napari_fdt.recon.phases import RERUN, RUN, TV_CHOICE, probe_iterations
 from napari_fdt.recon.regularisation import TV_PATH, selection_stages
 
-__all__ = ["SECONDS_PER_UNIT", "OVERHEAD_S", "Phase", "Plan", "Pace", "iteration_units", "envelope_padded_shape", "stage_phase",
+__all__ = ["SECONDS_PER_UNIT", "OVERHEAD_S", "SOURCE_FIELD_UNITS", "Phase", "Plan", "Pace", "iteration_units", "envelope_padded_shape", "stage_phase",
            "make_plan", "plan_for"]
 
 #: Seconds per cost unit of one iteration, by (device type, model). CPU: the bundled sample's default run on 2 cores
@@ -45,15 +45,28 @@ SECONDS_PER_UNIT: dict[tuple[str, str], float] = {
 OVERHEAD_S: dict[str, float] = {"cpu": 0.0, "cuda": 9e-3}
 
 
-def iteration_units(batch: int, n_slices: int, fft_shape: tuple[int, int], pixel_integration: bool = False) -> float:
-    """Cost units of one iteration: ``batch · (n_slices + s_pi) · P · log2 P`` with ``P`` the pixels of ``fft_shape``.
+#: Cost units of the split-field model's source field at one image pixel of one screen of one image (the radial
+#: tables' interpolation and phase, forward and backward): the sample's finest stage on 2 CPU cores, 0.134 s per
+#: iteration on a 192² window against 0.078 s for its FFTs alone (2026-11-26).
+SOURCE_FIELD_UNITS = 43.0
+
+
+def iteration_units(batch: int, n_slices: int, fft_shape: tuple[int, int], pixel_integration: bool = False,
+                    source_pixels: int = 0, camera_points: int = 0) -> float:
+    """Cost units of one iteration: ``batch · (n_slices + s_pi) · P · log2 P`` with ``P`` the pixels of ``fft_shape``,
+    plus ``batch · (n_slices · source_pixels + camera_points) ·`` :data:`SOURCE_FIELD_UNITS` for the split-field
+    model's source fields at the screens (``source_pixels``: the image's pixels) and at the camera (``camera_points``:
+    the image's pixels, or the fine grid's over the image and its margin with pixel integration); 0 for the other
+    models. (The split model's pixel integration on the sample: 94 ms more per step, 41 ms of FFTs and 45 ms of camera
+    field in these units.)
 
     A slice costs about 4 FFTs of the window (a forward and an adjoint transform pair); the camera's pixel integration
     (multi-slice model) adds 4 FFTs on a grid twice as fine (4P pixels), ``s_pi = 4·log2(4P)/log2(P)`` slices' worth
     (measured: 1.77× the step at 256², 6 slices, where this gives 1.75×)."""
     p = max(2, int(fft_shape[0]) * int(fft_shape[1]))
     extra = 4.0 * math.log2(4 * p) / math.log2(p) if pixel_integration else 0.0
-    return float(batch) * (float(n_slices) + extra) * p * math.log2(p)
+    sources = float(batch) * (float(n_slices) * float(source_pixels) + float(camera_points)) * SOURCE_FIELD_UNITS
+    return float(batch) * (float(n_slices) + extra) * p * math.log2(p) + sources
 
 
 def envelope_padded_shape(optics: Optics, image_shape: tuple[int, int], factor: int) -> tuple[int, int]:
@@ -188,40 +201,55 @@ def _seconds(s: float) -> str:
 
 def stage_phase(config: SolverConfig, optics: Optics, image_shape: tuple[int, int], sources_um: np.ndarray, stage: int,
                 coarse_model: str, device_type: str, pass_name: str = RUN, parts: tuple[str, ...] = (),
-                pixel_integration: bool = False) -> Phase:
+                pixel_integration: bool = False, pupil_edge: float | None = None) -> Phase:
     """The phase of stage ``stage`` (its model, FFT grid and predicted seconds per iteration; ``pixel_integration``: the
-    multi-slice model's camera integrates over its pixels)."""
-    from napari_fdt.recon.stages import fine_field_grid, multislice_plan
+    multi-slice model's camera integrates over its pixels; ``pupil_edge`` its pupil's edge, None the default)."""
+    from napari_fdt.recon.config import resolve_field_window
+    from napari_fdt.recon.stages import fine_field_grid, model_window, multislice_plan, uses_split_field
 
     sc = config.stages[stage]
     envelope = sc.factor > 1 and coarse_model == "envelope"
+    split = False
     if envelope:
         shape = envelope_padded_shape(optics, image_shape, sc.factor)
     else:
-        shape = tuple(multislice_plan(optics, sc.factor, image_shape, sources_um)[3].padded_shape)
+        _, opt, _, window = multislice_plan(optics, sc.factor, image_shape, sources_um)
+        split = uses_split_field(resolve_field_window(config.field_window, device_type), sc.factor,
+                                 obliquity="per_source" if config.obliquity_correction == "true" else "none",
+                                 field_oversampling=config.field_oversampling, backward_mode=config.backward_mode,
+                                 pupil_edge=pupil_edge)
+        shape = model_window(window, opt, split)
     model = "envelope" if envelope else "multislice"
     dev = "cuda" if device_type == "cuda" else "cpu"
     batch = config.stage_batch(stage)
     screens = optics.n_slices * (1 if envelope else config.sub_slices)
     if not envelope and fine_field_grid(config.field_oversampling, sc.factor):  # the field on a grid twice as fine
         shape = (2 * shape[0], 2 * shape[1])
-    units = iteration_units(batch, screens, shape, pixel_integration and not envelope)
+    source_pixels = camera_points = 0
+    if split:
+        from napari_fdt.model.split_field import FINE_MARGIN
+
+        h, w = window.image_shape
+        source_pixels = h * w
+        camera_points = (2 * h + 2 * FINE_MARGIN) * (2 * w + 2 * FINE_MARGIN) if pixel_integration else h * w
+    units = iteration_units(batch, screens, shape, pixel_integration and not envelope, source_pixels, camera_points)
     per_it = OVERHEAD_S[dev] + SECONDS_PER_UNIT[(dev, model)] * units
     return Phase(pass_name, stage, len(config.stages), sc.factor, model, sc.iterations, shape, per_it, parts=parts)
 
 
 def make_plan(config: SolverConfig, optics: Optics, image_shape: tuple[int, int], sources_um: np.ndarray,
               coarse_model: str, device_type: str, choose_tv_at: int | None, pixel_integration: bool = False,
-              parts_to_choose: bool = False) -> Plan:
+              parts_to_choose: bool = False, pupil_edge: float | None = None) -> Plan:
     """The plan of a run of ``config`` (as run: its stages resolved) on ``device_type`` ("cpu" or "cuda"), with the
     initial ``sources_um`` (N, 3) µm, ``coarse_model`` resolved for the device; ``choose_tv_at``: the stage at whose
     start the ``"auto"`` TV weights are tried (None: no choice), every weight for :func:`probe_iterations` of its
     iterations, after the stages before it without TV; the run's stages follow in full (the stages before run again
     with the chosen weight: :meth:`Plan.keeping_the_stages_before` drops them where the choice is no TV);
-    ``pixel_integration``: the camera model's (as the first pass runs it); ``parts_to_choose``: "auto" model parts will
+    ``pixel_integration``, ``pupil_edge``: the camera model's (as the first pass runs it); ``parts_to_choose``: "auto" model parts will
     be chosen from the data (:attr:`Plan.if_part_kept_s` then says what keeping one would add)."""
     src = np.asarray(sources_um, dtype=np.float64)
-    stages = [stage_phase(config, optics, image_shape, src, i, coarse_model, device_type, pixel_integration=pixel_integration)
+    stages = [stage_phase(config, optics, image_shape, src, i, coarse_model, device_type, pixel_integration=pixel_integration,
+                          pupil_edge=pupil_edge)
               for i in range(len(config.stages))]
     phases: list[Phase] = []
     if choose_tv_at is not None:
@@ -235,7 +263,7 @@ def make_plan(config: SolverConfig, optics: Optics, image_shape: tuple[int, int]
     if parts_to_choose and config.parts_rerun == "stages":
         again = "multislice" if config.coarse_model == "auto" else coarse_model
         extra = sum(stage_phase(config, optics, image_shape, src, i, again, device_type, RERUN,
-                                pixel_integration=pixel_integration).predicted_s for i in range(len(config.stages)))
+                                pixel_integration=pixel_integration, pupil_edge=pupil_edge).predicted_s for i in range(len(config.stages)))
     elif parts_to_choose:  # parts_rerun "finest": the finest stage again
         extra = stages[-1].predicted_s
     return Plan(tuple(phases), "cuda" if device_type == "cuda" else "cpu", extra)
@@ -248,7 +276,7 @@ def plan_for(acquisition, config: SolverConfig, device_type: str, sources_um: np
     from napari_fdt.physics.camera import needs_pixel_integration
     from napari_fdt.recon.config import resolve_coarse_model, resolve_stage_lengths
     from napari_fdt.recon.regularisation import tv_is_auto
-    from napari_fdt.recon.stages import stated_pixel_integration
+    from napari_fdt.recon.stages import camera_model_options, stated_pixel_integration
     from napari_fdt.recon.validation import holdout_indices
 
     cfg = resolve_stage_lengths(config, acquisition.n_images)
@@ -271,7 +299,8 @@ def plan_for(acquisition, config: SolverConfig, device_type: str, sources_um: np
     requested, _ = requested_for(cfg, acquisition)
     plan = make_plan(cfg, o, acquisition.image_shape, src, resolve_coarse_model(cfg.coarse_model, device_type),
                      device_type, choose_tv_at, pixel_integration=integrate,
-                     parts_to_choose=split and any(v is None for v in requested.values()))
+                     parts_to_choose=split and any(v is None for v in requested.values()),
+                     pupil_edge=camera_model_options(cfg, acquisition)["pupil_edge"])
     return plan, src
 
 

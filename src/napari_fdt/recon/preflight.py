@@ -77,25 +77,40 @@ def images_on_device(acquisition: Acquisition, device_type: str) -> int:
 
 
 def finest_stage_bytes(acquisition: Acquisition, config: SolverConfig, sources_um: np.ndarray, n_wavelengths: int = 1,
-                       device_type: str = "cuda"):
+                       device_type: str = "cuda", batch: int | None = None):
     """Bytes the finest multi-slice stage needs on its device (a training step of one batch, and the images there:
     :func:`images_on_device`),
     with its window plan, batch and backward mode: ``(bytes, plan, batch, mode)``. ``sources_um`` (N, 3) µm set the
-    window."""
-    from napari_fdt.model.memory import grid_is_unitary, leanest_mode, training_bytes
+    window; ``batch`` (None: the stage's) the images of the step."""
+    from napari_fdt.model.memory import grid_is_unitary, leanest_mode, split_training_bytes, training_bytes
     from napari_fdt.model.oversampled import fine_plan
-    from napari_fdt.recon.stages import fine_field_grid, multislice_plan
+    from napari_fdt.model.split_field import split_plan
+    from napari_fdt.recon.config import resolve_field_window
+    from napari_fdt.recon.stages import camera_model_options, fine_field_grid, multislice_plan, uses_split_field
 
     cfg, o, full_shape = config, acquisition.optics, acquisition.image_shape
     finest_index = min(range(len(cfg.stages)), key=lambda i: cfg.stages[i].factor)
-    _, opt, _, plan = multislice_plan(o, cfg.stages[finest_index].factor, full_shape, sources_um)
-    batch = min(cfg.stage_batch(finest_index), acquisition.n_images)
+    factor = cfg.stages[finest_index].factor
+    _, opt, _, plan = multislice_plan(o, factor, full_shape, sources_um)
+    if batch is None:
+        batch = min(cfg.stage_batch(finest_index), acquisition.n_images)
+    images = images_on_device(acquisition, device_type)
+    screens = o.n_slices * cfg.sub_slices
+    options = camera_model_options(cfg, acquisition)
+    if uses_split_field(resolve_field_window(cfg.field_window, device_type), factor,
+                        obliquity="per_source" if cfg.obliquity_correction == "true" else "none",
+                        field_oversampling=cfg.field_oversampling, backward_mode=cfg.backward_mode,
+                        pupil_edge=options["pupil_edge"]):
+        plan = split_plan(plan, opt)  # the split model's loop runs on plain autograd
+        need = split_training_bytes(plan.padded_shape, plan.image_shape, screens, batch, n_wavelengths,
+                                    options["pixel_integration"])
+        return need + images, plan, batch, "autograd (split field)"
     mode = cfg.backward_mode
     if mode == "auto":  # auto falls back to the leanest mode when one field per slice does not fit
         mode = leanest_mode(grid_is_unitary(opt.pixel_size_um, o.n_background, o.wavelength_um))
-    if fine_field_grid(cfg.field_oversampling, cfg.stages[finest_index].factor):  # the field on a grid twice as fine
+    if fine_field_grid(cfg.field_oversampling, factor):  # the field on a grid twice as fine
         plan = fine_plan(plan)
-    return training_bytes(plan.padded_shape, o.n_slices * cfg.sub_slices, batch, n_wavelengths, mode) + images_on_device(acquisition, device_type), plan, batch, mode
+    return training_bytes(plan.padded_shape, screens, batch, n_wavelengths, mode) + images, plan, batch, mode
 
 
 def check_memory(acquisition: Acquisition, config: SolverConfig, sources_um: np.ndarray, device: torch.device,
@@ -106,7 +121,6 @@ def check_memory(acquisition: Acquisition, config: SolverConfig, sources_um: np.
     Raises :class:`~napari_fdt.errors.FDTInputError` (field ``batch_size``) with the batch size that would fit.
     """
     from napari_fdt.device import available_bytes
-    from napari_fdt.model.memory import training_bytes
 
     free = available_bytes(device)
     if free is None:
@@ -116,7 +130,8 @@ def check_memory(acquisition: Acquisition, config: SolverConfig, sources_um: np.
     images = images_on_device(acquisition, torch.device(device).type)
     if need <= 0.9 * free:
         return
-    fits = int((0.9 * free - images) // max(1, training_bytes(plan.padded_shape, o.n_slices * config.sub_slices, 1, k, mode)))
+    one = finest_stage_bytes(acquisition, config, sources_um, n_wavelengths, torch.device(device).type, batch=1)[0] - images
+    fits = int((0.9 * free - images) // max(1, one))
     gib = 2.0**30
     fix = (f"lower batch_size to {fits}" if fits >= 1 else
            "crop the images, use fewer slices or fewer wavelengths, or a device with more memory")

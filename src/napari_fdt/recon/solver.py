@@ -52,7 +52,7 @@ from napari_fdt.recon.checkpoint import (
     write_checkpoint,
 )
 from napari_fdt.recon.choices import default_choices
-from napari_fdt.recon.config import SolverConfig, resolve_coarse_model, resolve_stage_lengths
+from napari_fdt.recon.config import SolverConfig, resolve_coarse_model, resolve_field_window, resolve_stage_lengths
 from napari_fdt.recon.losses import BatchShare, LossWeights, total_loss
 from napari_fdt.recon.model_parts import PartsChoice
 from napari_fdt.recon.parts_search import choice_errors, fit_images
@@ -186,13 +186,17 @@ class Reconstructor:
         #: the phases of the run, known before its first iteration (revised when a choice adds or shortens phases)
         self.plan = make_plan(self.config, self.acquisition.optics, self.full_shape, self.initial_sources_um, self.coarse_model,
                               self.device.type, choose_tv_at, pixel_integration=self.parts["pixel_integration"],
-                              parts_to_choose=self.parts_choice is None)
+                              parts_to_choose=self.parts_choice is None, pupil_edge=self._pupil_edge())
         #: the time-left estimate from the plan and the measured times
         self.pace = Pace(self.plan)
         #: the index in :attr:`plan` of the phase now running
         self._phase_index = 0
         if rerun_parts(self):  # (resumed in the stages run again with kept parts)
             self._add_rerun_phases()
+
+    def _pupil_edge(self) -> float:
+        """The stage models' pupil edge (the setting, else the acquisition's statement, else the default)."""
+        return camera_model_options(self.config, self.acquisition)["pupil_edge"]
 
     def _revise_plan(self, plan: Plan) -> None:
         """Take a revised plan (phases appended or shortened); the measured times so far stay."""
@@ -204,7 +208,7 @@ class Reconstructor:
         if any(p.pass_name == RERUN and p.stage == 0 for p in self.plan.phases):
             return
         again = [stage_phase(self.config, self.acquisition.optics, self.full_shape, self.initial_sources_um, i, self.coarse_model,
-                             self.device.type, RERUN, rerun_parts(self), self.parts["pixel_integration"])
+                             self.device.type, RERUN, rerun_parts(self), self.parts["pixel_integration"], self._pupil_edge())
                  for i in range(len(self.config.stages))]
         self._revise_plan(self.plan.with_rerun(again))
 
@@ -334,10 +338,11 @@ class Reconstructor:
                            **self._model_options())
 
     def _model_options(self) -> dict[str, Any]:
-        """The multi-slice model's options as the run has them: backward mode, sub-slices, obliquity, pupil edge and
-        pixel integration (the parts as switched)."""
+        """The multi-slice model's options as the run has them: backward mode, sub-slices, field grid and window,
+        obliquity, pupil edge and pixel integration (the parts as switched)."""
         cfg = self.config
         return dict(backward_mode=cfg.backward_mode, sub_slices=cfg.sub_slices, field_oversampling=cfg.field_oversampling,
+                    field_window=resolve_field_window(cfg.field_window, self.device.type),
                     obliquity="per_source" if self.parts["obliquity"] else "none",
                     **{**camera_model_options(cfg, self.acquisition), "pixel_integration": self.parts["pixel_integration"]})
 
