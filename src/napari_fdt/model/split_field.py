@@ -87,7 +87,6 @@ class SplitFieldModel(MultiSliceModel):
             raise FDTInputError("obliquity", "the split-field model has no per-source obliquity screens",
                                 "use the full-window model (field_window 'full') for obliquity 'per_source'")
         self.full_plan = plan
-        self.requested_backward_mode = backward_mode
         super().__init__(optics, split_plan(plan, optics, clearance_um), backward_mode="autograd", obliquity="none",
                          exact_free_field=False, **options)
         self._tables: dict[tuple, torch.Tensor] = {}
