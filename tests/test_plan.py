@@ -14,7 +14,7 @@ import torch
 
 from napari_fdt.data.io import read_acquisition
 from napari_fdt.model.envelope import EnvelopeModel
-from napari_fdt.recon.config import SolverConfig, StageConfig, resolve_field_window, resolve_stage_lengths
+from napari_fdt.recon.config import SolverConfig, StageConfig, resolve_stage_lengths
 from napari_fdt.recon.phases import RUN, TV_CHOICE, probe_iterations
 from napari_fdt.recon.plan import Pace, Plan, make_plan
 from napari_fdt.recon.regularisation import TV_PATH
@@ -59,7 +59,7 @@ def test_the_plan_lists_the_choice_then_the_stages_with_the_grids_the_solver_bui
     images = torch.zeros((sample.n_images, *sample.image_shape))
     for p in plan.phases:
         stage = build_stage(p.stage, p.factor, 1, sample.optics, images, _sources(sample), device=torch.device("cpu"),
-                            coarse_model="envelope", field_window=resolve_field_window(cfg.field_window, "cpu"))
+                            coarse_model="envelope", field_window=cfg.field_window)
         if p.model == "envelope":
             assert isinstance(stage.model, EnvelopeModel) and p.fft_shape == stage.model.padded
         else:

@@ -134,12 +134,15 @@ def _unit(t: torch.Tensor, index: tuple) -> torch.Tensor:
 def test_the_solver_uses_it_where_it_holds() -> None:
     from napari_fdt.recon.stages import uses_split_field
 
-    assert uses_split_field("split", 1)
-    assert not uses_split_field("full", 1)
-    assert not uses_split_field("split", 1, obliquity="per_source")
-    assert not uses_split_field("split", 1, field_oversampling=2)
-    assert not uses_split_field("split", 1, pupil_edge=0.0)  # a hard pupil's tails wrap on the small window
-    assert uses_split_field("split", 1, pupil_edge=0.05)
+    assert uses_split_field("split", "cpu", 1, 0.4) and uses_split_field("split", "cuda", 1, 1.0)  # as the user says
+    assert not uses_split_field("full", "cpu", 1, 0.4)
+    assert uses_split_field("auto", "cpu", 1, 0.4)
+    assert not uses_split_field("auto", "cpu", 1, 0.9)  # a window the light cone fills: nothing to save
+    assert not uses_split_field("auto", "cuda", 1, 0.4)  # not measured on CUDA
+    assert not uses_split_field("split", "cpu", 1, 0.4, obliquity="per_source")
+    assert not uses_split_field("split", "cpu", 1, 0.4, field_oversampling=2)
+    assert not uses_split_field("split", "cpu", 1, 0.4, pupil_edge=0.0)  # a hard pupil's tails wrap on the small window
+    assert uses_split_field("split", "cpu", 1, 0.4, pupil_edge=0.05)
     dn, src, o, plan = _setup()
     with pytest.raises(FDTInputError, match="obliquity"):
         SplitFieldModel(o, plan, device="cpu", obliquity="per_source")

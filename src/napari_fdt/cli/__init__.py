@@ -313,11 +313,13 @@ def _cmd_info(args: argparse.Namespace) -> int:
     print(f"forward window: {hp}x{wp} px ({plan.padding_factor:.2f}x the image area), light-cone margin {plan.margin_um:.1f} µm, "
           f"band limit {plan.f_lo_per_um:.3f}..{plan.f_hi_per_um:.3f} cycles/µm")
     from napari_fdt.model.split_field import split_plan
+    from napari_fdt.recon.stages import SPLIT_MAX_FRACTION
 
     sh, sw = split_plan(plan, o).padded_shape
-    print(f"split-field window: {sh}x{sw} px ({sh * sw / (hp * wp):.0%} of the forward window's pixels): the sources' field "
-          "exact, what the sample adds on the image and its light cone (the solver's default on CPU, field_window "
-          "\"auto\"; docs/decisions/split-field.md)")
+    fraction = sh * sw / (hp * wp)
+    use = "the solver's default on CPU" if fraction <= SPLIT_MAX_FRACTION else "not the default: the light cone fills the window"
+    print(f"split-field window: {sh}x{sw} px ({fraction:.0%} of the forward window's pixels): the sources' field exact, what "
+          f"the sample adds on the image and its light cone ({use}; field_window, docs/decisions/split-field.md)")
     return 0
 
 

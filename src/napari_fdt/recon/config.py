@@ -22,7 +22,7 @@ from napari_fdt.errors import FDTInputError
 from napari_fdt.schema import markdown_table, schema_dataclass, setting
 
 __all__ = ["StageConfig", "SolverConfig", "AutoWeight", "AUTO", "load_config", "COHERENCE_MODELS", "BACKWARD_MODES", "COARSE_MODELS",
-           "resolve_coarse_model", "resolve_field_window", "settings_markdown"]
+           "resolve_coarse_model", "settings_markdown"]
 
 #: "auto": the spectral model where the validation error shows it (:mod:`napari_fdt.recon.model_parts`), else none.
 CoherenceModel = Literal["auto", "none", "mask", "spectral", "mask+spectral"]
@@ -236,7 +236,8 @@ class SolverConfig:
         "auto", strict=False, description="window the multi-slice model's fields run on: `\"full\"` (each source's whole field, on a "
         "window that keeps its periodic copies off the image: 7-16x the image's area on the suite), `\"split\"` (the sources' "
         "field exact and non-periodic, only what the sample adds on the image and its light cone: 25-50 % of the pixels, "
-        "as accurate; docs/decisions/split-field.md), `\"auto\"`: split on CPU, full on CUDA (not yet measured there); "
+        "as accurate; docs/decisions/split-field.md), `\"auto\"`: split on CPU where its window has at most 60 % of the full "
+        "window's pixels, else full (on CUDA full: not yet measured there); "
         "the per-source obliquity screens, the 2x field grid and the fused kernels run on the full window",
         fix="use \"auto\", \"full\" or \"split\"")
     pupil_edge: Optional[typing.Annotated[float, Field(ge=0.0, lt=0.5)]] = setting(
@@ -332,13 +333,6 @@ def resolve_coarse_model(coarse_model: str, device_type: str) -> str:
     if coarse_model != "auto":
         return coarse_model
     return "multislice" if device_type == "cuda" else "envelope"
-
-
-def resolve_field_window(field_window: str, device_type: str) -> str:
-    """``"auto"`` → ``"split"`` on CPU, ``"full"`` on CUDA (the split model is measured on CPU only); others pass."""
-    if field_window != "auto":
-        return field_window
-    return "full" if device_type == "cuda" else "split"
 
 
 def load_config(path: str | Path) -> SolverConfig:

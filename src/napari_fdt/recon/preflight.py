@@ -85,8 +85,7 @@ def finest_stage_bytes(acquisition: Acquisition, config: SolverConfig, sources_u
     from napari_fdt.model.memory import grid_is_unitary, leanest_mode, split_training_bytes, training_bytes
     from napari_fdt.model.oversampled import fine_plan
     from napari_fdt.model.split_field import split_plan
-    from napari_fdt.recon.config import resolve_field_window
-    from napari_fdt.recon.stages import camera_model_options, fine_field_grid, multislice_plan, uses_split_field
+    from napari_fdt.recon.stages import camera_model_options, fine_field_grid, multislice_plan, split_window_fraction, uses_split_field
 
     cfg, o, full_shape = config, acquisition.optics, acquisition.image_shape
     finest_index = min(range(len(cfg.stages)), key=lambda i: cfg.stages[i].factor)
@@ -97,7 +96,7 @@ def finest_stage_bytes(acquisition: Acquisition, config: SolverConfig, sources_u
     images = images_on_device(acquisition, device_type)
     screens = o.n_slices * cfg.sub_slices
     options = camera_model_options(cfg, acquisition)
-    if uses_split_field(resolve_field_window(cfg.field_window, device_type), factor,
+    if uses_split_field(cfg.field_window, device_type, factor, split_window_fraction(plan, opt),
                         obliquity="per_source" if cfg.obliquity_correction == "true" else "none",
                         field_oversampling=cfg.field_oversampling, backward_mode=cfg.backward_mode,
                         pupil_edge=options["pupil_edge"]):

@@ -52,7 +52,7 @@ from napari_fdt.recon.checkpoint import (
     write_checkpoint,
 )
 from napari_fdt.recon.choices import default_choices
-from napari_fdt.recon.config import SolverConfig, resolve_coarse_model, resolve_field_window, resolve_stage_lengths
+from napari_fdt.recon.config import SolverConfig, resolve_coarse_model, resolve_stage_lengths
 from napari_fdt.recon.losses import BatchShare, LossWeights, total_loss
 from napari_fdt.recon.model_parts import PartsChoice
 from napari_fdt.recon.parts_search import choice_errors, fit_images
@@ -342,7 +342,7 @@ class Reconstructor:
         obliquity, pupil edge and pixel integration (the parts as switched)."""
         cfg = self.config
         return dict(backward_mode=cfg.backward_mode, sub_slices=cfg.sub_slices, field_oversampling=cfg.field_oversampling,
-                    field_window=resolve_field_window(cfg.field_window, self.device.type),
+                    field_window=cfg.field_window,
                     obliquity="per_source" if self.parts["obliquity"] else "none",
                     **{**camera_model_options(cfg, self.acquisition), "pixel_integration": self.parts["pixel_integration"]})
 
