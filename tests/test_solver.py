@@ -249,6 +249,7 @@ def test_a_batch_that_cannot_fit_is_refused_before_running(tiny, monkeypatch, wi
     fits = int((0.9 * (need9 // 2) - images) // need1)
     assert exc.value.field == "batch_size" and "GiB" in str(exc.value) and f"lower batch_size to {fits}" in str(exc.value)
     assert mode in str(exc.value)
+    assert ('field_window "full"' in str(exc.value)) == (window == "split")
     monkeypatch.setattr(device_module, "available_bytes", lambda device: need1 // 2)  # not even one image
     with pytest.raises(FDTInputError) as exc:
         Reconstructor(tiny.acquisition, _tiny_config(batch_size=9, field_window=window), device="cpu")

@@ -134,6 +134,9 @@ def check_memory(acquisition: Acquisition, config: SolverConfig, sources_um: np.
     gib = 2.0**30
     fix = (f"lower batch_size to {fits}" if fits >= 1 else
            "crop the images, use fewer slices or fewer wavelengths, or a device with more memory")
+    if "split" in mode:  # the split model keeps each screen's source field: the full window may need less
+        fix += ', or set field_window "full"'
+
     raise FDTInputError(
         "batch_size",
         f"a batch of {batch} images needs about {need / gib:.1f} GiB on {device} "
