@@ -19,7 +19,7 @@ medium, which is known. :class:`SplitFieldModel` writes the field at every scree
 
 Against the full-window model on a window 1.8× the plan's, where the copies are far (float64, the suite's truth volumes,
 8 images each; ``docs/decisions/split-field.md``): image errors of 0.016–0.035 %, below the planned full window's
-0.02–0.13 % (its copies' pupil tails) and far below the thin screen's own error (1–8 %). The FFTs run on 14–52 % of
+0.02–0.13 % (its copies' pupil tails) and far below the thin screen's own error (1–8 %). The FFTs run on 17–52 % of
 the full window's pixels. Supported: one or more screens per slice, the pupil's edge, NA and aberrations (a
 non-radial phase takes the camera's source field from the full window, one FFT per image), pixel integration,
 per-call optics overrides (self-calibration, the spectral model); not the per-source obliquity screens, the 2× field

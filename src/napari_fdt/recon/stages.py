@@ -139,7 +139,7 @@ def fine_field_grid(field_oversampling: int, factor: int) -> bool:
 
 
 #: ``field_window = "auto"`` runs the split-field model where its window has at most this fraction of the full window's
-#: pixels: on the suite 17-52 % (a step 1.5-2.8x faster on the CPU); on the authors' 512² demo geometry the light cone's
+#: pixels: on the suite 17-52 % (a step 1.4-2.8x faster on the CPU); on the authors' 512² demo geometry the light cone's
 #: margin fills the full window (100 %), where the split model adds its source fields and their memory (7x the full
 #: model's estimate at batch 16) for nothing.
 SPLIT_MAX_FRACTION = 0.6
