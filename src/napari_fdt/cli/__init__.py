@@ -313,10 +313,10 @@ def _cmd_info(args: argparse.Namespace) -> int:
     print(f"forward window: {hp}x{wp} px ({plan.padding_factor:.2f}x the image area), light-cone margin {plan.margin_um:.1f} µm, "
           f"band limit {plan.f_lo_per_um:.3f}..{plan.f_hi_per_um:.3f} cycles/µm")
     from napari_fdt.model.split_field import split_plan
-    from napari_fdt.recon.stages import SPLIT_MAX_FRACTION
+    from napari_fdt.recon.stages import SPLIT_MAX_FRACTION, split_window_fraction
 
     sh, sw = split_plan(plan, o).padded_shape
-    fraction = sh * sw / (hp * wp)
+    fraction = split_window_fraction(plan, o)
     use = "the solver's default on CPU" if fraction <= SPLIT_MAX_FRACTION else "not the default: the light cone fills the window"
     print(f"split-field window: {sh}x{sw} px ({fraction:.0%} of the forward window's pixels): the sources' field exact, what "
           f"the sample adds on the image and its light cone ({use}; field_window, docs/decisions/split-field.md)")

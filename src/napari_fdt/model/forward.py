@@ -339,6 +339,14 @@ class MultiSliceModel:
         idx = torch.arange(start, stop, device=self.device, dtype=self.dtype) * step
         return (idx - n // 2) * dx
 
+    def source_offsets(self, sources_um: torch.Tensor, ys: torch.Tensor, xs: torch.Tensor):
+        """``(dy, dx, ρ)`` of window coordinates ``ys`` (ny,), ``xs`` (nx,) µm from each source: (B, ny, 1), (B, 1, nx) and
+        (B, ny, nx) µm (ρ kept off 0, where its derivative is undefined)."""
+        src = sources_um.to(self.device, self.dtype)
+        dy = ys.reshape(1, -1, 1) - src[:, 1].reshape(-1, 1, 1)
+        dx = xs.reshape(1, 1, -1) - src[:, 0].reshape(-1, 1, 1)
+        return dy, dx, torch.sqrt(dy * dy + dx * dx + 1e-12)
+
     def free_field_exact(self, sources_um: torch.Tensor, k: Kernels, ys: torch.Tensor, xs: torch.Tensor) -> torch.Tensor:
         """Non-periodic homogeneous-medium camera field (B, ny, nx) at window coordinates ``ys`` (ny,), ``xs`` (nx,) µm.
 
@@ -353,9 +361,7 @@ class MultiSliceModel:
         edges = [0.0, cutoff] if hard else [0.0, (1.0 - edge) * cutoff, (1.0 + edge) * cutoff]
         thickness = o.n_slices * k.slice_spacing_um
         h = src[:, 2] + thickness - o.image_plane_um  # source → focal plane
-        dy = ys.reshape(1, -1, 1) - src[:, 1].reshape(-1, 1, 1)
-        dxx = xs.reshape(1, 1, -1) - src[:, 0].reshape(-1, 1, 1)
-        rho = torch.sqrt(dy * dy + dxx * dxx + 1e-12)
+        dy, dxx, rho = self.source_offsets(sources_um, ys, xs)
         step = DEFAULT_RHO_STEP_UM
         rho_max = float(rho.detach().max()) + 2 * step
         n_rho = int(math.ceil(rho_max / step)) + 2

@@ -146,12 +146,6 @@ class SplitFieldModel(MultiSliceModel):
         k = torch.as_tensor(self.optics.n_background / lam, device=self.device, dtype=self.dtype)
         return _Lookup.apply(table, rho, heights, k, step)
 
-    def _radii(self, sources_um: torch.Tensor, ys: torch.Tensor, xs: torch.Tensor) -> torch.Tensor:
-        src = sources_um.to(self.device, self.dtype)
-        dy = ys.reshape(1, -1, 1) - src[:, 1].reshape(-1, 1, 1)
-        dx = xs.reshape(1, 1, -1) - src[:, 0].reshape(-1, 1, 1)
-        return torch.sqrt(dy * dy + dx * dx + 1e-12)  # (B, ny, nx)
-
     def incident_fields(self, sources_um: torch.Tensor, k: Kernels | None = None) -> torch.Tensor:
         """The sources' homogeneous-medium field at every screen on the image, (B, screens, H, W) complex: screen i at
         ``(i + 0.5)·step_um`` above the bottom face (the field envelope, as :meth:`MultiSliceModel.exit_spectra`'s)."""
@@ -160,7 +154,7 @@ class SplitFieldModel(MultiSliceModel):
         h, w = self.plan.image_shape
         ys = self._window_coordinates(oy, oy + h, 0, 1.0, k.pixel_size_um)
         xs = self._window_coordinates(ox, ox + w, 1, 1.0, k.pixel_size_um)
-        rho = self._radii(sources_um, ys, xs)
+        rho = self.source_offsets(sources_um, ys, xs)[2]
         src = sources_um.to(self.device, self.dtype)
         n_screens = self.optics.n_slices * self.sub_slices
         z = (torch.arange(n_screens, device=self.device, dtype=self.dtype) + 0.5) * k.step_um
@@ -194,7 +188,7 @@ class SplitFieldModel(MultiSliceModel):
         cutoff = k.na / lam
         edges = [0.0, (1.0 - edge) * cutoff, (1.0 + edge) * cutoff]
         heights = src[:, 2] + o.n_slices * k.slice_spacing_um - o.image_plane_um  # source → focal plane
-        rho = self._radii(sources_um, ys, xs)
+        rho = self.source_offsets(sources_um, ys, xs)[2]
         amplitude = lambda f: pupil(f * f, k.na, lam, edge)  # noqa: E731
         if k.zernike is not None:  # radial modes only: a phase on the pupil
             keep = [ZERNIKE_MODES.index(m) for m in RADIAL_MODES]
@@ -283,10 +277,14 @@ class SplitFieldModel(MultiSliceModel):
         raise NotImplementedError("the split-field model adds the exact homogeneous field itself")
 
 
+def _excess_path(rho: torch.Tensor, heights: torch.Tensor) -> torch.Tensor:
+    """``√(ρ² + H²) − H`` (µm), written without the cancellation near the axis."""
+    return rho * rho / (torch.sqrt(rho * rho + heights * heights) + heights)
+
+
 def _carrier(rho: torch.Tensor, heights: torch.Tensor, k_per_um, *, conj: bool = False) -> torch.Tensor:
     """``exp(±i·2π·k·(√(ρ² + H²) − H))``: the homogeneous field's fast phase (the envelope's carrier removed)."""
-    path = rho * rho / (torch.sqrt(rho * rho + heights * heights) + heights)  # √(ρ²+H²) − H without cancellation
-    phase = (2.0 * math.pi) * k_per_um * path
+    phase = (2.0 * math.pi) * k_per_um * _excess_path(rho, heights)
     if conj:
         phase = -phase
     return torch.polar(torch.ones_like(phase), phase)
@@ -312,9 +310,7 @@ class _Lookup(torch.autograd.Function):
         index = i0.long()[:, None, :].expand(b, s, -1)
         v0 = torch.gather(table, 2, index)
         slope = torch.gather(table, 2, index + 1).sub_(v0)  # the table's step across the interval
-        rho2 = (rho * rho)[:, None, :]
-        h = heights[..., None]
-        path = rho2 / (torch.sqrt(rho2 + h * h) + h)  # √(ρ²+H²) − H without cancellation
+        path = _excess_path(rho[:, None, :], heights[..., None])
         carrier = torch.polar(torch.ones_like(path), path * ((2.0 * math.pi) * k))
         out = torch.addcmul(v0, slope, t[:, None, :].to(v0.dtype)).mul_(carrier)
         slope.mul_(carrier)

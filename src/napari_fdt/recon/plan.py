@@ -204,7 +204,7 @@ def stage_phase(config: SolverConfig, optics: Optics, image_shape: tuple[int, in
                 pixel_integration: bool = False, pupil_edge: float | None = None) -> Phase:
     """The phase of stage ``stage`` (its model, FFT grid and predicted seconds per iteration; ``pixel_integration``: the
     multi-slice model's camera integrates over its pixels; ``pupil_edge`` its pupil's edge, None the default)."""
-    from napari_fdt.recon.stages import fine_field_grid, model_window, multislice_plan, split_window_fraction, uses_split_field
+    from napari_fdt.recon.stages import config_uses_split_field, fine_field_grid, model_window, multislice_plan
 
     sc = config.stages[stage]
     envelope = sc.factor > 1 and coarse_model == "envelope"
@@ -213,10 +213,7 @@ def stage_phase(config: SolverConfig, optics: Optics, image_shape: tuple[int, in
         shape = envelope_padded_shape(optics, image_shape, sc.factor)
     else:
         _, opt, _, window = multislice_plan(optics, sc.factor, image_shape, sources_um)
-        split = uses_split_field(config.field_window, device_type, sc.factor, split_window_fraction(window, opt),
-                                 obliquity="per_source" if config.obliquity_correction == "true" else "none",
-                                 field_oversampling=config.field_oversampling, backward_mode=config.backward_mode,
-                                 pupil_edge=pupil_edge)
+        split = config_uses_split_field(config, device_type, sc.factor, window, opt, pupil_edge)
         shape = model_window(window, opt, split)
     model = "envelope" if envelope else "multislice"
     dev = "cuda" if device_type == "cuda" else "cpu"

@@ -85,7 +85,7 @@ def finest_stage_bytes(acquisition: Acquisition, config: SolverConfig, sources_u
     from napari_fdt.model.memory import grid_is_unitary, leanest_mode, split_training_bytes, training_bytes
     from napari_fdt.model.oversampled import fine_plan
     from napari_fdt.model.split_field import split_plan
-    from napari_fdt.recon.stages import camera_model_options, fine_field_grid, multislice_plan, split_window_fraction, uses_split_field
+    from napari_fdt.recon.stages import camera_model_options, config_uses_split_field, fine_field_grid, multislice_plan
 
     cfg, o, full_shape = config, acquisition.optics, acquisition.image_shape
     finest_index = min(range(len(cfg.stages)), key=lambda i: cfg.stages[i].factor)
@@ -96,10 +96,7 @@ def finest_stage_bytes(acquisition: Acquisition, config: SolverConfig, sources_u
     images = images_on_device(acquisition, device_type)
     screens = o.n_slices * cfg.sub_slices
     options = camera_model_options(cfg, acquisition)
-    if uses_split_field(cfg.field_window, device_type, factor, split_window_fraction(plan, opt),
-                        obliquity="per_source" if cfg.obliquity_correction == "true" else "none",
-                        field_oversampling=cfg.field_oversampling, backward_mode=cfg.backward_mode,
-                        pupil_edge=options["pupil_edge"]):
+    if config_uses_split_field(cfg, device_type, factor, plan, opt, options["pupil_edge"]):
         plan = split_plan(plan, opt)  # the split model's loop runs on plain autograd
         need = split_training_bytes(plan.padded_shape, plan.image_shape, screens, batch, n_wavelengths,
                                     options["pixel_integration"])

@@ -33,8 +33,9 @@ from napari_fdt.physics.optics import Optics
 from napari_fdt.recon.stage_images import LazyImages, block_average, stage_images
 from napari_fdt.recon.volume import upsample_to
 
-__all__ = ["Stage", "build_stage", "fine_field_grid", "uses_split_field", "split_window_fraction", "model_window", "block_average", "stage_optics",
-           "field_factor", "multislice_plan", "camera_model_options", "stated_pixel_integration"]
+__all__ = ["Stage", "build_stage", "fine_field_grid", "uses_split_field", "config_uses_split_field", "split_window_fraction",
+           "model_window", "block_average", "stage_optics", "field_factor", "multislice_plan", "camera_model_options",
+           "stated_pixel_integration"]
 
 #: Fraction of the coarse grid's Nyquist frequency the stage pupil's outer edge may reach.
 NYQUIST_FILL = 0.95
@@ -171,6 +172,17 @@ def uses_split_field(field_window: str, device_type: str, factor: int, window_fr
 def model_window(plan: GridPlan, optics: Optics, split: bool) -> tuple[int, int]:
     """(h, w) of the window a multi-slice stage's FFTs run on: ``plan``'s, or the split model's (:func:`split_plan`)."""
     return tuple(split_plan(plan, optics).padded_shape) if split else tuple(plan.padded_shape)
+
+
+def config_uses_split_field(config, device_type: str, factor: int, plan: GridPlan, optics: Optics,
+                            pupil_edge: float | None) -> bool:
+    """:func:`uses_split_field` for a solver configuration's stage of ``factor`` (its full window ``plan`` and stage
+    ``optics``), as the plan and the memory check price it before the run (obliquity as configured: the parts' choice
+    comes later)."""
+    return uses_split_field(config.field_window, device_type, factor, split_window_fraction(plan, optics),
+                            obliquity="per_source" if config.obliquity_correction == "true" else "none",
+                            field_oversampling=config.field_oversampling, backward_mode=config.backward_mode,
+                            pupil_edge=pupil_edge)
 
 
 def build_stage(
