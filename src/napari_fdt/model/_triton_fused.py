@@ -35,7 +35,7 @@ import math
 import triton
 import triton.language as tl
 
-TWO_PI = 2.0 * math.pi
+TWO_PI = tl.constexpr(2.0 * math.pi)  # a global a kernel reads must be a constexpr (Triton 3.6 refuses a plain float)
 
 
 def _outer(x_ptr, field_ptr, u_ptr, phi_ptr, gphi_ptr, H, W,
