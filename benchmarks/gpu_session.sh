@@ -1,0 +1,60 @@
+#!/usr/bin/env bash
+# The GPU-session checklist of docs/benchmarks.md as one command, for a lent GPU machine with a short lease.
+#
+#   bash benchmarks/gpu_session.sh OUT_DIR [ITEMS]
+#
+# Runs the checklist's items in the order of what they decide (correctness first; the cold time to accuracy first
+# after the machine starts, since it measures a cold start), each in a fresh process under its own time limit, so
+# that one item that hangs or fails leaves the others' results. Writes OUT_DIR/NAME.log per item, the sample
+# runs' reports, and OUT_DIR/session.tgz with those and the files the items wrote under benchmarks/results. ITEMS: a
+# comma-separated subset of
+# tta,checks,split,sample,step,coarse,tta_envelope,suite_multislice,suite_envelope (default: all, in that
+# order). The limits are about twice what each took on an H200 (2026-11-26); a 15-minute lease holds two calls:
+# tta,checks,split,sample,step,coarse, then tta_envelope,suite_multislice,suite_envelope. split reads the suite's scenes from out/scenes (carry them, or make-scenes first).
+# The package runs from src/ (PYTHONPATH), so a machine with torch, numpy, scikit-image, tifffile and pydantic needs
+# no install.
+set -u
+out=${1:?usage: gpu_session.sh OUT_DIR [ITEMS]}
+items=${2:-tta,checks,split,sample,step,coarse,tta_envelope,suite_multislice,suite_envelope}
+mkdir -p "$out"
+tmp=$(mktemp -d)
+touch "$tmp/start"
+export PYTHONPATH="$PWD/src:$PWD${PYTHONPATH:+:$PYTHONPATH}" PYTHONUNBUFFERED=1
+py=${PYTHON:-python3}
+
+item() {  # item NAME LIMIT_S COMMAND...: run one item in a fresh process, its output in OUT/NAME.log
+    local name=$1 limit=$2
+    shift 2
+    case ",$items," in *",$name,"*) ;; *) return 0 ;; esac
+    local t0=$SECONDS
+    echo "== $name (limit ${limit} s): $*"
+    timeout -k 5 "$limit" "$@" >"$out/$name.log" 2>&1
+    local rc=$?
+    echo "   rc $rc after $((SECONDS - t0)) s; last lines:"
+    tail -n 6 "$out/$name.log" | sed 's/^/   | /'
+}
+
+{
+    nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader
+    "$py" -c "import torch, sys; print(sys.version.split()[0], torch.__version__, torch.cuda.get_device_name(0))"
+} 2>&1 | tee "$out/device.txt"
+
+item tta 90 "$py" -m benchmarks run time_to_accuracy --device cuda
+item checks 240 "$py" -m benchmarks run gpu_checks
+item split 45 "$py" -m benchmarks run split_field --device cuda --write
+# the README's command on the GPU, with the field window the defaults choose and with the split window
+sample='for w in auto split; do "$0" -c "import sys; from napari_fdt.cli import main; sys.exit(main())" reconstruct sample_data/letters --device "$2" --quiet \
+    --overwrite --truth sample_data/letters/ground_truth_ri.tif --field-window $w --out "$1/sample_$w.tif" || exit; done'
+item sample 75 bash -c "$sample" "$py" "$tmp" "${SAMPLE_DEVICE:-cuda}"
+item step 60 "$py" -m benchmarks run step_speed --device cuda
+item coarse 60 "$py" -m benchmarks run coarse_stage_speed --device cuda --cuda-graph --repeats 10
+item tta_envelope 90 "$py" -m benchmarks run time_to_accuracy --device cuda --coarse-model envelope
+item suite_multislice 150 "$py" -m benchmarks run suite --device cuda --scenes demo,sample \
+    --out benchmarks/results/suite_cuda_multislice.json
+item suite_envelope 150 "$py" -m benchmarks run suite --device cuda --scenes demo,sample --coarse-model envelope \
+    --out benchmarks/results/suite_cuda_envelope.json
+
+cp "$tmp"/sample_*.json "$out"/ 2>/dev/null
+# one archive (a lease's file transfer may take few files): the logs, the sample reports, what went to benchmarks/results
+tar czf "$out/session.tgz" -C "$out" $(cd "$out" && ls | grep -v "^session.tgz$") $(find benchmarks/results -newer "$tmp/start" -type f | sed "s|^|-C $PWD |")
+echo "== done after $SECONDS s"
