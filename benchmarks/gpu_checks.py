@@ -3,17 +3,13 @@
     python -m benchmarks run gpu_checks
 
 Checks, each against a reference in float64 on the CPU, on fresh random inputs:
-1. the fused Triton adjoint kernel against the torch version (outputs poisoned first: every element written);
+1. the Triton adjoint kernel (:mod:`napari_fdt.model._triton_slice`) against the torch version (outputs poisoned
+   first: every element written);
 2. every backward mode of the slice loop on CUDA (float32) against plain autograd in float64;
 3. the model's images on CUDA against the CPU;
 4. a short reconstruction on CUDA against the same on the CPU (envelope coarse stage: the batched path on CUDA);
 5. the envelope model's batched path on CUDA (float32), eager and captured in a CUDA graph, against its per-slice
-   path in float64 on the CPU: images and gradients (issue 16);
-6. the DFT-matrix slice loop (:mod:`benchmarks._dft_loop`) on CUDA, float32 without TF32: gradients within
-   1e-5 of the float64 reference (issue 16's bound);
-7. the fused Triton slice loop (:mod:`napari_fdt.model.fused_loop`) compiled for CUDA, both precisions ("ieee",
-   "tf32x3"), powers of two and a 2·3·5-smooth window: field and gradients within 1e-5 of the float64 reference,
-   and the model in ``backward_mode="fused"`` against "stored".
+   path in float64 on the CPU: images and gradients (issue 16).
 Prints one line per check with the measured relative error and exits non-zero if any exceeds its bound.
 """
 
@@ -163,79 +159,6 @@ def check_envelope(dev) -> None:
             report(f"envelope batched {label} cuda fp32 vs per-slice cpu fp64: {name}", rel(a, r), 1e-4)
 
 
-def check_dft_loop(dev) -> None:
-    from benchmarks._dft_loop import DftPlan, dft_slice_loop
-    from napari_fdt.model.slice_loop import slice_loop
-
-    torch.backends.cuda.matmul.allow_tf32 = False  # TF32 products carry 10-bit mantissas: far above 1e-5
-    for shape in ((128, 128), (120, 96)):
-        g = torch.Generator().manual_seed(7)
-        n, b = 14, 4
-        v0 = torch.randn((b, *shape), generator=g, dtype=torch.complex128)
-        phi = 0.8 * torch.rand((n, *shape), generator=g, dtype=torch.float64)
-        fy, fx = frequency_grid(shape, 0.33, dtype=torch.float64)
-        kern = propagation_kernel(fy * fy + fx * fx, 1.5, 1.33, 0.6)
-        w = torch.rand((b, *shape), generator=g, dtype=torch.float64)
-
-        def grads(loop, args):
-            a, p, k = (t.clone().requires_grad_() for t in args)
-            u = loop(a, p, k)
-            ((u.real.square() + u.imag.square()) * w.to(u.real)).sum().backward()
-            return a.grad, p.grad, k.grad
-
-        ref = grads(lambda a, p, k: slice_loop(a, p, k, "stored"), (v0, phi, kern))
-        args = tuple(t.to(dev, torch.complex64 if t.is_complex() else torch.float32) for t in (v0, phi, kern))
-        plan = DftPlan(shape, device=dev)
-        out = grads(lambda a, p, k: dft_slice_loop(a, p, k, plan), args)
-        for name, a, r in zip(("grad v0", "grad phi", "grad K"), out, ref):
-            report(f"DFT-matrix slice loop {shape} cuda fp32 vs cpu fp64: {name}", rel(a, r), 1e-5)
-
-
-def check_fused_loop(dev) -> None:
-    from napari_fdt.model.fused_loop import fused_slice_loop, supports
-    from napari_fdt.model.slice_loop import slice_loop
-
-    if not supports((512, 512), dev)[0]:
-        print("skip fused slice loop: " + supports((512, 512), dev)[1])
-        return
-    for shape, n, b in (((512, 512), 14, 4), ((360, 300), 6, 3)):
-        g = torch.Generator().manual_seed(7)
-        f_y = torch.fft.fftfreq(shape[0], 0.33, dtype=torch.float64)[:, None]
-        f_x = torch.fft.fftfreq(shape[1], 0.33, dtype=torch.float64)[None, :]
-        kern = propagation_kernel(f_y**2 + f_x**2, 1.5, 1.33, 0.6)
-        v0 = torch.randn((b, *shape), generator=g, dtype=torch.complex128)
-        phi = 0.5 * torch.rand((n, *shape), generator=g, dtype=torch.float64)
-        w = torch.rand((b, *shape), generator=g, dtype=torch.float64)
-
-        def grads(loop, a, p, wt):
-            a, p = a.clone().requires_grad_(), p.clone().requires_grad_()
-            u = loop(a, p)
-            ((u.real.square() + u.imag.square()) * wt).sum().backward()
-            return u.detach(), a.grad, p.grad
-
-        ref = grads(lambda a, p: slice_loop(a, p, kern, "stored"), v0, phi, w)
-        for precision in ("ieee", "tf32x3"):
-            out = grads(lambda a, p: fused_slice_loop(a, p, kern.to(dev, torch.complex64), precision=precision),
-                        v0.to(dev, torch.complex64), phi.to(dev, torch.float32), w.to(dev, torch.float32))
-            for name, a, r in zip(("field", "grad v0", "grad phi"), out, ref):
-                report(f"fused slice loop {shape} x{n} {precision} cuda fp32 vs cpu fp64: {name}", rel(a, r), 1e-5)
-    o = Optics(wavelength_um=0.6, na=0.6, n_background=1.33, pixel_size_um=0.35, n_slices=6,
-               slice_spacing_um=1.0, image_plane_um=0.0)
-    src = np.array([[0.5, -0.3, 10.0], [-1.0, 0.8, 11.0], [2.0, 1.0, 12.0]])
-    plan = plan_for_sources(o, (64, 64), src)
-    dn = 0.02 * torch.rand((6, 64, 64), generator=torch.Generator().manual_seed(2))
-    out = {}
-    for mode in ("stored", "fused"):
-        model = MultiSliceModel(o, plan, device=dev, backward_mode=mode)
-        d = dn.to(dev).requires_grad_()
-        s = torch.tensor(src, dtype=torch.float32, device=dev, requires_grad=True)
-        img = model(d, s)
-        img.square().sum().backward()
-        out[mode] = (img.detach(), d.grad, s.grad)
-    for name, a, r in zip(("images", "grad delta_n", "grad sources"), out["fused"], out["stored"]):
-        report(f"model backward_mode fused vs stored {plan.padded_shape}: {name}", rel(a, r), 1e-5)
-
-
 def main() -> None:
     argparse.ArgumentParser(description=__doc__.splitlines()[0]).parse_args()
     if not torch.cuda.is_available():
@@ -248,8 +171,6 @@ def main() -> None:
     check_model(dev)
     check_reconstruction(dev)
     check_envelope(dev)
-    check_dft_loop(dev)
-    check_fused_loop(dev)
     print("FAILED: " + ", ".join(FAILED) if FAILED else "all GPU checks passed")
     sys.exit(1 if FAILED else 0)
 

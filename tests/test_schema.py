@@ -76,6 +76,28 @@ def test_literal_errors_list_the_choices() -> None:
     assert exc.value.field == "backward_mode" and "'checkpoint'" in exc.value.problem and "fits in memory" in exc.value.fix
 
 
+def test_removed_backward_mode_fused_loads_as_auto_with_a_warning(tmp_path) -> None:
+    """Settings files and reports (RI.json) written while ``backward_mode = "fused"`` existed still load: the value
+    becomes "auto", with an FDTWarning naming the replacement and why the value went; it is no longer a choice."""
+    import json
+
+    from napari_fdt.errors import FDTWarning
+    from napari_fdt.recon.command import REPORT_FORMAT, config_from_file
+
+    data = {"backward_mode": "fused", "stages": [{"factor": 1, "iterations": 5}]}
+    with pytest.warns(FDTWarning, match=r'backward_mode: "fused" was removed on 2026-11-26: slower than the FFT loop on '
+                                        r'an H200, docs/decisions/gpu-checklist-h200.md; using "auto"'):
+        assert SolverConfig.from_dict(data).backward_mode == "auto"
+    settings = tmp_path / "settings.json"
+    settings.write_text(json.dumps(data), encoding="utf-8")
+    report = tmp_path / "RI.json"
+    report.write_text(json.dumps({"format": REPORT_FORMAT, "config": data}), encoding="utf-8")
+    for path in (settings, report):
+        with pytest.warns(FDTWarning, match="removed"):
+            assert config_from_file(path).backward_mode == "auto"
+    assert "fused" not in choices(schema_fields(SolverConfig)["backward_mode"])
+
+
 def test_replace_validates_again_and_stages_keep_their_prefix() -> None:
     cfg = SolverConfig(stages=[StageConfig(2, 3), StageConfig(1, 4)])
     assert dataclasses.replace(cfg, tv_xy_weight=1e-3).tv_xy_weight == 1e-3

@@ -21,8 +21,6 @@ import torch.nn.functional as F
 
 from napari_fdt.device import resolve_device
 from napari_fdt.errors import FDTInputError
-from napari_fdt.model.fused_loop import fused_slice_loop
-from napari_fdt.model.fused_loop import supports as fused_supports
 from napari_fdt.model.memory import grid_is_unitary
 from napari_fdt.model.slice_loop import MODES, choose_mode, loop_forward, slice_loop
 from napari_fdt.physics.aberrations import RADIAL_MODES, ZERNIKE_MODES, coefficients_vector, zernike_phase
@@ -108,9 +106,7 @@ class MultiSliceModel:
     backward_mode: how gradients of the slice loop are formed (:mod:`napari_fdt.model.slice_loop`):
         ``"auto"`` (default: ``"stored"`` when one field per slice and image fits in
         ``memory_budget_bytes``, else ``"reversible"`` for a unitary propagator, else ``"checkpoint"``),
-        one of those three, ``"autograd"`` (plain autograd through every operation: the reference), or
-        ``"fused"`` (:mod:`napari_fdt.model.fused_loop`: the stored mode in two Triton kernels per slice; CUDA,
-        power-of-two windows; ``"stored"`` where the propagator needs a gradient).
+        one of those three, or ``"autograd"`` (plain autograd through every operation: the reference).
     memory_budget_bytes: bytes the loop may keep in auto mode; None: 80 % of the device's free memory,
         read once per batch size.
     obliquity: ``"none"`` (default: thin screens, phase ``2π/λ·Δz·Δn`` for light of every direction) or
@@ -155,8 +151,8 @@ class MultiSliceModel:
     ) -> None:
         if dtype not in (torch.float32, torch.float64):
             raise ValueError("dtype must be torch.float32 or torch.float64 (fp16 phases are too coarse)")
-        if backward_mode not in ("auto", "autograd", "fused", *MODES):
-            raise ValueError(f"backward_mode must be 'auto', 'autograd', 'fused' or one of {MODES}, got {backward_mode!r}")
+        if backward_mode not in ("auto", "autograd", *MODES):
+            raise ValueError(f"backward_mode must be 'auto', 'autograd' or one of {MODES}, got {backward_mode!r}")
         if obliquity not in ("none", "per_source"):
             raise FDTInputError("obliquity", f"unknown correction {obliquity!r}", "use 'none' or 'per_source'")
         self.obliquity = obliquity
@@ -186,11 +182,6 @@ class MultiSliceModel:
         self.optics = optics
         self.plan = plan
         self.device = resolve_device(device)
-        if backward_mode == "fused":
-            ok, why = fused_supports(plan.padded_shape, self.device)
-            if not ok or dtype != torch.float32:
-                raise FDTInputError("backward_mode", f"'fused' cannot run here: {why or 'it needs float32'}",
-                                    "use 'auto' (the fused kernels need CUDA with Triton and a power-of-two window)")
         self.dtype = dtype
         self._centering = centering_sign(plan.padded_shape, device=self.device, dtype=dtype)
         self._default = self.kernels()
@@ -320,9 +311,7 @@ class MultiSliceModel:
                 u = u * phase_screen(dn_i, k.step_um, k.wavelength_um)
         else:
             phi = screen_phase(dn, k.step_um, k.wavelength_um)
-            if self.backward_mode == "fused" and torch.is_grad_enabled() and not k.slice_kernel.requires_grad:
-                u = fused_slice_loop(v0, phi, k.slice_kernel)
-            elif torch.is_grad_enabled() and (v0.requires_grad or phi.requires_grad or k.slice_kernel.requires_grad):
+            if torch.is_grad_enabled() and (v0.requires_grad or phi.requires_grad or k.slice_kernel.requires_grad):
                 u = slice_loop(v0, phi, k.slice_kernel, self.loop_mode(v0.shape[0]), check=False)
             else:  # inference: nothing to keep
                 u = loop_forward(v0, phi, k.slice_kernel)
@@ -503,10 +492,7 @@ class MultiSliceModel:
         return F.pad(corr, (c0, scale * wp - c1, r0, scale * hp - r1))
 
     def loop_mode(self, batch: int) -> str:
-        """The backward mode used for a batch of ``batch`` images (see ``backward_mode``; ``"fused"`` runs
-        :func:`slice_loop` in ``"stored"`` mode when the propagator itself needs a gradient)."""
-        if self.backward_mode == "fused":
-            return "stored"
+        """The backward mode used for a batch of ``batch`` images (see ``backward_mode``)."""
         if self.backward_mode != "auto":
             return self.backward_mode
         if batch not in self._auto_modes:

@@ -46,8 +46,6 @@ def training_bytes(
     n = max(1, int(n_slices))
     b = int(batch) * max(1, int(n_wavelengths))
     field = 8 * pixels
-    if mode == "fused":  # the stored mode's fields, one work buffer and the adjoint in place
-        mode = "stored"
     if mode == "autograd":
         per_image = BYTES_PER_PIXEL_SLICE_IMAGE * pixels * n
         return per_image * b + 64 * pixels

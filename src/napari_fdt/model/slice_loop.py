@@ -21,8 +21,9 @@ three modes that trade memory for work:
 
 :func:`choose_mode` picks the cheapest mode whose memory fits. Gradients (PyTorch's convention for
 complex tensors) flow to ``v_0``, ``φ`` and ``K``; they are checked against autograd in
-``tests/test_slice_loop.py``. On CUDA, the per-slice adjoint arithmetic runs in one fused Triton
-kernel when Triton is importable (:mod:`napari_fdt.model._triton_slice`); elsewhere in plain torch.
+``tests/test_slice_loop.py``. On CUDA, the per-slice adjoint arithmetic runs in one Triton kernel
+(one pass instead of torch's five) when Triton is importable (:mod:`napari_fdt.model._triton_slice`); elsewhere
+in plain torch.
 """
 
 from __future__ import annotations

@@ -22,8 +22,8 @@ Against the full-window model on a window 1.8× the plan's, where the copies are
 0.02–0.13 % (its copies' pupil tails) and far below the thin screen's own error (1–8 %). The FFTs run on 17–52 % of
 the full window's pixels. Supported: one or more screens per slice, the pupil's edge, NA and aberrations (a
 non-radial phase takes the camera's source field from the full window, one FFT per image), pixel integration,
-per-call optics overrides (self-calibration, the spectral model); not the per-source obliquity screens, the 2× field
-grid or the fused CUDA kernels (plain autograd through the loop). A pupil edge narrower than the window's taper is
+per-call optics overrides (self-calibration, the spectral model); not the per-source obliquity screens or the 2× field
+grid (plain autograd through the loop). A pupil edge narrower than the window's taper is
 better served by the full window (its tails wrap on the small one): :func:`~napari_fdt.recon.stages.uses_split_field`.
 """
 

@@ -12,13 +12,14 @@ import dataclasses
 import json
 import math
 import typing
+import warnings
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any, Literal, Optional
 
 from pydantic import BeforeValidator, Field, model_validator
 
-from napari_fdt.errors import FDTInputError
+from napari_fdt.errors import FDTInputError, FDTWarning
 from napari_fdt.schema import markdown_table, schema_dataclass, setting
 
 __all__ = ["StageConfig", "SolverConfig", "AutoWeight", "AUTO", "load_config", "COHERENCE_MODELS", "BACKWARD_MODES", "COARSE_MODELS",
@@ -31,8 +32,29 @@ CoherenceModel = Literal["auto", "none", "mask", "spectral", "mask+spectral"]
 CoarseModel = Literal["auto", "envelope", "multislice"]
 #: Window of the multi-slice model's fields (``field_window``).
 FieldWindow = Literal["auto", "full", "split"]
+#: Values of a setting that were removed, still read from older settings files and reports (RI.json):
+#: (setting, value) → (the value used instead, why it went). Loading one gives an :class:`FDTWarning`.
+REMOVED_VALUES: dict[tuple[str, str], tuple[str, str]] = {
+    ("backward_mode", "fused"): ("auto", "removed on 2026-11-26: slower than the FFT loop on an H200, "
+                                         "docs/decisions/gpu-checklist-h200.md"),
+}
+
+
+def _removed_value(name: str):
+    """A before-validator of setting ``name``: a value of :data:`REMOVED_VALUES` becomes its replacement, with a warning."""
+    def replace(value: Any) -> Any:
+        if isinstance(value, str) and (name, value) in REMOVED_VALUES:
+            new, why = REMOVED_VALUES[name, value]
+            warnings.warn(f'{name}: "{value}" was {why}; using "{new}"', FDTWarning, stacklevel=2)
+            return new
+        return value
+    return replace
+
+
+_BackwardModeValues = Literal["auto", "stored", "reversible", "checkpoint", "autograd"]
 #: How the multi-slice model forms gradients (:mod:`napari_fdt.model.slice_loop`); "autograd" is the plain reference.
-BackwardMode = Literal["auto", "stored", "reversible", "checkpoint", "autograd", "fused"]
+#: "fused" (two Triton kernels per slice) was removed: it reads as "auto", with a warning (:data:`REMOVED_VALUES`).
+BackwardMode = typing.Annotated[_BackwardModeValues, BeforeValidator(_removed_value("backward_mode"))]
 Activation = Literal["paper", "signed"]
 #: What runs again when the choice of model parts keeps a part (:mod:`napari_fdt.recon.model_parts`).
 PartsRerun = Literal["stages", "finest"]
@@ -66,7 +88,7 @@ AUTO = "auto"
 
 COHERENCE_MODELS: tuple[str, ...] = typing.get_args(CoherenceModel)
 COARSE_MODELS: tuple[str, ...] = typing.get_args(CoarseModel)
-BACKWARD_MODES: tuple[str, ...] = typing.get_args(BackwardMode)
+BACKWARD_MODES: tuple[str, ...] = typing.get_args(_BackwardModeValues)
 
 _POSITIVE_DEPTH = typing.Annotated[float, Field(gt=0, strict=True)]
 
@@ -162,9 +184,8 @@ class SolverConfig:
     backward_mode: BackwardMode = setting(
         "auto", strict=False, description="how the multi-slice model forms gradients (`napari_fdt.model.slice_loop`): `\"stored\"` (one field per slice and "
         "image, fastest), `\"reversible\"` (re-propagates the field backwards: memory independent of the number of slices; grids without "
-        "evanescent frequencies only), `\"checkpoint\"` (≈2√N fields), `\"autograd\"` (plain autograd, the reference), `\"fused\"` (the stored mode's memory, two "
-        "fused Triton kernels per slice: CUDA with Triton, power-of-two windows, `napari_fdt.model.fused_loop`); `\"auto\"`: stored "
-        "when it fits in 80 % of the free memory, else the leanest valid mode", fix="auto picks the fastest that fits in memory")
+        "evanescent frequencies only), `\"checkpoint\"` (≈2√N fields), `\"autograd\"` (plain autograd, the reference); `\"auto\"`: "
+        "stored when it fits in 80 % of the free memory, else the leanest valid mode", fix="auto picks the fastest that fits in memory")
     obliquity_correction: Switch = setting(
         "auto", strict=False, description="scale each source's phase screens by 1/cos θ of its ray (the thin screen's obliquity error, "
         "`docs/physics.md` §6; multi-slice stages, plain autograd): `true`, `false`, or `\"auto\"`: on where it lowers the validation "
@@ -235,10 +256,10 @@ class SolverConfig:
     field_window: FieldWindow = setting(
         "auto", strict=False, description="window the multi-slice model's fields run on: `\"full\"` (each source's whole field, on a "
         "window that keeps its periodic copies off the image: 7-16x the image's area on the suite), `\"split\"` (the sources' "
-        "field exact and non-periodic, only what the sample adds on the image and its light cone: 25-50 % of the pixels, "
+        "field exact and non-periodic, only what the sample adds on the image and its light cone: 17-52 % of the pixels on the suite, "
         "as accurate; docs/decisions/split-field.md), `\"auto\"`: split on CPU where its window has at most 60 % of the full "
-        "window's pixels, else full (on CUDA full: not yet measured there); "
-        "the per-source obliquity screens, the 2x field grid and the fused kernels run on the full window",
+        "window's pixels, else full (on CUDA full: the split step measured 2.6-3.8x slower there, launch-bound); "
+        "the per-source obliquity screens and the 2x field grid run on the full window",
         fix="use \"auto\", \"full\" or \"split\"")
     pupil_edge: Optional[typing.Annotated[float, Field(ge=0.0, lt=0.5)]] = setting(
         None, strict=False, description="half-width of the pupil's raised-cosine edge relative to NA/λ (0: a hard pupil, held "

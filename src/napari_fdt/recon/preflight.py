@@ -3,7 +3,6 @@
 * :func:`warn_about_images`: blank images and saturated pixels (FDTWarning), which the intensity model
   cannot explain;
 * :func:`warn_about_sampling`: sampling problems of the acquisition's grid for these sources (FDTWarning);
-* :func:`check_backward_mode`: refuse (FDTInputError) the fused slice kernels where they cannot run;
 * :func:`check_memory`: refuse (FDTInputError) a batch whose finest multi-slice stage would not fit in the
   device's free memory, and say which batch size would.
 """
@@ -21,7 +20,7 @@ from napari_fdt.errors import FDTInputError, FDTWarning
 from napari_fdt.physics.grid import plan_for_sources
 from napari_fdt.recon.config import SolverConfig
 
-__all__ = ["warn_about_images", "warn_about_sampling", "check_backward_mode", "finest_stage_bytes", "check_memory"]
+__all__ = ["warn_about_images", "warn_about_sampling", "finest_stage_bytes", "check_memory"]
 
 
 def warn_about_images(acquisition: Acquisition, stacklevel: int = 3) -> None:
@@ -50,23 +49,6 @@ def warn_about_images(acquisition: Acquisition, stacklevel: int = 3) -> None:
 def warn_about_sampling(acquisition: Acquisition, sources_um: np.ndarray) -> None:
     """Warn (FDTWarning, from :func:`napari_fdt.physics.grid.plan_for_sources`) about sampling problems for ``sources_um`` (N, 3) µm."""
     plan_for_sources(acquisition.optics, acquisition.image_shape, sources_um)
-
-
-def check_backward_mode(acquisition: Acquisition, config: SolverConfig, sources_um: np.ndarray, device: torch.device) -> None:
-    """Refuse ``backward_mode = "fused"`` before anything runs when a multi-slice stage's window or the device does
-    not qualify (:func:`napari_fdt.model.fused_loop.supports`). ``sources_um``: (N, 3) µm (they set the windows)."""
-    if config.backward_mode != "fused":
-        return
-    from napari_fdt.model.fused_loop import supports
-    from napari_fdt.recon.stages import multislice_plan
-
-    for sc in config.stages:
-        _, _, _, plan = multislice_plan(acquisition.optics, sc.factor, acquisition.image_shape, sources_um)
-        ok, why = supports(plan.padded_shape, device)
-        if not ok:
-            raise FDTInputError("backward_mode", f"'fused' cannot run on {device} for the "
-                                f"{plan.padded_shape[0]}x{plan.padded_shape[1]} window of the stage with factor {sc.factor}: {why}",
-                                "use 'auto' (the fused kernels need CUDA with Triton and power-of-two windows of at least 256)")
 
 
 def images_on_device(acquisition: Acquisition, device_type: str) -> int:

@@ -59,7 +59,7 @@ from napari_fdt.recon.parts_search import choice_errors, fit_images
 from napari_fdt.recon.parts_switch import apply_parts_choice, init_parts
 from napari_fdt.recon.phases import RERUN, RUN, TV_CHOICE
 from napari_fdt.recon.plan import Pace, Plan, make_plan, stage_phase
-from napari_fdt.recon.preflight import check_backward_mode, check_memory, warn_about_images, warn_about_sampling
+from napari_fdt.recon.preflight import check_memory, warn_about_images, warn_about_sampling
 from napari_fdt.recon.regularisation import TVChoice, candidate_weights, selection_stages, tv_is_auto
 from napari_fdt.recon.run_state import InState, RunState
 from napari_fdt.recon.run_validation import validation_error
@@ -171,7 +171,6 @@ class Reconstructor:
                           "images out (validation_fraction 0, or too few images): TV is off. Give validation_fraction > 0 "
                           "or fixed weights", FDTWarning, stacklevel=2)
             self.tv_choice = TVChoice(*candidate_weights(cfg, 0.0), stage=0, probe_iterations=0, reason="no validation split")
-        check_backward_mode(acquisition, cfg, src, self.device)
         check_memory(acquisition, cfg, src, self.device, len(self.wavelengths) if self.wavelengths else 1)
         self._make_plan()
 

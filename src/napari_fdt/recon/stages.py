@@ -153,16 +153,16 @@ def split_window_fraction(plan: GridPlan, optics: Optics) -> float:
 
 
 def uses_split_field(field_window: str, device_type: str, factor: int, window_fraction: float, *, obliquity: str = "none",
-                     field_oversampling: int = 1, backward_mode: str = "auto", pupil_edge: float | None = None) -> bool:
+                     field_oversampling: int = 1, pupil_edge: float | None = None) -> bool:
     """Whether a multi-slice stage of ``factor`` runs :class:`~napari_fdt.model.split_field.SplitFieldModel`, for the
     setting ``field_window`` on a device of ``device_type`` ("cpu", "cuda") with :func:`split_window_fraction`
     ``window_fraction``: ``"split"``, or ``"auto"`` on the CPU where the fraction is at most :data:`SPLIT_MAX_FRACTION`;
-    never where the stage needs what only the full window has (per-source obliquity screens, the 2x field grid, the
-    fused kernels) or the pupil's edge is narrower than the window's taper (a hard pupil's tails wrap on the small
-    window: 0.25 % against 0.11 % image error on the sample, 1.3 % against 0.8 % on cells_pupil, both against a window
-    twice as wide; docs/decisions/split-field.md)."""
+    never where the stage needs what only the full window has (per-source obliquity screens, the 2x field grid) or the
+    pupil's edge is narrower than the window's taper (a hard pupil's tails wrap on the small window: 0.25 % against
+    0.11 % image error on the sample, 1.3 % against 0.8 % on cells_pupil, both against a window twice as wide;
+    docs/decisions/split-field.md)."""
     hard = pupil_edge is not None and pupil_edge < DEFAULT_PUPIL_TAPER
-    if obliquity != "none" or backward_mode == "fused" or hard or fine_field_grid(field_oversampling, factor):
+    if obliquity != "none" or hard or fine_field_grid(field_oversampling, factor):
         return False
     if field_window == "auto":
         return device_type != "cuda" and window_fraction <= SPLIT_MAX_FRACTION
@@ -181,8 +181,7 @@ def config_uses_split_field(config, device_type: str, factor: int, plan: GridPla
     comes later)."""
     return uses_split_field(config.field_window, device_type, factor, split_window_fraction(plan, optics),
                             obliquity="per_source" if config.obliquity_correction == "true" else "none",
-                            field_oversampling=config.field_oversampling, backward_mode=config.backward_mode,
-                            pupil_edge=pupil_edge)
+                            field_oversampling=config.field_oversampling, pupil_edge=pupil_edge)
 
 
 def build_stage(
@@ -230,7 +229,7 @@ def build_stage(
     h, w = plan.image_shape
     model_class = OversampledModel if fine_field_grid(field_oversampling, factor) else MultiSliceModel
     if uses_split_field(field_window, torch.device(device).type, factor, split_window_fraction(plan, opt), obliquity=obliquity,
-                        field_oversampling=field_oversampling, backward_mode=backward_mode, pupil_edge=pupil_edge):
+                        field_oversampling=field_oversampling, pupil_edge=pupil_edge):
         model_class = SplitFieldModel
     model = model_class(opt, plan, device=device, backward_mode=backward_mode, obliquity=obliquity,
                         pupil_edge=pupil_edge, pixel_integration=pixel_integration, sub_slices=sub_slices)
