@@ -8,14 +8,15 @@
 # that one item that hangs or fails leaves the others' results. Writes OUT_DIR/NAME.log per item, the sample
 # runs' reports, and OUT_DIR/session.tgz with those and the files the items wrote under benchmarks/results. ITEMS: a
 # comma-separated subset of
-# tta,checks,split,sample,step,coarse,tta_envelope,suite_multislice,suite_envelope (default: all, in that
-# order). The limits are about twice what each took on an H200 (2026-11-26); a 15-minute lease holds two calls:
-# tta,checks,split,sample,step,coarse, then tta_envelope,suite_multislice,suite_envelope. split reads the suite's scenes from out/scenes (carry them, or make-scenes first).
+# tta,checks,split,sample,step,coarse,profile,tta_envelope,suite_multislice,suite_envelope (default: all, in that
+# order). The limits are about twice what each took on an H200 (2026-11-26; profile not run yet); a 15-minute lease
+# holds two calls: tta,checks,split,sample,step,coarse, then profile,tta_envelope,suite_multislice,suite_envelope.
+# split reads the suite's scenes from out/scenes (carry them, or make-scenes first).
 # The package runs from src/ (PYTHONPATH), so a machine with torch, numpy, scikit-image, tifffile and pydantic needs
 # no install.
 set -u
 out=${1:?usage: gpu_session.sh OUT_DIR [ITEMS]}
-items=${2:-tta,checks,split,sample,step,coarse,tta_envelope,suite_multislice,suite_envelope}
+items=${2:-tta,checks,split,sample,step,coarse,profile,tta_envelope,suite_multislice,suite_envelope}
 mkdir -p "$out"
 tmp=$(mktemp -d)
 touch "$tmp/start"
@@ -48,6 +49,7 @@ sample='for w in auto split; do "$0" -c "import sys; from napari_fdt.cli import 
 item sample 75 bash -c "$sample" "$py" "$tmp" "${SAMPLE_DEVICE:-cuda}"
 item step 60 "$py" -m benchmarks run step_speed --device cuda
 item coarse 60 "$py" -m benchmarks run coarse_stage_speed --device cuda --cuda-graph --repeats 10
+item profile 120 "$py" -m benchmarks run profile_step --solver-demo
 item tta_envelope 90 "$py" -m benchmarks run time_to_accuracy --device cuda --coarse-model envelope
 item suite_multislice 150 "$py" -m benchmarks run suite --device cuda --scenes demo,sample \
     --out benchmarks/results/suite_cuda_multislice.json

@@ -274,14 +274,14 @@ def test_a_stage_may_have_its_own_batch_size(tiny) -> None:
     cfg = _tiny_config(stages=[StageConfig(2, 3, batch_size=7), StageConfig(1, 2)], batch_size=4)
     rec = Reconstructor(tiny.acquisition, cfg, device="cpu")
     sizes = []
-    real = rec.batches.next
+    real = rec.batches.next_host
 
     def spy(b):
         idx = real(b)
         sizes.append(len(idx))
         return idx
 
-    rec.batches.next = spy
+    rec.batches.next_host = spy
     for _ in rec.run():
         pass
     assert sizes == [7, 7, 7, 4, 4]

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from typing import Any
 
+import numpy as np
 import torch
 
 __all__ = ["BatchOrder"]
@@ -24,13 +25,23 @@ class BatchOrder:
 
     def next(self, batch_size: int) -> torch.Tensor:
         """The next ``min(batch_size, N)`` indices, (B,) int64 on the device."""
+        return self.to_device(self.next_host(batch_size))
+
+    def next_host(self, batch_size: int) -> np.ndarray:
+        """The next ``min(batch_size, N)`` indices, (B,) int64 in host memory (numpy): what the solver decides about a
+        batch (which of its images are held out, their order) it decides on these, without waiting for the device."""
         n = self.n_images
         b = min(batch_size, n)
         while len(self.order) < b:
             self.order.extend(torch.randperm(n, generator=self.generator).tolist())
         idx, self.order = self.order[:b], self.order[b:]
-        t = torch.tensor(idx)
-        if self.device.type == "cuda":  # pinned + non-blocking: no wait for the GPU's queue to drain
+        return np.asarray(idx, dtype=np.int64)
+
+    def to_device(self, indices: np.ndarray) -> torch.Tensor:
+        """Host ``indices`` as an int64 tensor on the device; on CUDA pinned and non-blocking: no wait for the GPU's
+        queue to drain."""
+        t = torch.from_numpy(np.ascontiguousarray(indices, dtype=np.int64))
+        if self.device.type == "cuda":
             return t.pin_memory().to(self.device, non_blocking=True)
         return t.to(self.device)
 

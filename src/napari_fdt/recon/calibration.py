@@ -269,8 +269,9 @@ class RowAdam(torch.optim.Optimizer):
                 if p.grad is None:
                     continue
                 g = p.grad.reshape(p.shape[0], -1)
-                rows = (g != 0).any(dim=1)
-                if not bool(rows.any()):
+                # the rows with a gradient as indices: one device sync (nonzero) instead of one per boolean index below
+                rows = (g != 0).any(dim=1).nonzero().squeeze(1)
+                if rows.numel() == 0:
                     continue
                 st = self.state[p]
                 if not st:

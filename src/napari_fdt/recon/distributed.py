@@ -73,8 +73,9 @@ def world_from_env(env: Mapping[str, str] | None = None) -> tuple[int, int, int,
     return world, rank, local_rank, local_world
 
 
-def owned(indices: torch.Tensor, rank: int, world_size: int) -> torch.Tensor:
-    """The entries of ``indices`` (image numbers) that ``rank`` owns (``i % world_size == rank``), in their order."""
+def owned(indices, rank: int, world_size: int):
+    """The entries of ``indices`` (image numbers; a tensor or a numpy array, the same kind back) that ``rank`` owns
+    (``i % world_size == rank``), in their order."""
     return indices[indices % world_size == rank]
 
 
@@ -132,8 +133,8 @@ class Group:
         """For the report."""
         return {"world_size": self.world_size, "backend": self.backend, "image_owner": "image i -> rank i % world_size"}
 
-    def local(self, indices: torch.Tensor) -> torch.Tensor:
-        """The images of a global batch that this rank works on."""
+    def local(self, indices):
+        """The images of a global batch that this rank works on (a tensor or a numpy array, the same kind back)."""
         return owned(indices, self.rank, self.world_size)
 
     def _all_reduce(self, flat: torch.Tensor, op=None) -> torch.Tensor:

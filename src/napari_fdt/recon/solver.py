@@ -155,8 +155,8 @@ class Reconstructor:
         #: batches like the others, but their loss reaches only their own position and gain: never the volume
         #: nor the shared calibration (a fit of their positions that does not touch the volume).
         self.validation_indices = holdout_indices(src, cfg.validation_fraction)
-        self._held_out = torch.zeros(n_img, dtype=torch.bool, device=self.device)
-        self._held_out[torch.as_tensor(self.validation_indices, dtype=torch.long, device=self.device)] = True
+        self._held_out = np.zeros(n_img, dtype=bool)  # in host memory: a batch is split without a device sync
+        self._held_out[np.asarray(self.validation_indices, dtype=np.int64)] = True
         #: the optional model parts (:mod:`napari_fdt.recon.model_parts`) as now switched; "auto" ones are off until chosen
         self.parts: dict[str, bool] = {}
         self.wavelengths, self.weights = None, None
@@ -409,20 +409,24 @@ class Reconstructor:
         with ``with_error`` (snapshots only: it waits for the device), the training images' relative error (None
         otherwise and for a rank with no training image in the batch).
         """
-        idx = self.batches.next(batch_size)
+        # The batch's indices are split and ordered in host memory (numpy) and sent to the device once: on CUDA a decision read
+        # from a device tensor (held.any(), a boolean index) would wait for the queue to drain at every iteration.
+        idx_host = self.batches.next_host(batch_size)
         dn = self.volume.delta_n()
         share = None
         if self.group is not None:  # this rank's images of the batch, normalised by the whole batch
+            idx = self.batches.to_device(idx_host)
             share = BatchShare.of_batch(None if mask is None else mask[idx], (len(idx), *stage.images.shape[1:]),
                                         regularisers=self.group.is_writer)
-            idx = self.group.local(idx)
-        held = self._held_out[idx] if len(self.validation_indices) else None
+            idx_host = self.group.local(idx_host)
+        held = self._held_out[idx_host] if len(self.validation_indices) else None
         if held is not None and bool(held.any()):  # held-out images last, through a constant volume and shared calibration
-            idx = torch.cat([idx[~held], idx[held]])
             n_train = int((~held).sum())
+            idx = self.batches.to_device(np.concatenate([idx_host[~held], idx_host[held]]))
             pred = torch.cat([self._predict_normalised(stage, dn, idx[:n_train]),
                               self._predict_normalised(stage, dn, idx[n_train:], held_out=True)])
         else:
+            idx = self.batches.to_device(idx_host)
             n_train = len(idx)
             # A rank with no image in this batch predicts none (and still joins the gradient sum).
             pred = self._predict_normalised(stage, dn, idx) if len(idx) else stage.images[idx]
