@@ -8,15 +8,16 @@
 # that one item that hangs or fails leaves the others' results. Writes OUT_DIR/NAME.log per item, the sample
 # runs' reports, and OUT_DIR/session.tgz with those and the files the items wrote under benchmarks/results. ITEMS: a
 # comma-separated subset of
-# tta,checks,split,sample,step,coarse,profile,tta_envelope,suite_multislice,suite_envelope (default: all, in that
-# order). The limits are about twice what each took on an H200 (2026-11-26; profile not run yet); a 15-minute lease
-# holds two calls: tta,checks,split,sample,step,coarse, then profile,tta_envelope,suite_multislice,suite_envelope.
+# tta,checks,split,sample,step,coarse,profile,tta_envelope,suite_multislice,suite_envelope,reg_demo (default: all, in
+# that order). The limits are about twice what each took on an H200 (2026-11-26; profile not run yet); a 15-minute lease
+# holds two calls: tta,checks,split,sample,step,coarse, then profile,tta_envelope,suite_multislice,suite_envelope;
+# reg_demo (about 5 minutes, not run yet) needs a lease of its own.
 # split reads the suite's scenes from out/scenes (carry them, or make-scenes first).
 # The package runs from src/ (PYTHONPATH), so a machine with torch, numpy, scikit-image, tifffile and pydantic needs
 # no install.
 set -u
 out=${1:?usage: gpu_session.sh OUT_DIR [ITEMS]}
-items=${2:-tta,checks,split,sample,step,coarse,profile,tta_envelope,suite_multislice,suite_envelope}
+items=${2:-tta,checks,split,sample,step,coarse,profile,tta_envelope,suite_multislice,suite_envelope,reg_demo}
 mkdir -p "$out"
 tmp=$(mktemp -d)
 touch "$tmp/start"
@@ -55,6 +56,8 @@ item suite_multislice 150 "$py" -m benchmarks run suite --device cuda --scenes d
     --out benchmarks/results/suite_cuda_multislice.json
 item suite_envelope 150 "$py" -m benchmarks run suite --device cuda --scenes demo,sample --coarse-model envelope \
     --out benchmarks/results/suite_cuda_envelope.json
+# issue 12's target, the demo with the defaults (checklist item 7): simulates the demo scene, then three runs
+item reg_demo 480 "$py" -m benchmarks run regularisation run --scenes demo --settings auto,0,50 --device cuda
 
 cp "$tmp"/sample_*.json "$out"/ 2>/dev/null
 # one archive (a lease's file transfer may take few files): the logs, the sample reports, what went to benchmarks/results
