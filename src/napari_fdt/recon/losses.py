@@ -518,5 +518,10 @@ def total_loss(
 
 
 def as_floats(terms: dict[str, torch.Tensor | float]) -> dict[str, float]:
-    """``{name: float(value)}``; forces a device synchronisation for CUDA tensors."""
-    return {name: float(value) for name, value in terms.items()}
+    """``{name: float(value)}``; the tensors (0-d) are read back from the device together: one synchronisation."""
+    names = [n for n, v in terms.items() if isinstance(v, torch.Tensor)]
+    device = terms[names[0]].device if names else None
+    read = torch.stack([terms[n].detach().reshape(()).to(device, torch.float64) for n in names]).tolist() if names else []
+    out = {n: float(v) for n, v in terms.items() if not isinstance(v, torch.Tensor)}
+    out.update(zip(names, read))
+    return {n: out[n] for n in terms}

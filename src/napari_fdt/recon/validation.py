@@ -87,19 +87,27 @@ def relative_image_error(pred: torch.Tensor, measured: torch.Tensor, mask: torch
     ``fit_gain``: ``g`` per image is the closed-form least-squares gain (held-out images, whose gains were never
     trained); otherwise 1 (the prediction already carries its gain). ``mask`` (B, H, W) or None weights pixels.
     """
+    return float(_relative_error(pred, measured, mask, fit_gain))
+
+
+def _relative_error(pred: torch.Tensor, measured: torch.Tensor, mask: torch.Tensor | None, fit_gain: bool) -> torch.Tensor:
+    """:func:`relative_image_error` as a 0-d tensor (no wait for the device)."""
     m = torch.ones_like(measured) if mask is None else mask
     if fit_gain:
         pred = pred * least_squares_gain(pred, measured, mask).clamp_min(0.0)[:, None, None]
     err = ((pred - measured) ** 2 * m).sum()
     ref = (measured * measured * m).sum().clamp_min(1e-30)
-    return float(torch.sqrt(err / ref))
+    return torch.sqrt(err / ref)
 
 
 def per_image_errors(pred: torch.Tensor, measured: torch.Tensor, mask: torch.Tensor | None = None, *,
                      fit_gain: bool = False) -> list[float]:
-    """:func:`relative_image_error` of each image of a stack (B,), as floats (same gains and mask)."""
-    return [relative_image_error(pred[i:i + 1], measured[i:i + 1], None if mask is None else mask[i:i + 1], fit_gain=fit_gain)
-            for i in range(measured.shape[0])]
+    """:func:`relative_image_error` of each image of a stack (B,), as floats (same gains and mask; the same arithmetic
+    image by image, read back from the device once)."""
+    if measured.shape[0] == 0:
+        return []
+    return torch.stack([_relative_error(pred[i:i + 1], measured[i:i + 1], None if mask is None else mask[i:i + 1], fit_gain)
+                        for i in range(measured.shape[0])]).tolist()
 
 
 @dataclass
