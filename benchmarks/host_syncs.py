@@ -78,27 +78,12 @@ def count_syncs(step: Callable[[], object], steps: int) -> SyncCounter:
 
 def finest_step(acquisition, field_window: str = "full", calibrate_sources: bool = True):
     """``Reconstructor._step`` of ``acquisition``'s finest stage as the solver runs it there (TV on, the default
-    validation split, the sources' positions trained when ``calibrate_sources``), after one warm-up step."""
-    from napari_fdt.recon.config import SolverConfig
-    from napari_fdt.recon.solver import Reconstructor
+    validation split, the sources' positions trained when ``calibrate_sources``;
+    :func:`benchmarks.step_profile_cpu.finest_stage_step`), after one warm-up step."""
+    from benchmarks.step_profile_cpu import finest_stage_step
 
-    cfg = SolverConfig.from_dict({**SolverConfig().to_dict(), "tv_xy_weight": 1.0, "tv_z_weight": 0.5,
-                                  "stages": [{"factor": 1, "iterations": 1000, "batch_size": None}],
-                                  "final_stage_min_passes": 0, "early_stopping": "off", "calibrate_pupil": False,
-                                  "calibrate_aberrations": False, "obliquity_correction": False, "coherence": "mask",
-                                  "field_window": field_window, "calibrate_sources": calibrate_sources,
-                                  "calibration_from_stage": 0})
-    rec = Reconstructor(acquisition, cfg, device="cpu")
-    stage = rec._build_stage(0)
-    rec._carry_volume_to(stage)
-    mask = rec._loss_mask(stage)
-    rec._init_gains(stage, mask)
-    rec.calibration.set_trainable(0)
-    opt = torch.optim.Adam([rec.volume.x], lr=cfg.lr_ri)
-
-    def step() -> None:
-        rec._step(stage, mask, opt, cfg.batch_size, 1.0, 0.5)
-
+    step = finest_stage_step(acquisition, field_window=field_window, calibrate_sources=calibrate_sources,
+                             calibration_from_stage=0)[0]
     step()
     return step
 

@@ -27,21 +27,15 @@ from napari_fdt.recon.solver import Reconstructor  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--repeats", type=int, default=10)
-    ap.add_argument("--profile", action="store_true")
-    ap.add_argument("--acquisition", default=str(ROOT / "sample_data" / "letters"), help="default: the bundled sample")
-    ap.add_argument("--pixel-integration", action="store_true", help="the camera's pixel integration on")
-    ap.add_argument("--field-window", default="auto", choices=["auto", "full", "split"], help="the solver setting (auto: split on CPU)")
-    args = ap.parse_args()
-    acq = read_acquisition(args.acquisition)
+def finest_stage_step(acquisition, **settings):
+    """``Reconstructor._step`` of ``acquisition``'s finest stage run alone (factor 1, TV 1/0.5, parts off, no early
+    stopping, the default validation split: held-out images in a batch run through the model separately), with
+    ``settings`` on top; returns (the step, the Reconstructor, the stage). Shared with ``benchmarks/host_syncs.py``."""
     cfg = SolverConfig.from_dict({**SolverConfig().to_dict(), "tv_xy_weight": 1.0, "tv_z_weight": 0.5,
                                   "stages": [{"factor": 1, "iterations": 1000, "batch_size": None}], "final_stage_min_passes": 0,
                                   "early_stopping": "off", "calibrate_pupil": False, "calibrate_aberrations": False,
-                                  "pixel_integration": args.pixel_integration, "obliquity_correction": False, "coherence": "mask",
-                                  "field_window": args.field_window})
-    rec = Reconstructor(acq, cfg, device="cpu")
+                                  "obliquity_correction": False, "coherence": "mask", **settings})
+    rec = Reconstructor(acquisition, cfg, device="cpu")
     stage = rec._build_stage(0)
     rec._carry_volume_to(stage)
     mask = rec._loss_mask(stage)
@@ -51,6 +45,21 @@ def main() -> None:
 
     def step() -> None:
         rec._step(stage, mask, opt, cfg.batch_size, 1.0, 0.5)
+
+    return step, rec, stage
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--repeats", type=int, default=10)
+    ap.add_argument("--profile", action="store_true")
+    ap.add_argument("--acquisition", default=str(ROOT / "sample_data" / "letters"), help="default: the bundled sample")
+    ap.add_argument("--pixel-integration", action="store_true", help="the camera's pixel integration on")
+    ap.add_argument("--field-window", default="auto", choices=["auto", "full", "split"], help="the solver setting (auto: split on CPU)")
+    args = ap.parse_args()
+    acq = read_acquisition(args.acquisition)
+    step, rec, stage = finest_stage_step(acq, pixel_integration=args.pixel_integration, field_window=args.field_window)
+    cfg = rec.config
 
     from napari_fdt.recon.stages import multislice_plan
 
