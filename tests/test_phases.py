@@ -18,7 +18,7 @@ from napari_fdt.recon.solver import Reconstructor, Snapshot
 
 
 def _config(**kw) -> SolverConfig:
-    """Three stages: stage 0 runs without TV, the weights are tried at stage 1's start (the last coarse one)."""
+    """Three stages: stage 0 runs at the smallest weight, the weights are tried at stage 1's start (the last coarse one)."""
     base = dict(stages=[StageConfig(4, 4), StageConfig(2, 6), StageConfig(1, 6)], batch_size=4, snapshot_every=2,
                 validation_fraction=0.2, final_stage_min_passes=0)
     base.update(kw)
@@ -30,7 +30,7 @@ def _forced(monkeypatch, k: int) -> None:
     monkeypatch.setattr(tv_search, "pick", lambda trials: trials[min(k, len(trials) - 1)])
 
 
-@pytest.mark.parametrize("winner", [0, 1], ids=["no TV wins: the run goes on", "TV wins: stage 0 again"])
+@pytest.mark.parametrize("winner", [0, 1], ids=["the smallest weight wins: the run goes on", "a larger weight wins: stage 0 again"])
 def test_the_trials_report_their_progress_and_the_run_is_the_fixed_weights_run(scene16, monkeypatch, winner) -> None:
     acq = scene16.acquisition
     _forced(monkeypatch, winner)
@@ -42,7 +42,7 @@ def test_the_trials_report_their_progress_and_the_run_is_the_fixed_weights_run(s
     before, trials, run = snaps[:2], snaps[2:2 + n], snaps[2 + n:]
     assert [s.phase for s in before + trials] == [TV_CHOICE] * (2 + n) and {s.phase for s in run} == {"run"}
     assert [(s.stage, s.iteration, s.global_iteration, s.stage_complete) for s in before] == [(0, 2, 2, False), (0, 4, 4, True)]
-    assert before[0].phase_name == "choosing the TV weight: stage 1/3 (x4) without TV" and before[0].tv_weights is None
+    assert before[0].phase_name == "choosing the TV weight: stage 1/3 (x4) with the lightest TV" and before[0].tv_weights is None
     assert [s.tv_weights for s in trials] == [(t["tv_xy_weight"], t["tv_z_weight"]) for t in choice.trials]
     assert [s.validation_error for s in trials] == [t["validation_error"] for t in choice.trials]
     assert all((s.stage, s.iteration, s.global_iteration, s.stage_complete) == (1, 2, 6, False) for s in trials)
@@ -99,7 +99,7 @@ def test_closing_during_the_trials_keeps_the_last_stage_and_a_new_run_chooses_ag
             break
     gen.close()
     assert rec.completed_stages == 1 and rec.last_complete.stage == 0 and rec.tv_choice is None
-    assert (rec.loss_weights.tv_xy, rec.loss_weights.tv_z) == (0.0, 0.0)
+    assert (rec.loss_weights.tv_xy, rec.loss_weights.tv_z) == (1.0, 0.5)  # the weights the stages before the trials run with
     list(rec.run())
     unbroken = Reconstructor(acq, _config(), device="cpu")
     list(unbroken.run())

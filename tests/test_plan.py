@@ -42,9 +42,9 @@ def test_the_plan_lists_the_choice_then_the_stages_with_the_grids_the_solver_bui
     assert plan.iterations == cfg.total_iterations + cfg.stages[0].iterations + plan.phases[1].iterations
     assert [p.model for p in plan.phases] == ["envelope", "envelope", "envelope", "envelope", "multislice"]
     assert plan.phases[3].name == "stage 2/3 (x2)" and plan.phases[1].name == "choosing the TV weight at stage 2/3 (x2)"
-    assert plan.phases[0].name == "choosing the TV weight: stage 1/3 (x4) without TV"
+    assert plan.phases[0].name == "choosing the TV weight: stage 1/3 (x4) with the lightest TV"
     assert all(p.name.isascii() for p in plan.phases)
-    # where no TV wins, the run's stage 0 is the one before the trials and stage 1 goes on after the winner's probe
+    # where the smallest weight wins, the run's stage 0 is the one before the trials and stage 1 goes on after the winner's probe
     kept = plan.keeping_the_stages_before(1, probe)
     assert [(p.pass_name, p.stage, p.iterations, p.first_iteration) for p in kept.phases[2:]] == \
            [(RUN, 1, cfg.stages[1].iterations - probe, probe), (RUN, 2, cfg.stages[2].iterations, 0)]

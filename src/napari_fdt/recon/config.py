@@ -147,7 +147,7 @@ class SolverConfig:
     ssim_weight: float = setting(0.0, ge=0, description="γ, weight of 1 − SSIM", fix="0 switches the term off")
     tv_xy_weight: AutoWeight = setting(
         "auto", strict=False, description="τ_xy, weight of the lateral total variation; `\"auto\"`: chosen by the validation error "
-        "(docs/solver.md, needs a validation split; 0 without one)", fix='give a number >= 0 (0 switches the term off) or "auto"', tier="basic")
+        "among 1, 3, 10, 30, 100 (docs/solver.md, needs a validation split; 1 without one)", fix='give a number >= 0 (0 switches the term off) or "auto"', tier="basic")
     tv_z_weight: AutoWeight = setting(
         "auto", strict=False, description="τ_z, weight of the axial total variation; `\"auto\"`: chosen with τ_xy (τ_z = τ_xy / 2)",
         fix='give a number >= 0 (0 switches the term off) or "auto"', tier="basic")

@@ -1,8 +1,9 @@
 """The kinds of phase a run's snapshots name (:attr:`napari_fdt.recon.snapshot.Snapshot.phase`).
 
 ``"run"``
-    The pass: every stage from the first. With ``"auto"`` TV weights the stages before the selection stage run
-    without TV (the weight is not known yet) and the selection stage goes on from the winning trial's state.
+    The pass: every stage from the first. With ``"auto"`` TV weights the stages before the selection stage run at
+    the path's smallest weight (the weight is not known yet) and the selection stage goes on from the winning trial's
+    state.
 ``"tv_choice"``
     The trials of the ``"auto"`` TV weights at the selection stage (:mod:`napari_fdt.recon.tv_search`): one snapshot
     per weight tried (``tv_weights`` set, its ``validation_error`` the trial's). A trial's volume is a candidate, not

@@ -105,12 +105,12 @@ class Phase:
 
     @property
     def name(self) -> str:
-        """The phase in words: "stage 2/3 (x2)", "choosing the TV weight: stage 1/3 (x4) without TV" (a stage before the
+        """The phase in words: "stage 2/3 (x2)", "choosing the TV weight: stage 1/3 (x4) with the lightest TV" (a stage before the
         trials),
         "choosing the TV weight at stage 2/3 (x2)" (the trials), …"""
         where = f"stage {self.stage + 1}/{self.n_stages} (x{self.factor})"
         if self.pass_name == TV_CHOICE:
-            return f"choosing the TV weight at {where}" if self.trials else f"choosing the TV weight: {where} without TV"
+            return f"choosing the TV weight at {where}" if self.trials else f"choosing the TV weight: {where} with the lightest TV"
         if self.pass_name == RERUN:
             return f"{where} again with {'+'.join(self.parts)}" if self.parts else f"{where} again"
         return where
@@ -239,8 +239,9 @@ def make_plan(config: SolverConfig, optics: Optics, image_shape: tuple[int, int]
     """The plan of a run of ``config`` (as run: its stages resolved) on ``device_type`` ("cpu" or "cuda"), with the
     initial ``sources_um`` (N, 3) µm, ``coarse_model`` resolved for the device; ``choose_tv_at``: the stage at whose
     start the ``"auto"`` TV weights are tried (None: no choice), every weight for :func:`probe_iterations` of its
-    iterations, after the stages before it without TV; the run's stages follow in full (the stages before run again
-    with the chosen weight: :meth:`Plan.keeping_the_stages_before` drops them where the choice is no TV);
+    iterations, after the stages before it at the path's smallest weight; the run's stages follow in full (the stages
+    before run again with the chosen weight: :meth:`Plan.keeping_the_stages_before` drops them where the choice is that
+    weight);
     ``pixel_integration``, ``pupil_edge``: the camera model's (as the first pass runs it); ``parts_to_choose``: "auto" model parts will
     be chosen from the data (:attr:`Plan.if_part_kept_s` then says what keeping one would add)."""
     src = np.asarray(sources_um, dtype=np.float64)

@@ -3,7 +3,8 @@
 With ``tv_xy_weight = "auto"`` (the default; ``tv_z_weight`` likewise) the weights are chosen inside the run
 (:mod:`napari_fdt.recon.tv_search`; the rule and its measured cost are in ``docs/solver.md``):
 
-1. The stages before the *selection stage* (:func:`selection_stages`) run without TV; at the selection stage's start
+1. The stages before the *selection stage* (:func:`selection_stages`) run at the path's smallest weight (τ_xy 1: some
+   TV is always wanted, below); at the selection stage's start
    every candidate of :data:`TV_PATH` trains from the same state (volume, calibration and their optimisers, batch
    order: common random numbers, so that the candidates differ only by their weight) for :data:`PROBE_SHARE` of the
    stage's iterations, and ends with the validation error of each held-out image (:mod:`napari_fdt.recon.validation`).
@@ -14,14 +15,20 @@ With ``tv_xy_weight = "auto"`` (the default; ``tv_z_weight`` likewise) the weigh
    volumes the smoother one is the one that has not filled with what the data cannot constrain; measured, the plain
    lowest error regularised less than the RI error wanted on beads, cells and deep sources, and the unpaired rule
    (the spread of each error over the images) more than it wanted on the sample and cells.
-3. Where the winner is what the stages before ran with (no TV), or there were none, the stage goes on from the
+3. Where the winner is what the stages before ran with (the smallest weight), or there were none, the stage goes on from the
    winning trial's state (volume, calibration, both optimisers, batch order): only the losing trials' iterations are
    extra work. Otherwise the weight changes what the stages before did, and they run again with it from the start,
    the selection stage in full: an "auto" run always ends as the run given its chosen weights as numbers. (Keeping the
    TV-free first stage, or a first stage at τ 1 whatever the choice, measurably raised the Δn error: docs/solver.md.)
 
 τ_z follows τ_xy at the ratio :data:`TV_Z_RATIO` when both are ``"auto"``; a weight given as a number stays fixed
-while the other is chosen. Without a validation split "auto" means 0 (no TV), with a warning.
+while the other is chosen. Without a validation split "auto" means the path's smallest weight, with a warning.
+
+No TV (τ 0) is not a candidate: with a missing cone, an unregularised volume fills what no image constrains, and on
+every scene of the suite a fixed τ_xy 1 ends below τ 0 on the mean over seeds (14 of 16 seed pairs;
+docs/decisions/tv-weight-choice.md, "No TV is not a candidate"). The held-out images could not tell them apart (on the
+sample 0.1612 against 0.1608), so the choice between them flipped with small changes of the coarse model and cost up
+to 2.7× the Δn error. A weight given as a number, 0 included, is used as given.
 """
 
 from __future__ import annotations
@@ -37,8 +44,9 @@ __all__ = ["TV_PATH", "TV_Z_RATIO", "STANDARD_ERRORS", "PROBE_SHARE", "TVChoice"
            "tried_enough", "selection_stages"]
 
 #: Candidate lateral TV weights τ_xy, log-spaced over the range where the measured optimum of our scenes lies
-#: (docs/ablation.md: from 0 on the bundled sample to about 50 on the authors' demo geometry).
-TV_PATH: tuple[float, ...] = (0.0, 1.0, 3.0, 10.0, 30.0, 100.0)
+#: (docs/ablation.md: from 1 on the bundled sample to about 50 on the authors' demo geometry); no TV is not one
+#: (the module's docstring).
+TV_PATH: tuple[float, ...] = (1.0, 3.0, 10.0, 30.0, 100.0)
 #: τ_z / τ_xy when both are chosen (the issue's "TV 50/25").
 TV_Z_RATIO = 0.5
 #: Standard errors of the paired difference within which a larger weight still counts as not worse than the best.

@@ -23,6 +23,7 @@ gradients of the shared parameters are summed over ranks, and the result equals 
 
 from __future__ import annotations
 
+import dataclasses
 import time
 import warnings
 from pathlib import Path
@@ -60,7 +61,7 @@ from napari_fdt.recon.parts_switch import apply_parts_choice, init_parts
 from napari_fdt.recon.phases import RERUN, RUN, TV_CHOICE
 from napari_fdt.recon.plan import Pace, Plan, make_plan, stage_phase
 from napari_fdt.recon.preflight import check_memory, warn_about_images, warn_about_sampling
-from napari_fdt.recon.regularisation import TVChoice, candidate_weights, selection_stages, tv_is_auto
+from napari_fdt.recon.regularisation import TV_PATH, TVChoice, candidate_weights, selection_stages, tv_is_auto
 from napari_fdt.recon.run_state import InState, RunState
 from napari_fdt.recon.run_validation import validation_error
 from napari_fdt.recon.schedule import final_step_scale
@@ -166,11 +167,14 @@ class Reconstructor:
         self.choices = default_choices()
         init_parts(self)
         self.loss_weights = LossWeights.from_config(cfg)
+        if tv_is_auto(cfg):  # until the choice: the path's smallest weight (what the stages before the trials run with)
+            xy, z = candidate_weights(cfg, TV_PATH[0])
+            self.loss_weights = dataclasses.replace(self.loss_weights, tv_xy=xy, tv_z=z)
         if tv_is_auto(cfg) and not len(self.validation_indices):
             warnings.warn("tv_xy_weight: \"auto\" chooses the TV weights by the validation error, and this run holds no "
-                          "images out (validation_fraction 0, or too few images): TV is off. Give validation_fraction > 0 "
-                          "or fixed weights", FDTWarning, stacklevel=2)
-            self.tv_choice = TVChoice(*candidate_weights(cfg, 0.0), stage=0, probe_iterations=0, reason="no validation split")
+                          "images out (validation_fraction 0, or too few images): the smallest weights of the path are used "
+                          f"(tau_xy {xy:g}, tau_z {z:g}). Give validation_fraction > 0 or fixed weights", FDTWarning, stacklevel=2)
+            self.tv_choice = TVChoice(*candidate_weights(cfg, TV_PATH[0]), stage=0, probe_iterations=0, reason="no validation split")
         check_memory(acquisition, cfg, src, self.device, len(self.wavelengths) if self.wavelengths else 1)
         self._make_plan()
 

@@ -1,7 +1,7 @@
 """The choice of the "auto" TV weights inside the run: at the selection stage every weight of the TV path trains from
 the stage's starting state and the held-out images pick one (the rule is :mod:`napari_fdt.recon.regularisation`'s).
-The stages before the selection stage run without TV (the weight is not known yet). Where the winner is no TV, the run
-goes on from the winner's state (only the losing trials' iterations were extra); otherwise the stages before run again
+The stages before the selection stage run at the path's smallest weight (the weight is not known yet). Where that weight
+wins, the run goes on from the winner's state (only the losing trials' iterations were extra); otherwise the stages before run again
 with the chosen weight, what the choice changed.
 """
 
@@ -44,7 +44,6 @@ def choose_tv(rec: Reconstructor, work: StageWork, should_stop: Callable[[], boo
     try:
         for k, tau in enumerate(TV_PATH):
             if tried_enough(trials):  # past the minimum the error only rises: the larger weights would not be picked
-                rec._revise_plan(rec.plan.with_iterations(rec._phase_index, len(trials) * n_probe))
                 break
             t1 = time.perf_counter()
             restore_branch(rec, start)
@@ -61,6 +60,8 @@ def choose_tv(rec: Reconstructor, work: StageWork, should_stop: Callable[[], boo
             ends.append({**capture_branch(rec), "vol_opt": copy.deepcopy(vol_opt.state_dict())})
             trials.append({"tau": tau, "tv_xy_weight": xy, "tv_z_weight": z, "validation_error": err, "image_errors": each,
                            "seconds": time.perf_counter() - t1})
+            if tried_enough(trials) and k + 1 < len(TV_PATH):  # the last trial: its snapshot shows the plan cut to the weights tried
+                rec._revise_plan(rec.plan.with_iterations(rec._phase_index, len(trials) * n_probe))
             yield from work.hand_over(take_snapshot(rec, stage, n_probe, work.base_iteration + n_probe, terms, work.t0, False,
                                                     err, train_error, trial=k))
         finished = True
