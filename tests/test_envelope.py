@@ -163,3 +163,26 @@ def test_batched_auto_follows_the_device_and_graphs_need_cuda() -> None:
     assert can_graph("cpu") is False
     with pytest.raises(ValueError, match="CUDA"):
         graphed_model(cpu, torch.zeros(2, 8, 8), torch.zeros(1, 3), torch.ones(1))
+
+
+@pytest.mark.parametrize("factor", [1, 2, 4])
+def test_fft_window_sides_are_smooth_and_hold_the_padding(factor) -> None:
+    """Each side of the envelope's FFT window is even and 2·3·5-smooth (pocketfft: 74 = 2·37 points cost 5.7× 80), at
+    least the grid plus the light cone's padding on both sides; the plan's cost model prices the model's own window."""
+    from napari_fdt.model.envelope import envelope_window, padding_px
+    from napari_fdt.recon.plan import envelope_padded_shape
+
+    o = Optics(wavelength_um=0.635, n_background=1.33, na=0.8, pixel_size_um=0.33, n_slices=8, slice_spacing_um=2.0)
+    pad = padding_px(o, factor)
+    for grid in [(24, 24), (37, 29), (96 // factor, 128 // factor)]:
+        sides, lead = envelope_window(o, grid, factor)
+        for side, n, before in zip(sides, grid, lead):
+            m = side
+            for p in (2, 3, 5):
+                while m % p == 0:
+                    m //= p
+            assert m == 1 and side % 2 == 0
+            assert before >= pad and side - n - before >= pad and side - n - 2 * pad < 2 * (n + 2 * pad) // 10 + 2
+        model = EnvelopeModel(o, grid, factor, (0.0, 0.0))
+        assert model.padded == sides and model.lead == lead
+        assert envelope_padded_shape(o, (grid[0] * factor, grid[1] * factor), factor) == sides

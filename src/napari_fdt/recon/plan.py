@@ -32,11 +32,12 @@ __all__ = ["SECONDS_PER_UNIT", "OVERHEAD_S", "SOURCE_FIELD_UNITS", "Phase", "Pla
            "make_plan", "plan_for"]
 
 #: Seconds per cost unit of one iteration, by (device type, model). CPU: the bundled sample's default run on 2 cores
-#: (x4 and x2 envelope stages 16 and 73 ms per iteration, the x1 multi-slice stage 237 ms; 2026-11-25). CUDA: the
+#: (x4 and x2 envelope stages on their 2·3·5-smooth 40² and 80² windows 15.5 and 51.5 ms per iteration, 2026-11-26;
+#: the x1 multi-slice stage 237 ms, 2026-11-25). CUDA: the
 #: H100 rows of docs/benchmarks.md's suite table (sample, demo and big geometries: 10.0, 19.5 and 99.5 ms per
 #: multi-slice iteration); the envelope model on CUDA (not the default there) is priced like the multi-slice one.
 SECONDS_PER_UNIT: dict[tuple[str, str], float] = {
-    ("cpu", "envelope"): 8.3e-9,
+    ("cpu", "envelope"): 5.5e-9,
     ("cpu", "multislice"): 1.09e-9,
     ("cuda", "envelope"): 4.5e-12,
     ("cuda", "multislice"): 4.5e-12,
@@ -72,11 +73,9 @@ def iteration_units(batch: int, n_slices: int, fft_shape: tuple[int, int], pixel
 def envelope_padded_shape(optics: Optics, image_shape: tuple[int, int], factor: int) -> tuple[int, int]:
     """The padded grid (h, w) the envelope model of a stage of ``factor`` works on (as
     :class:`~napari_fdt.model.envelope.EnvelopeModel` pads it)."""
-    from napari_fdt.model.envelope import padding_px
+    from napari_fdt.model.envelope import envelope_window
 
-    h, w = image_shape[0] // factor, image_shape[1] // factor
-    pad = padding_px(optics, factor)
-    return h + 2 * pad, w + 2 * pad
+    return envelope_window(optics, (image_shape[0] // factor, image_shape[1] // factor), factor)[0]
 
 
 @dataclass(frozen=True)
