@@ -133,8 +133,10 @@ def test_ctrl_c_writes_the_last_complete_stage(scene16, tmp_path: Path) -> None:
                                "tv_xy_weight": 1.0, "tv_z_weight": 0.5}))
     ckpt = tmp_path / "ckpt"
     out = tmp_path / "cut.tif"
+    # SIGINT as a terminal delivers it: a suite started in the background (``pytest &``) hands its children SIGINT
+    # ignored, and Python then installs no KeyboardInterrupt for it
     proc = subprocess.Popen(_fdt(str(acq), "--out", str(out), "--config", str(cfg), "--checkpoint-dir", str(ckpt)),
-                            stderr=subprocess.PIPE, text=True)
+                            stderr=subprocess.PIPE, text=True, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         deadline = time.monotonic() + 300
         while not (ckpt / "stage_0.pt").exists():
