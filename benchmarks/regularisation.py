@@ -3,7 +3,7 @@
 Usage (repository root)::
 
     python -m benchmarks run regularisation make-scenes            # simulate the suite's scenes into out/scenes/
-    python -m benchmarks run regularisation run --scenes sample,beads --settings auto,0,1,5,10,50,200
+    python -m benchmarks run regularisation run --scenes sample,beads --settings auto,0,1,3,10,30 [--set '{"seed": 1}']
     python -m benchmarks run regularisation table                  # docs/ablation.md's regularisation section
 
 Every run is a full reconstruction with the default settings except the TV weights: ``auto`` (the default,
@@ -33,7 +33,7 @@ from benchmarks.scenes import SCENE_DIR, SUITE, make_scenes  # noqa: F401 (re-ex
 
 ROOT = Path(__file__).resolve().parents[1]
 DOC = ROOT / "docs" / "ablation.md"
-SWEEP = ("0", "1", "5", "10", "50", "200")
+SWEEP = ("0", "1", "3", "10", "30")  # issue 25's sweep (before 2026-11-26: 0, 1, 5, 10, 50, 200)
 
 #: name → (acquisition folder, the ``fdt simulate`` arguments that make it; None: bundled)
 # the suite's scenes and how to make them: benchmarks/scenes.py (the one registry)
@@ -225,7 +225,7 @@ def write_doc(rows: list[dict], since: str | None = None) -> None:
                        for name, (_, args) in SCENES.items() if any(r["scene"] == name for r in rows))
     body = "\n".join([
         start,
-        "Made by `python -m benchmarks run regularisation run --scenes SCENES --settings auto,0,1,5,10,50,200` and",
+        "Made by `python -m benchmarks run regularisation run --scenes SCENES --settings auto,0,1,3,10,30 [--set '{\"seed\": 1}']` and",
         f"`python -m benchmarks run regularisation table --write{' --since ' + since if since else ''}` (every row, with each stage's "
         "errors, the trials of \"auto\" and the model parts kept,",
         "is in `benchmarks/results/regularisation_<device>.jsonl`; older rows stay there as history). Each row is a full",
