@@ -36,25 +36,29 @@ def test_the_plan_lists_the_choice_then_the_stages_with_the_grids_the_solver_bui
     cfg = resolve_stage_lengths(SolverConfig(), sample.n_images)
     plan = make_plan(cfg, sample.optics, sample.image_shape, _sources(sample), "envelope", "cpu", choose_tv_at=1)
     names = [(p.pass_name, p.stage, p.trials) for p in plan.phases]
-    assert names == [(TV_CHOICE, 0, False), (TV_CHOICE, 1, True), (RUN, 0, False), (RUN, 1, False), (RUN, 2, False)]
+    # planned as the common case: the smallest weight wins, the run's stage 0 is the one before the trials and stage 1
+    # goes on after the winner's probe
+    assert names == [(TV_CHOICE, 0, False), (TV_CHOICE, 1, True), (RUN, 1, False), (RUN, 2, False)]
     probe = probe_iterations(cfg.stages[1].iterations)
     assert plan.phases[1].iterations == len(TV_PATH) * probe
-    assert plan.iterations == cfg.total_iterations + cfg.stages[0].iterations + plan.phases[1].iterations
-    assert [p.model for p in plan.phases] == ["envelope", "envelope", "envelope", "envelope", "multislice"]
-    assert plan.phases[3].name == "stage 2/3 (x2)" and plan.phases[1].name == "choosing the TV weight at stage 2/3 (x2)"
+    assert [(p.pass_name, p.stage, p.iterations, p.first_iteration) for p in plan.phases[2:]] == \
+           [(RUN, 1, cfg.stages[1].iterations - probe, probe), (RUN, 2, cfg.stages[2].iterations, 0)]
+    assert plan.iterations == cfg.total_iterations + (len(TV_PATH) - 1) * probe  # only the losers' iterations extra
+    assert [p.model for p in plan.phases] == ["envelope", "envelope", "envelope", "multislice"]
+    assert plan.phases[2].name == "stage 2/3 (x2)" and plan.phases[1].name == "choosing the TV weight at stage 2/3 (x2)"
     assert plan.phases[0].name == "choosing the TV weight: stage 1/3 (x4) with the lightest TV"
     assert all(p.name.isascii() for p in plan.phases)
-    # where the smallest weight wins, the run's stage 0 is the one before the trials and stage 1 goes on after the winner's probe
-    kept = plan.keeping_the_stages_before(1, probe)
-    assert [(p.pass_name, p.stage, p.iterations, p.first_iteration) for p in kept.phases[2:]] == \
-           [(RUN, 1, cfg.stages[1].iterations - probe, probe), (RUN, 2, cfg.stages[2].iterations, 0)]
-    assert kept.iterations == cfg.total_iterations + (len(TV_PATH) - 1) * probe  # only the losers' iterations extra
+    # where a larger weight wins, stage 0 runs again with it and stage 1 in full
+    again = plan.with_stages_again(1)
+    assert [(p.pass_name, p.stage, p.iterations, p.first_iteration) for p in again.phases[2:]] == \
+           [(RUN, 0, cfg.stages[0].iterations, 0), (RUN, 1, cfg.stages[1].iterations, 0), (RUN, 2, cfg.stages[2].iterations, 0)]
+    assert again.phases[2].model == plan.phases[0].model and again.phases[2].fft_shape == plan.phases[0].fft_shape
+    assert again.iterations == cfg.total_iterations + cfg.stages[0].iterations + plan.phases[1].iterations
     # chosen at the first stage: no stage before, the stage goes on from the winner
     first = make_plan(cfg, sample.optics, sample.image_shape, _sources(sample), "envelope", "cpu", choose_tv_at=0)
     probe0 = probe_iterations(cfg.stages[0].iterations)
     assert [(p.pass_name, p.stage, p.first_iteration) for p in first.phases] == \
            [(TV_CHOICE, 0, 0), (RUN, 0, probe0), (RUN, 1, 0), (RUN, 2, 0)]
-    assert first.keeping_the_stages_before(0, probe0) == first
     # the FFT grids are the ones the stages are built with (envelope: its padded grid; multi-slice: its window)
     images = torch.zeros((sample.n_images, *sample.image_shape))
     for p in plan.phases:
@@ -68,10 +72,10 @@ def test_the_plan_lists_the_choice_then_the_stages_with_the_grids_the_solver_bui
     assert [p.pass_name for p in fixed.phases] == [RUN] * 3 and fixed.iterations == cfg.total_iterations
     assert fixed.index(RUN, 2) == 2 and plan.index(TV_CHOICE, 1, trials=True) == 1
     assert plan.iterations_before(2) == cfg.stages[0].iterations + len(TV_PATH) * probe
-    again = fixed.with_rerun(fixed.phases)
-    assert [p.pass_name for p in again.phases] == [RUN] * 3 + ["rerun"] * 3 and again.iterations == 2 * fixed.iterations
+    rerun = fixed.with_rerun(fixed.phases)
+    assert [p.pass_name for p in rerun.phases] == [RUN] * 3 + ["rerun"] * 3 and rerun.iterations == 2 * fixed.iterations
     summary = plan.summary()
-    assert summary.startswith("plan (cpu): 5 phases") and summary.count("\n") == 5
+    assert summary.startswith("plan (cpu): 4 phases") and summary.count("\n") == 4
     d = plan.to_dict()
     assert d["predicted_total_s"] == pytest.approx(sum(p["predicted_s"] for p in d["phases"]))
 
@@ -152,9 +156,12 @@ def test_a_run_counts_along_its_plan_and_its_time_table_adds_up(scene16) -> None
     snaps = list(rec.run())
     done = [s.plan_iteration for s in snaps]
     assert done == sorted(done) and done[0] > 0  # never back
-    assert snaps[-1].plan_iteration == snaps[-1].plan_iterations == rec.plan.iterations <= planned
+    assert snaps[-1].plan_iteration == snaps[-1].plan_iterations == rec.plan.iterations
     trials = rec.plan.phases[rec.plan.index(TV_CHOICE, 1, trials=True)]
     assert trials.iterations == len(rec.tv_choice.trials) * rec.tv_choice.probe_iterations  # cut when it ended early
+    cut = len(TV_PATH) * rec.tv_choice.probe_iterations - trials.iterations
+    smallest = rec.tv_choice.tv_xy_weight == TV_PATH[0]  # planned for: the stages before are kept
+    assert rec.plan.iterations == planned - cut + (0 if smallest else cfg.stages[0].iterations + rec.tv_choice.probe_iterations)
     assert all(s.eta_s >= 0 for s in snaps) and snaps[-1].eta_s == 0 and snaps[-1].progress == 1.0
     assert [s.phase_name for s in snaps if s.stage_complete][-3:] == ["stage 1/3 (x4)", "stage 2/3 (x2)", "stage 3/3 (x1)"]
     table = plan_report(rec)

@@ -159,15 +159,17 @@ class Plan:
         """Whether the plan holds the phase of ``pass_name`` at ``stage``."""
         return any(p.pass_name == pass_name and p.stage == stage and p.trials == trials for p in self.phases)
 
-    def keeping_the_stages_before(self, stage: int, probe: int) -> "Plan":
-        """The plan when the TV choice at ``stage`` keeps what the stages before it did (the weight they ran with won):
-        the run's phases of those stages are dropped and ``stage``'s goes on after the winner's ``probe`` iterations."""
+    def with_stages_again(self, stage: int) -> "Plan":
+        """The plan when the TV choice at ``stage`` changes what the stages before it did (a weight larger than the one
+        they ran with won): they run again with it (the run's phases of those stages, priced as the phases before the
+        trials), and ``stage`` runs in full instead of going on after the winner's probe. The plan without this is
+        the one where the stages before are kept (:func:`make_plan`)."""
+        before = [replace(p, pass_name=RUN) for p in self.phases if p.pass_name == TV_CHOICE and not p.trials and p.stage < stage]
         phases = []
         for p in self.phases:
-            if p.pass_name == RUN and p.stage < stage:
-                continue
-            if p.pass_name == RUN and p.stage == stage and p.first_iteration == 0:
-                p = replace(p, iterations=p.iterations - probe, first_iteration=probe)
+            if p.pass_name == RUN and p.stage == stage and p.first_iteration > 0:
+                phases += before
+                p = replace(p, iterations=p.iterations + p.first_iteration, first_iteration=0)
             phases.append(p)
         return Plan(tuple(phases), self.device_type, self.if_part_kept_s)
 
@@ -238,9 +240,9 @@ def make_plan(config: SolverConfig, optics: Optics, image_shape: tuple[int, int]
     """The plan of a run of ``config`` (as run: its stages resolved) on ``device_type`` ("cpu" or "cuda"), with the
     initial ``sources_um`` (N, 3) µm, ``coarse_model`` resolved for the device; ``choose_tv_at``: the stage at whose
     start the ``"auto"`` TV weights are tried (None: no choice), every weight for :func:`probe_iterations` of its
-    iterations, after the stages before it at the path's smallest weight; the run's stages follow in full (the stages
-    before run again with the chosen weight: :meth:`Plan.keeping_the_stages_before` drops them where the choice is that
-    weight);
+    iterations, after the stages before it at the path's smallest weight; then the run's stages from there, the
+    selection stage going on after the winner's probe: the plan of the common case, where that smallest weight wins
+    (:meth:`Plan.with_stages_again` adds the stages before, run again, where a larger weight wins);
     ``pixel_integration``, ``pupil_edge``: the camera model's (as the first pass runs it); ``parts_to_choose``: "auto" model parts will
     be chosen from the data (:attr:`Plan.if_part_kept_s` then says what keeping one would add)."""
     src = np.asarray(sources_um, dtype=np.float64)
@@ -252,8 +254,9 @@ def make_plan(config: SolverConfig, optics: Optics, image_shape: tuple[int, int]
         probe = probe_iterations(config.stages[choose_tv_at].iterations)
         phases += [replace(p, pass_name=TV_CHOICE) for p in stages[:choose_tv_at]]
         phases.append(replace(stages[choose_tv_at], pass_name=TV_CHOICE, trials=True, iterations=len(TV_PATH) * probe))
-        if choose_tv_at == 0:  # no stage before: the stage goes on from the winner's trial
-            stages[0] = replace(stages[0], iterations=stages[0].iterations - probe, first_iteration=probe)
+        # the selection stage goes on from the winner's trial; the stages before are kept (the smallest weight won)
+        stages = stages[choose_tv_at:]
+        stages[0] = replace(stages[0], iterations=stages[0].iterations - probe, first_iteration=probe)
     phases += stages
     extra = None
     if parts_to_choose and config.parts_rerun == "stages":

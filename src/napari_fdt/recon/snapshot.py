@@ -67,7 +67,7 @@ class Snapshot:
     #: (τ_xy, τ_z) a trial has just tried (its snapshot: ``validation_error`` is the trial's); None otherwise
     tv_weights: tuple[float, float] | None = None
     #: iterations done along the run's whole plan (:mod:`napari_fdt.recon.plan`: stages, TV trials, stages run again), and
-    #: the plan's iterations in all (it grows when a kept part appends phases; the count never starts again)
+    #: the plan's iterations in all (it grows when a larger TV weight or a kept part adds phases; the count never starts again)
     plan_iteration: int = 0
     plan_iterations: int = 0
     #: the plan's phase in words ("stage 2/3 (x2)", "choosing the TV weight at stage 2/3 (x2)", ASCII)

@@ -75,13 +75,13 @@ def choose_tv(rec: Reconstructor, work: StageWork, should_stop: Callable[[], boo
     rec.tv_choice = TVChoice(win["tv_xy_weight"], win["tv_z_weight"], stage=stage.index, probe_iterations=n_probe,
                              trials=trials, seconds=sum(t["seconds"] for t in trials))
     if stage.index > 0 and (win["tv_xy_weight"], win["tv_z_weight"]) != (weights.tv_xy, weights.tv_z):
+        rec._revise_plan(rec.plan.with_stages_again(stage.index))  # the stages before, again with the winner
         return Verdict.FROM_FIRST_STAGE
     restore_branch(rec, ends[k])
     work.optimiser = new_optimiser(rec)
     work.optimiser.load_state_dict(ends[k]["vol_opt"])
     work.done = n_probe
     work.record.choice_s = sum(t["seconds"] for j, t in enumerate(trials) if j != k)
-    rec._revise_plan(rec.plan.keeping_the_stages_before(stage.index, n_probe))
     if cfg.early_stopping != "off" and win["validation_error"] is not None:  # the winner's end is a candidate iterate
         work.best.update(n_probe, win["validation_error"], rec._capture)
     return Verdict.GO_ON
