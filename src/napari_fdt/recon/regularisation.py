@@ -19,7 +19,8 @@ With ``tv_xy_weight = "auto"`` (the default; ``tv_z_weight`` likewise) the weigh
    winning trial's state (volume, calibration, both optimisers, batch order): only the losing trials' iterations are
    extra work. Otherwise the weight changes what the stages before did, and they run again with it from the start,
    the selection stage in full: an "auto" run always ends as the run given its chosen weights as numbers. (Keeping the
-   TV-free first stage, or a first stage at τ 1 whatever the choice, measurably raised the Δn error: docs/solver.md.)
+   first stage's state whatever the choice, TV-free or at τ 1, measurably raised the Δn error:
+   docs/decisions/tv-weight-choice.md.)
 
 τ_z follows τ_xy at the ratio :data:`TV_Z_RATIO` when both are ``"auto"``; a weight given as a number stays fixed
 while the other is chosen. Without a validation split "auto" means the path's smallest weight, with a warning.
