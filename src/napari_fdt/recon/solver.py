@@ -174,7 +174,7 @@ class Reconstructor:
             warnings.warn("tv_xy_weight: \"auto\" chooses the TV weights by the validation error, and this run holds no "
                           "images out (validation_fraction 0, or too few images): the smallest weights of the path are used "
                           f"(tau_xy {xy:g}, tau_z {z:g}). Give validation_fraction > 0 or fixed weights", FDTWarning, stacklevel=2)
-            self.tv_choice = TVChoice(*candidate_weights(cfg, TV_PATH[0]), stage=0, probe_iterations=0, reason="no validation split")
+            self.tv_choice = TVChoice(xy, z, stage=0, probe_iterations=0, reason="no validation split")
         check_memory(acquisition, cfg, src, self.device, len(self.wavelengths) if self.wavelengths else 1)
         self._make_plan()
 

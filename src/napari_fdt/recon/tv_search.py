@@ -43,8 +43,6 @@ def choose_tv(rec: Reconstructor, work: StageWork, should_stop: Callable[[], boo
     finished = False
     try:
         for k, tau in enumerate(TV_PATH):
-            if tried_enough(trials):  # past the minimum the error only rises: the larger weights would not be picked
-                break
             t1 = time.perf_counter()
             restore_branch(rec, start)
             xy, z = candidate_weights(cfg, tau)
@@ -60,10 +58,14 @@ def choose_tv(rec: Reconstructor, work: StageWork, should_stop: Callable[[], boo
             ends.append({**capture_branch(rec), "vol_opt": copy.deepcopy(vol_opt.state_dict())})
             trials.append({"tau": tau, "tv_xy_weight": xy, "tv_z_weight": z, "validation_error": err, "image_errors": each,
                            "seconds": time.perf_counter() - t1})
-            if tried_enough(trials) and k + 1 < len(TV_PATH):  # the last trial: its snapshot shows the plan cut to the weights tried
+            # past the minimum the error only rises: the larger weights would not be picked
+            enough = tried_enough(trials) and k + 1 < len(TV_PATH)
+            if enough:  # the last trial: its snapshot shows the plan cut to the weights tried
                 rec._revise_plan(rec.plan.with_iterations(rec._phase_index, len(trials) * n_probe))
             yield from work.hand_over(take_snapshot(rec, stage, n_probe, work.base_iteration + n_probe, terms, work.t0, False,
                                                     err, train_error, trial=k))
+            if enough:
+                break
         finished = True
     finally:
         if not finished:  # stopped or closed: back to the stage's start, nothing chosen (a new run chooses again)
