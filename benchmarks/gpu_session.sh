@@ -12,6 +12,9 @@
 # that order). The limits are about twice what each took on an H200 (2026-11-26; profile not run yet); a 15-minute lease
 # holds two calls: tta,checks,split,sample,step,coarse, then profile,tta_envelope,suite_multislice,suite_envelope;
 # reg_demo (about 5 minutes, not run yet) needs a lease of its own.
+# GPU_SESSION_BUDGET_S (seconds, optional): the items share this budget: each item's limit is cut to what is left of
+# it (less 20 s for the archive), and an item with under 20 s left is skipped, so that the archive is always written
+# inside the device call's own limit. REG_DEMO_SETTINGS (default auto,0,50): the weights reg_demo runs.
 # split reads the suite's scenes from out/scenes (carry them, or make-scenes first).
 # The package runs from src/ (PYTHONPATH), so a machine with torch, numpy, scikit-image, tifffile and pydantic needs
 # no install.
@@ -29,6 +32,11 @@ item() {  # item NAME LIMIT_S COMMAND...: run one item in a fresh process, its o
     shift 2
     case ",$items," in *",$name,"*) ;; *) return 0 ;; esac
     local t0=$SECONDS
+    if [ "${GPU_SESSION_BUDGET_S:-0}" -gt 0 ]; then
+        local left=$((GPU_SESSION_BUDGET_S - SECONDS - 20))
+        if [ "$left" -lt 20 ]; then echo "== $name skipped: ${left} s of the budget left"; return 0; fi
+        [ "$left" -lt "$limit" ] && limit=$left
+    fi
     echo "== $name (limit ${limit} s): $*"
     timeout -k 5 "$limit" "$@" >"$out/$name.log" 2>&1
     local rc=$?
@@ -57,7 +65,7 @@ item suite_multislice 150 "$py" -m benchmarks run suite --device cuda --scenes d
 item suite_envelope 150 "$py" -m benchmarks run suite --device cuda --scenes demo,sample --coarse-model envelope \
     --out benchmarks/results/suite_cuda_envelope.json
 # issue 12's target, the demo with the defaults (checklist item 7): simulates the demo scene, then three runs
-item reg_demo 480 "$py" -m benchmarks run regularisation run --scenes demo --settings auto,0,50 --device cuda
+item reg_demo 480 "$py" -m benchmarks run regularisation run --scenes demo --settings "${REG_DEMO_SETTINGS:-auto,0,50}" --device cuda
 
 cp "$tmp"/sample_*.json "$out"/ 2>/dev/null
 # one archive (a lease's file transfer may take few files): the logs, the sample reports, what went to benchmarks/results
