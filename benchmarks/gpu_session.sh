@@ -9,9 +9,10 @@
 # runs' reports, and OUT_DIR/session.tgz with those and the files the items wrote under benchmarks/results. ITEMS: a
 # comma-separated subset of
 # tta,checks,split,sample,step,coarse,profile,tta_envelope,suite_multislice,suite_envelope,reg_demo (default: all, in
-# that order). The limits are about twice what each took on an H200 (2026-11-26; profile not run yet); a 15-minute lease
-# holds two calls: tta,checks,split,sample,step,coarse, then profile,tta_envelope,suite_multislice,suite_envelope;
-# reg_demo (about 5 minutes, not run yet) needs a lease of its own.
+# that order). The limits are about twice what each took on an H200 (2026-11-26). A 15-minute lease holds one call of
+# about 9 minutes with the machine's start, then a short second call at once on the warm machine (it is given back
+# 30 s after a call): on an H100 (2026-11-26) tta,checks,sample,step,profile,suite_multislice took 425 s, and
+# reg_demo with REG_DEMO_SETTINGS=auto about 110 s (27 s of it simulating the demo).
 # GPU_SESSION_BUDGET_S (seconds, optional): the items share this budget: each item's limit is cut to what is left of
 # it (less 20 s for the archive), and an item with under 20 s left is skipped, so that the archive is always written
 # inside the device call's own limit. REG_DEMO_SETTINGS (default auto,0,50): the weights reg_demo runs.
@@ -58,7 +59,7 @@ sample='for w in auto split; do "$0" -c "import sys; from napari_fdt.cli import 
 item sample 75 bash -c "$sample" "$py" "$tmp" "${SAMPLE_DEVICE:-cuda}"
 item step 60 "$py" -m benchmarks run step_speed --device cuda
 item coarse 60 "$py" -m benchmarks run coarse_stage_speed --device cuda --cuda-graph --repeats 10
-item profile 120 "$py" -m benchmarks run profile_step --solver-demo
+item profile 120 "$py" -m benchmarks run profile_step --solver-demo --no-modes
 item tta_envelope 90 "$py" -m benchmarks run time_to_accuracy --device cuda --coarse-model envelope
 item suite_multislice 150 "$py" -m benchmarks run suite --device cuda --scenes demo,sample \
     --out benchmarks/results/suite_cuda_multislice.json

@@ -1,6 +1,7 @@
 """Where the time of one training step goes on a GPU: primitive costs and a kernel-level profile.
 
-    python -m benchmarks run profile_step [--side 1024 --slices 24 --batch 30] [--solver-demo]
+    python -m benchmarks run profile_step [--side 1024 --slices 24 --batch 30] [--solver-demo | --solver-only]
+    python -m benchmarks run profile_step --solver-only --device cpu --solver-side 96   # a quick check on the CPU
 
 Prints (1) the two ceilings: a device-to-device copy of one batch of fields (bytes read + written) and
 one batched fft2 of it; (2) each elementwise primitive of the slice loop; (3) the top CUDA kernels of
@@ -69,31 +70,46 @@ def profile_modes(side, n, batch):
         print(prof.key_averages().table(sort_by="cuda_time_total", row_limit=14, max_name_column_width=60))
 
 
-def profile_solver_demo():
-    """One profiled iteration of each stage of the solver on the demo geometry (reduced image count)."""
+def profile_solver_demo(device: str = "cuda", side: int = 512, n_slices: int = 14, n_grid: int = 13) -> None:
+    """Ten steady iterations of a one-stage solver run per coarse-to-fine factor on the demo geometry (fewer images),
+    under ``torch.profiler``: the solver's iteration against the model's step (``step_speed``), what runs between.
+
+    The profiler steps from the solver's per-iteration ``should_stop`` call, on a schedule (15 iterations skipped,
+    5 warm-up, 10 recorded), so the set-up (plans, cuFFT plans, Triton compilation) stays out of the tables: profiling
+    a whole 40-iteration stage, set-up included, left tables that took over 80 s to build (2026-11-26, H100, cut by the
+    item's limit). Fixed TV weights: the TV choice's trials would change the iteration count."""
     import time
 
-    from torch.profiler import ProfilerActivity, profile
+    from torch.profiler import ProfilerActivity, profile, schedule
 
     from benchmarks.suite import _letters_scene
     from napari_fdt.recon.config import SolverConfig, StageConfig
     from napari_fdt.recon.solver import Reconstructor
 
-    acq, dn = _letters_scene(512, 14, 13, 84.0, 100, torch.device("cuda"), text="UCDAVIS")
+    dev = torch.device(device)
+    acq, dn = _letters_scene(side, n_slices, n_grid, 84.0 * side / 512, side // 5, dev, text="UCDAVIS")
+    activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if dev.type == "cuda" else [])
+    sort_device = "cuda_time_total" if dev.type == "cuda" else "cpu_time_total"
     for factor in (4, 2, 1):
-        cfg = SolverConfig(stages=[StageConfig(factor, 40)], batch_size=30, snapshot_every=1000)
-        rec = Reconstructor(acq, cfg, device="cuda")
-        gen = rec.run()
-        t = time.perf_counter()
-        with profile(activities=[ProfilerActivity.CUDA, ProfilerActivity.CPU]) as prof:
-            for _ in gen:
+        cfg = SolverConfig(stages=[StageConfig(factor, 40)], batch_size=30, snapshot_every=1000,
+                           tv_xy_weight=1.0, tv_z_weight=0.5)
+        rec = Reconstructor(acq, cfg, device=device)
+        ticks: list[float] = []
+        with profile(activities=activities, schedule=schedule(wait=15, warmup=5, active=10, repeat=1)) as prof:
+            def tick() -> bool:
+                if dev.type == "cuda":
+                    torch.cuda.synchronize()
+                ticks.append(time.perf_counter())
+                prof.step()
+                return False
+            for _ in rec.run(should_stop=tick):
                 pass
-            torch.cuda.synchronize()
-        dt = time.perf_counter() - t
-        print(f"\n=== solver stage factor {factor}: 40 iterations in {dt:.2f} s (incl. set-up); per stage record "
-              f"{rec.stages[0].seconds_per_iteration * 1e3:.1f} ms/it ===")
-        print(prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=12, max_name_column_width=50))
-        print(prof.key_averages().table(sort_by="cuda_time_total", row_limit=10, max_name_column_width=50))
+        steady = [b - a for a, b in zip(ticks[20:30], ticks[21:31])]
+        print(f"\n=== solver, one stage at factor {factor} ({side}², {n_slices} slices, batch 30, {device}): "
+              f"{1e3 * statistics.median(steady):.1f} ms per iteration (median of iterations 21-30, synchronised); "
+              f"the stage record {rec.stages[0].seconds_per_iteration * 1e3:.1f} ms/it ===", flush=True)
+        print(prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=15, max_name_column_width=50))
+        print(prof.key_averages().table(sort_by=sort_device, row_limit=12, max_name_column_width=50), flush=True)
 
 
 def main():
@@ -103,12 +119,16 @@ def main():
     p.add_argument("--batch", type=int, default=30)
     p.add_argument("--solver-demo", action="store_true")
     p.add_argument("--no-modes", action="store_true")
+    p.add_argument("--solver-only", action="store_true", help="only the solver's profile (--solver-demo)")
+    p.add_argument("--device", default="cuda", help="the solver profile's device (cpu: a quick check of the script)")
+    p.add_argument("--solver-side", type=int, default=512, help="the solver profile's grid side, px")
     a = p.parse_args()
-    primitives(a.side, a.slices, a.batch)
-    if not a.no_modes:
-        profile_modes(a.side, a.slices, a.batch)
-    if a.solver_demo:
-        profile_solver_demo()
+    if not a.solver_only:
+        primitives(a.side, a.slices, a.batch)
+        if not a.no_modes:
+            profile_modes(a.side, a.slices, a.batch)
+    if a.solver_demo or a.solver_only:
+        profile_solver_demo(a.device, a.solver_side)
 
 
 if __name__ == "__main__":
