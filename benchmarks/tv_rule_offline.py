@@ -4,6 +4,7 @@ Usage (repository root)::
 
     python -m benchmarks run tv_rule_offline --since 2026-11-25          # table of rules × scenes, means over seeds
     python -m benchmarks run tv_rule_offline --since 2026-11-25 --markdown
+    python -m benchmarks run tv_rule_offline --since 2026-11-26 --whole-path   # the tolerance rule on whole runs
 
 An "auto" run is bit-identical to the run given its chosen weight as a number (``tests/test_regularisation.py``), and
 its row in ``benchmarks/results/regularisation_cpu.jsonl`` keeps every trial of the pilot with its per-image held-out
@@ -64,6 +65,41 @@ def evaluate(rows: list[dict]) -> list[dict]:
     return out
 
 
+PATH = (1.0, 3.0, 10.0, 30.0)
+TOLERANCES = (0.0, 0.02, 0.05, 0.08)
+
+
+def whole_path(rows: list[dict]) -> str:
+    """What the held-out images say when every weight has run the whole path: for each stage's end (×4, ×2, finest)
+    and tolerance δ, the rule "the largest τ of :data:`PATH` whose held-out error at that stage's end is within
+    (1 + δ) of the smallest", applied to the fixed-weight runs of each (scene, seed); its outcome is that run's final
+    Δn error. Table: the mean over seeds over the best fixed weight's mean (τ 0 included). Not a rule a run can
+    afford (every weight's whole run); it asks whether the held-out images can rank the weights at all."""
+    runs: dict[tuple[str, int], dict[float, dict]] = {}
+    for r in rows:
+        if set(r.get("config_overrides") or {}) <= {"seed"} and r["setting"] != "auto":
+            runs.setdefault((r["scene"], _seed(r)), {})[float(r["setting"])] = r
+    runs = {k: v for k, v in runs.items() if set(PATH) | {0.0} <= set(v)}
+    scenes = sorted({sc for sc, _ in runs})
+    lines = ["| stage's end | δ | " + " | ".join(scenes) + " |", "|---|---|" + "---|" * len(scenes)]
+    for stage in range(3):
+        for delta in TOLERANCES:
+            cells = []
+            for sc in scenes:
+                keys = sorted(k for k in runs if k[0] == sc)
+                got = []
+                for k in keys:
+                    vals = {t: runs[k][t]["stages"][stage]["validation_error"] for t in PATH}
+                    tau = max(t for t in PATH if vals[t] <= (1 + delta) * min(vals.values()))
+                    got.append(runs[k][tau]["relative_delta_n_error"])
+                best = min(np.mean([runs[k][t]["relative_delta_n_error"] for k in keys]) for t in (0.0, *PATH))
+                cells.append(f"{np.mean(got) / best:.2f}")
+            name = ("×4", "×2", "finest")[stage]
+            lines.append(f"| {name} | {delta:g} | " + " | ".join(cells) + " |")
+    n = {sc: sum(1 for k in runs if k[0] == sc) for sc in scenes}
+    return "\n".join(lines) + "\n\nseeds per scene: " + ", ".join(f"{sc} {c}" for sc, c in n.items())
+
+
 def markdown(records: list[dict]) -> str:
     lines = ["| scene | seeds | sweep mean errors (τ: error) | best | " + " | ".join(RULES) + " |",
              "|---|---|---|---|" + "---|" * len(RULES)]
@@ -84,7 +120,11 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--since", default=None, help="only rows made on or after this day (YYYY-MM-DD)")
     p.add_argument("--device", default="cpu")
     p.add_argument("--markdown", action="store_true")
+    p.add_argument("--whole-path", action="store_true", help="the tolerance rule on whole fixed-weight runs")
     args = p.parse_args(argv)
+    if args.whole_path:
+        print(whole_path(load_rows([RESULTS / f"regularisation_{args.device}.jsonl"], args.since)))
+        return
     records = evaluate(load_rows([RESULTS / f"regularisation_{args.device}.jsonl"], args.since))
     if args.markdown:
         print(markdown(records))
