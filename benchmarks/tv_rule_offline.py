@@ -5,6 +5,7 @@ Usage (repository root)::
     python -m benchmarks run tv_rule_offline --since 2026-11-25          # table of rules × scenes, means over seeds
     python -m benchmarks run tv_rule_offline --since 2026-11-25 --markdown
     python -m benchmarks run tv_rule_offline --since 2026-11-26 --whole-path   # the tolerance rule on whole runs
+    python -m benchmarks run tv_rule_offline --since 2026-11-26 --coarse-paths # ... on the finest stage's first iterations
 
 An "auto" run is bit-identical to the run given its chosen weight as a number (``tests/test_regularisation.py``), and
 its row in ``benchmarks/results/regularisation_cpu.jsonl`` keeps every trial of the pilot with its per-image held-out
@@ -100,6 +101,39 @@ def whole_path(rows: list[dict]) -> str:
     return "\n".join(lines) + "\n\nseeds per scene: " + ", ".join(f"{sc} {c}" for sc, c in n.items())
 
 
+def coarse_paths(rows: list[dict], probes: list[dict]) -> str:
+    """The tolerance rule of :func:`whole_path` applied to the held-out errors that ``tv_coarse_paths.py`` recorded at
+    the finest stage's start (iteration 0) and after 10, 20 and 40 of its iterations, each weight's stages before
+    having run at that weight; the outcome of a choice is the fixed-weight run's final Δn error (same scene, seed)."""
+    final: dict[tuple[str, int, float], float] = {}
+    for r in rows:
+        if set(r.get("config_overrides") or {}) <= {"seed"} and r["setting"] != "auto":
+            final[(r["scene"], _seed(r), float(r["setting"]))] = r["relative_delta_n_error"]
+    seen: dict[tuple[str, int], dict[float, dict[int, float]]] = {}
+    for pr in probes:
+        seen.setdefault((pr["scene"], int(pr["seed"])), {})[float(pr["tau"])] = {t["iteration"]: t["validation_error"] for t in pr["trace"]}
+    keys = sorted(k for k, by in seen.items() if all((k[0], k[1], t) in final for t in by) and len(by) > 1)
+    scenes = sorted({sc for sc, _ in keys})
+    marks = sorted({it for by in seen.values() for tr in by.values() for it in tr})
+    lines = ["| finest iteration | δ | " + " | ".join(scenes) + " |", "|---|---|" + "---|" * len(scenes)]
+    for it in marks:
+        for delta in (0.0, 0.03, 0.05, 0.08, 0.12):
+            cells = []
+            for sc in scenes:
+                ks = [k for k in keys if k[0] == sc]
+                got = []
+                for k in ks:
+                    vals = {t: tr[it] for t, tr in seen[k].items() if it in tr}
+                    tau = max(t for t in vals if vals[t] <= (1 + delta) * min(vals.values()))
+                    got.append(final[(k[0], k[1], tau)])
+                taus = {t for (s_, _, t) in final if s_ == sc}
+                best = min(np.mean([final[(sc, k[1], t)] for k in ks]) for t in taus
+                           if all((sc, k[1], t) in final for k in ks))
+                cells.append(f"{np.mean(got) / best:.2f}")
+            lines.append(f"| {it} | {delta:g} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n\nseeds: " + ", ".join(f"{sc} {sum(1 for k in keys if k[0] == sc)}" for sc in scenes)
+
+
 def markdown(records: list[dict]) -> str:
     lines = ["| scene | seeds | sweep mean errors (τ: error) | best | " + " | ".join(RULES) + " |",
              "|---|---|---|---|" + "---|" * len(RULES)]
@@ -121,7 +155,13 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--device", default="cpu")
     p.add_argument("--markdown", action="store_true")
     p.add_argument("--whole-path", action="store_true", help="the tolerance rule on whole fixed-weight runs")
+    p.add_argument("--coarse-paths", action="store_true", help="the tolerance rule on tv_coarse_paths.py's rows")
     args = p.parse_args(argv)
+    if args.coarse_paths:
+        from benchmarks._results import read_rows
+        rows = load_rows([RESULTS / f"regularisation_{args.device}.jsonl"], args.since)
+        print(coarse_paths(rows, read_rows(RESULTS / f"tv_coarse_paths_{args.device}.jsonl")))
+        return
     if args.whole_path:
         print(whole_path(load_rows([RESULTS / f"regularisation_{args.device}.jsonl"], args.since)))
         return
