@@ -33,17 +33,18 @@ __all__ = ["SECONDS_PER_UNIT", "OVERHEAD_S", "SOURCE_FIELD_UNITS", "Phase", "Pla
 
 #: Seconds per cost unit of one iteration, by (device type, model). CPU: the bundled sample's default run on 2 cores
 #: (x4 and x2 envelope stages on their 2·3·5-smooth 40² and 80² windows 15.5 and 51.5 ms per iteration, 2026-11-26;
-#: the x1 multi-slice stage 237 ms, 2026-11-25). CUDA: the
-#: H100 rows of docs/benchmarks.md's suite table (sample, demo and big geometries: 10.0, 19.5 and 99.5 ms per
-#: multi-slice iteration); the envelope model on CUDA (not the default there) is priced like the multi-slice one.
+#: the x1 multi-slice stage 237 ms, 2026-11-25). CUDA: an H100 on 2026-11-26 (docs/decisions/gpu-checklist-h100.md):
+#: the sample's finest stage 15.8-21 ms and the demo's 32.6 ms per multi-slice iteration, about 17 ms of it outside the
+#: model's step (before: 9 ms, from the November suite rows 10.0, 19.5, 99.5 ms); the envelope model on CUDA (not the
+#: default there) is priced like the multi-slice one.
 SECONDS_PER_UNIT: dict[tuple[str, str], float] = {
     ("cpu", "envelope"): 5.5e-9,
     ("cpu", "multislice"): 1.09e-9,
-    ("cuda", "envelope"): 4.5e-12,
-    ("cuda", "multislice"): 4.5e-12,
+    ("cuda", "envelope"): 6.7e-12,
+    ("cuda", "multislice"): 6.7e-12,
 }
 #: Seconds of one iteration that do not scale with its size (kernel launches), by device type.
-OVERHEAD_S: dict[str, float] = {"cpu": 0.0, "cuda": 9e-3}
+OVERHEAD_S: dict[str, float] = {"cpu": 0.0, "cuda": 1.7e-2}
 
 
 #: Cost units of the split-field model's source field at one image pixel of one screen of one image (the radial
