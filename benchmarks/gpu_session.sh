@@ -8,7 +8,7 @@
 # that one item that hangs or fails leaves the others' results. Writes OUT_DIR/NAME.log per item, the sample
 # runs' reports, and OUT_DIR/session.tgz with those and the files the items wrote under benchmarks/results. ITEMS: a
 # comma-separated subset of
-# tta,checks,split,sample,step,coarse,profile,tta_envelope,suite_multislice,suite_envelope,reg_demo (default: all, in
+# tta,checks,split,sample,step,coarse,profile,profile_nosources,tta_envelope,suite_multislice,suite_envelope,reg_demo (default: all, in
 # that order). The limits are about twice what each took on an H200 (2026-11-26). A 15-minute lease holds one call of
 # about 9 minutes with the machine's start, then a short second call at once on the warm machine (it is given back
 # 30 s after a call): on an H100 (2026-11-26) tta,checks,sample,step,profile,suite_multislice took 425 s, and
@@ -21,7 +21,7 @@
 # no install.
 set -u
 out=${1:?usage: gpu_session.sh OUT_DIR [ITEMS]}
-items=${2:-tta,checks,split,sample,step,coarse,profile,tta_envelope,suite_multislice,suite_envelope,reg_demo}
+items=${2:-tta,checks,split,sample,step,coarse,profile,profile_nosources,tta_envelope,suite_multislice,suite_envelope,reg_demo}
 mkdir -p "$out"
 tmp=$(mktemp -d)
 touch "$tmp/start"
@@ -60,6 +60,8 @@ item sample 75 bash -c "$sample" "$py" "$tmp" "${SAMPLE_DEVICE:-cuda}"
 item step 60 "$py" -m benchmarks run step_speed --device cuda
 item coarse 60 "$py" -m benchmarks run coarse_stage_speed --device cuda --cuda-graph --repeats 10
 item profile 120 "$py" -m benchmarks run profile_step --solver-demo --no-modes
+# the same solver profile without the sources' calibration (its whitened step waits for the GPU twice per iteration)
+item profile_nosources 90 "$py" -m benchmarks run profile_step --solver-only --solver-set '{"calibrate_sources": false}'
 item tta_envelope 90 "$py" -m benchmarks run time_to_accuracy --device cuda --coarse-model envelope
 item suite_multislice 150 "$py" -m benchmarks run suite --device cuda --scenes demo,sample \
     --out benchmarks/results/suite_cuda_multislice.json

@@ -70,7 +70,7 @@ def profile_modes(side, n, batch):
         print(prof.key_averages().table(sort_by="cuda_time_total", row_limit=14, max_name_column_width=60))
 
 
-def profile_solver_demo(device: str = "cuda", side: int = 512, n_slices: int = 14, n_grid: int = 13) -> None:
+def profile_solver_demo(device: str = "cuda", side: int = 512, n_slices: int = 14, n_grid: int = 13, overrides: dict | None = None) -> None:
     """Ten steady iterations of a one-stage solver run per coarse-to-fine factor on the demo geometry (fewer images),
     under ``torch.profiler``: the solver's iteration against the model's step (``step_speed``), what runs between.
 
@@ -93,6 +93,8 @@ def profile_solver_demo(device: str = "cuda", side: int = 512, n_slices: int = 1
     for factor in (4, 2, 1):
         cfg = SolverConfig(stages=[StageConfig(factor, 40)], batch_size=30, snapshot_every=1000,
                            tv_xy_weight=1.0, tv_z_weight=0.5)
+        if overrides:  # e.g. {"calibrate_sources": false}: what a part of the iteration costs
+            cfg = SolverConfig.from_dict({**cfg.to_dict(), **overrides})
         rec = Reconstructor(acq, cfg, device=device)
         ticks: list[float] = []
         with profile(activities=activities, schedule=schedule(wait=15, warmup=5, active=10, repeat=1)) as prof:
@@ -122,13 +124,15 @@ def main():
     p.add_argument("--solver-only", action="store_true", help="only the solver's profile (--solver-demo)")
     p.add_argument("--device", default="cuda", help="the solver profile's device (cpu: a quick check of the script)")
     p.add_argument("--solver-side", type=int, default=512, help="the solver profile's grid side, px")
+    p.add_argument("--solver-set", default=None, help="JSON settings for the solver profile, e.g. '{\"calibrate_sources\": false}'")
     a = p.parse_args()
     if not a.solver_only:
         primitives(a.side, a.slices, a.batch)
         if not a.no_modes:
             profile_modes(a.side, a.slices, a.batch)
     if a.solver_demo or a.solver_only:
-        profile_solver_demo(a.device, a.solver_side)
+        import json
+        profile_solver_demo(a.device, a.solver_side, overrides=json.loads(a.solver_set) if a.solver_set else None)
 
 
 if __name__ == "__main__":
