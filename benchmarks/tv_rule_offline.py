@@ -24,7 +24,7 @@ import argparse
 
 import numpy as np
 
-from benchmarks._results import RESULTS  # noqa: E402
+from benchmarks._results import RESULTS, read_rows  # noqa: E402
 from benchmarks.regularisation import SCENES, load_rows  # noqa: E402
 from napari_fdt.recon.regularisation import pick  # noqa: E402
 
@@ -70,6 +70,17 @@ PATH = (1.0, 3.0, 10.0, 30.0)
 TOLERANCES = (0.0, 0.02, 0.05, 0.08)
 
 
+def _fixed_runs(rows: list[dict]) -> dict[tuple[str, int, float], dict]:
+    """The fixed-weight rows of the plain sweep (no settings but the seed), by (scene, seed, τ_xy)."""
+    return {(r["scene"], _seed(r), float(r["setting"])): r for r in rows
+            if set(r.get("config_overrides") or {}) <= {"seed"} and r["setting"] != "auto"}
+
+
+def _tolerance_pick(errors: dict[float, float], delta: float) -> float:
+    """The largest τ whose held-out error is within (1 + ``delta``) of the smallest of ``errors`` (τ → error)."""
+    return max(t for t in errors if errors[t] <= (1 + delta) * min(errors.values()))
+
+
 def whole_path(rows: list[dict]) -> str:
     """What the held-out images say when every weight has run the whole path: for each stage's end (×4, ×2, finest)
     and tolerance δ, the rule "the largest τ of :data:`PATH` whose held-out error at that stage's end is within
@@ -77,9 +88,8 @@ def whole_path(rows: list[dict]) -> str:
     Δn error. Table: the mean over seeds over the best fixed weight's mean (τ 0 included). Not a rule a run can
     afford (every weight's whole run); it asks whether the held-out images can rank the weights at all."""
     runs: dict[tuple[str, int], dict[float, dict]] = {}
-    for r in rows:
-        if set(r.get("config_overrides") or {}) <= {"seed"} and r["setting"] != "auto":
-            runs.setdefault((r["scene"], _seed(r)), {})[float(r["setting"])] = r
+    for (scene, seed, tau), r in _fixed_runs(rows).items():
+        runs.setdefault((scene, seed), {})[tau] = r
     runs = {k: v for k, v in runs.items() if set(PATH) | {0.0} <= set(v)}
     scenes = sorted({sc for sc, _ in runs})
     lines = ["| stage's end | δ | " + " | ".join(scenes) + " |", "|---|---|" + "---|" * len(scenes)]
@@ -90,8 +100,7 @@ def whole_path(rows: list[dict]) -> str:
                 keys = sorted(k for k in runs if k[0] == sc)
                 got = []
                 for k in keys:
-                    vals = {t: runs[k][t]["stages"][stage]["validation_error"] for t in PATH}
-                    tau = max(t for t in PATH if vals[t] <= (1 + delta) * min(vals.values()))
+                    tau = _tolerance_pick({t: runs[k][t]["stages"][stage]["validation_error"] for t in PATH}, delta)
                     got.append(runs[k][tau]["relative_delta_n_error"])
                 best = min(np.mean([runs[k][t]["relative_delta_n_error"] for k in keys]) for t in (0.0, *PATH))
                 cells.append(f"{np.mean(got) / best:.2f}")
@@ -105,10 +114,7 @@ def coarse_paths(rows: list[dict], probes: list[dict]) -> str:
     """The tolerance rule of :func:`whole_path` applied to the held-out errors that ``tv_coarse_paths.py`` recorded at
     the finest stage's start (iteration 0) and after 10, 20 and 40 of its iterations, each weight's stages before
     having run at that weight; the outcome of a choice is the fixed-weight run's final Δn error (same scene, seed)."""
-    final: dict[tuple[str, int, float], float] = {}
-    for r in rows:
-        if set(r.get("config_overrides") or {}) <= {"seed"} and r["setting"] != "auto":
-            final[(r["scene"], _seed(r), float(r["setting"]))] = r["relative_delta_n_error"]
+    final = {k: r["relative_delta_n_error"] for k, r in _fixed_runs(rows).items()}
     seen: dict[tuple[str, int], dict[float, dict[int, float]]] = {}
     for pr in probes:
         seen.setdefault((pr["scene"], int(pr["seed"])), {})[float(pr["tau"])] = {t["iteration"]: t["validation_error"] for t in pr["trace"]}
@@ -123,8 +129,7 @@ def coarse_paths(rows: list[dict], probes: list[dict]) -> str:
                 ks = [k for k in keys if k[0] == sc]
                 got = []
                 for k in ks:
-                    vals = {t: tr[it] for t, tr in seen[k].items() if it in tr}
-                    tau = max(t for t in vals if vals[t] <= (1 + delta) * min(vals.values()))
+                    tau = _tolerance_pick({t: tr[it] for t, tr in seen[k].items() if it in tr}, delta)
                     got.append(final[(k[0], k[1], tau)])
                 taus = {t for (s_, _, t) in final if s_ == sc}
                 best = min(np.mean([final[(sc, k[1], t)] for k in ks]) for t in taus
@@ -157,15 +162,14 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--whole-path", action="store_true", help="the tolerance rule on whole fixed-weight runs")
     p.add_argument("--coarse-paths", action="store_true", help="the tolerance rule on tv_coarse_paths.py's rows")
     args = p.parse_args(argv)
+    rows = load_rows([RESULTS / f"regularisation_{args.device}.jsonl"], args.since)
     if args.coarse_paths:
-        from benchmarks._results import read_rows
-        rows = load_rows([RESULTS / f"regularisation_{args.device}.jsonl"], args.since)
         print(coarse_paths(rows, read_rows(RESULTS / f"tv_coarse_paths_{args.device}.jsonl")))
         return
     if args.whole_path:
-        print(whole_path(load_rows([RESULTS / f"regularisation_{args.device}.jsonl"], args.since)))
+        print(whole_path(rows))
         return
-    records = evaluate(load_rows([RESULTS / f"regularisation_{args.device}.jsonl"], args.since))
+    records = evaluate(rows)
     if args.markdown:
         print(markdown(records))
         return
