@@ -19,7 +19,7 @@ def test_settings_accept_auto_true_false() -> None:
     assert (cfg.calibrate_pupil, cfg.calibrate_aberrations, cfg.obliquity_correction, cfg.coherence) == ("auto",) * 4
     assert requested_parts(cfg) == {p: None for p in PARTS} | {"pixel_integration": None}
     fixed = SolverConfig(calibrate_pupil=True, calibrate_aberrations="false", obliquity_correction=False, coherence="spectral")
-    assert requested_parts(fixed) == {"pixel_integration": None, "obliquity": False, "spectral": True, "pupil": True, "aberrations": False}
+    assert requested_parts(fixed) == {"sub_slices": None, "pixel_integration": None, "obliquity": False, "spectral": True, "pupil": True, "aberrations": False}
     assert switch("auto") is None and switch("true") is True and switch(False) is False
     with pytest.raises(FDTInputError, match=r"^calibrate_pupil: "):
         SolverConfig(calibrate_pupil="maybe")
@@ -103,7 +103,8 @@ def scenes():
 
 def _config(**kw) -> SolverConfig:
     base = dict(stages=[StageConfig(2, 10), StageConfig(1, 30)], batch_size=8, snapshot_every=5, validation_fraction=0.25,
-                tv_xy_weight=0.0, tv_z_weight=0.0, pixel_integration="false", coherence="none", obliquity_correction="false")
+                tv_xy_weight=0.0, tv_z_weight=0.0, pixel_integration="false", coherence="none", obliquity_correction="false",
+                sub_slices=1)
     base.update(kw)
     return SolverConfig(**base)
 

@@ -242,7 +242,15 @@ def test_the_plan_says_what_keeping_a_model_part_would_add(sample) -> None:
     assert plan.if_part_kept_s > plan.phases[-1].predicted_s  # more than the finest stage alone: the coarse ones too
     assert "if the data ask for a model part" in plan.summary()
     assert plan.to_dict()["predicted_extra_s_if_a_part_is_kept"] == plan.if_part_kept_s
+    # the sample's 2 µm slices are 0.84 of the depth of field: sub-slices are to choose, and keeping them alone runs the
+    # finest stage again with 2 screens per slice
+    finest = plan.phases[-1]
+    assert plan.finest_parts == ("sub_slices",)
+    per_it = plan.if_finest_parts_kept_s / finest.iterations
+    assert finest.seconds_per_iteration < per_it < 2 * finest.seconds_per_iteration
+    assert "if the data ask for sub-slices alone: the finest stage again" in plan.summary()
     fixed = replace(cfg, pixel_integration=False, obliquity_correction=False, coherence="none", calibrate_pupil=False,
-                    calibrate_aberrations=False)
+                    calibrate_aberrations=False, sub_slices=1)
     plan, _ = plan_for(sample, fixed, "cpu")
     assert plan.if_part_kept_s is None and "model part" not in plan.summary()
+    assert plan.if_finest_parts_kept_s is None and "sub-slices" not in plan.summary()

@@ -162,7 +162,8 @@ def test_no_split_leaves_the_run_as_before(scene16) -> None:
 
 
 #: Every optional model part fixed off (tests of the early-stopping mechanics with a scripted validation signal).
-PARTS_OFF = dict(calibrate_pupil="false", calibrate_aberrations="false", obliquity_correction="false", coherence="none")
+PARTS_OFF = dict(calibrate_pupil="false", calibrate_aberrations="false", obliquity_correction="false", coherence="none",
+                 sub_slices=1)
 
 
 def test_stop_ends_a_stage_on_a_rise_and_keeps_its_best_iterate(scene16, monkeypatch) -> None:

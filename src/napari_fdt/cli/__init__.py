@@ -283,6 +283,7 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
 def _cmd_info(args: argparse.Namespace) -> int:
     from napari_fdt.data.io import read_acquisition
     from napari_fdt.physics.grid import plan_for_sources
+    from napari_fdt.recon.stages import thick_slices
 
     acq = read_acquisition(args.acquisition)
     o = acq.optics
@@ -295,7 +296,8 @@ def _cmd_info(args: argparse.Namespace) -> int:
     print(f"slices: {ratio:.2f} of the depth of field ({o.depth_of_field_um:.2f} µm); a thin screen per slice misses the "
           "diffraction inside a slice, an image error growing as (slice/depth of field)^2 (1-7 % on the suite's scenes at "
           "0.84; docs/physics.md, \"Sub-slices\")"
-          + (": --sub-slices 2 models it at about twice the slice loop's cost" if ratio > 0.5 else ""))
+          + (": the default --sub-slices auto tries 2 screens per slice in the finest stage and keeps them where the "
+             "held-out images show it" if thick_slices(o) else ": thin screens (--sub-slices auto does not try more)"))
     nyquist, medium = 0.5 / o.pixel_size_um, o.n_background / o.wavelength_um
     if nyquist < medium:
         print(f"field grid: the camera's pixels hold waves up to {nyquist:.2f} cycles/µm of the {medium:.2f} the medium "

@@ -6,7 +6,10 @@
 :class:`ChooseModelParts`
     At the end of the first multi-slice stage (``"auto"`` model parts): the paired test of
     :mod:`napari_fdt.recon.parts_search`; where a part is kept, every stage runs again with it (``parts_rerun``
-    ``"stages"``) or the stage again from its start (``"finest"``).
+    ``"stages"``) or the stage again from its start (``"finest"``). Where the kept parts change only the finest stage's
+    model (:data:`~napari_fdt.recon.model_parts.FINEST_ONLY_PARTS`), the finest stage runs again from its start with
+    them and, under ``"stages"``, the parts not kept are tried again at its end (a part kept then makes every stage run
+    again, with all the kept parts).
 """
 
 from __future__ import annotations
@@ -15,9 +18,9 @@ import dataclasses
 from typing import TYPE_CHECKING, Callable, Generator
 
 from napari_fdt.recon.calibration import PUPIL_PARAMETERS
-from napari_fdt.recon.model_parts import PARTS, PartsChoice, parts_stage
+from napari_fdt.recon.model_parts import FINEST_ONLY_PARTS, PARTS, PartsChoice, parts_stage
 from napari_fdt.recon.parts_search import choose_parts
-from napari_fdt.recon.parts_switch import restart_with_parts
+from napari_fdt.recon.parts_switch import finest_again_with_parts, restart_with_parts
 from napari_fdt.recon.regularisation import selection_stages, tv_is_auto
 from napari_fdt.recon.snapshot import Snapshot
 from napari_fdt.recon.stage_loop import StageWork, Verdict, capture_branch, new_optimiser, restore_branch
@@ -78,12 +81,21 @@ class ChooseModelParts:
         rec.parts_choice.iteration = work.done
         if not any(rec.parts[p] for p in rec._auto_parts):
             return Verdict.GO_ON
-        if rec.config.parts_rerun == "stages" and rec.parts_choice.rerun is None:
+        kept = tuple(p for p in rec._auto_parts if rec.parts[p])
+        finest_only = set(kept) <= set(FINEST_ONLY_PARTS)  # the stages before would run as they did
+        if rec.config.parts_rerun == "stages" and rec.parts_choice.rerun != "stages" and not finest_only:
             restart_with_parts(rec)  # every stage again from the first with the kept parts (the plan appends them)
             return Verdict.FROM_FIRST_STAGE
-        # the stage again from its start, with the kept parts on from their fitted values (a phase of its own)
-        kept = tuple(p for p in rec._auto_parts if rec.parts[p])
-        rec._revise_plan(rec.plan.with_rerun([dataclasses.replace(rec.plan.phases[rec._phase_index], parts=kept)]))
+        choose_again = finest_only and rec.parts_choice.rerun is None and rec.config.parts_rerun == "stages"
+        if choose_again:  # the parts not kept are tried again at the end, through a volume trained with the kept ones
+            finest_again_with_parts(rec)
+            work.choosing["parts_from"] = start
+        # the stage again from its start, with the kept parts on from their fitted values (a phase of its own, priced
+        # with them)
+        phase = rec.plan.phases[rec._phase_index]
+        priced = rec._stage_phase(phase.stage, phase.pass_name, kept)
+        again = dataclasses.replace(phase, parts=kept, seconds_per_iteration=priced.seconds_per_iteration)
+        rec._revise_plan(rec.plan.with_rerun([again], choice_to_come=choose_again))
         rec._phase_index = len(rec.plan.phases) - 1
         fitted = rec.calibration.copy_values(PUPIL_PARAMETERS)
         restore_branch(rec, start)

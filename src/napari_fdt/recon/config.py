@@ -82,6 +82,9 @@ SourceStepSchedule = Literal["constant", "cosine"]
 #: A regularisation weight: a number ≥ 0, or ``"auto"``: chosen from the data by the validation error
 #: (:mod:`napari_fdt.recon.regularisation`, ``docs/solver.md``).
 AutoWeight = typing.Union[typing.Annotated[float, Field(ge=0, strict=True)], Literal["auto"]]
+#: Screens per slice: a whole number 1-16, or ``"auto"``: a model part chosen by the held-out images where the physics
+#: says the slices are thick (:mod:`napari_fdt.recon.model_parts`).
+SubSlices = typing.Union[typing.Annotated[int, Field(ge=1, le=16, strict=True)], Literal["auto"]]
 
 #: The value of a setting chosen from the data.
 AUTO = "auto"
@@ -245,14 +248,19 @@ class SolverConfig:
         "\"Model parts\"; without a validation split: on when the intensity's band 2·NA/λ exceeds the camera's Nyquist "
         "1/(2·pixel_size_um)); `true`, `false` (JSON booleans or strings). Multi-slice stages",
         fix="use \"auto\", true or false")
-    sub_slices: int = setting(
-        1, ge=1, le=16, description="screens per slice in multi-slice stages: each slice crossed in this many symmetric steps, "
+    sub_slices: SubSlices = setting(
+        "auto", strict=False, description="screens per slice in multi-slice stages: each slice crossed in this many symmetric steps, "
         "so that diffraction inside thick slices is modelled (docs/physics.md, \"Sub-slices\"; its error falls as 1/sub_slices²); "
-        "costs as many times the slice loop", fix="1 (one thin screen per slice), or 2-4 for slices thick against the depth of field")
+        "costs as many times the slice loop. `\"auto\"`: a model part of the finest stage, tried with 2 where the slices are at "
+        "least half the depth of field λ/(n_b(1 − cos θ)) and kept where the held-out images show it (the finest stage then "
+        "runs again with it; docs/decisions/model-parts.md); one screen elsewhere",
+        fix="\"auto\", 1 (one thin screen per slice), or 2-4 for slices thick against the depth of field")
     field_oversampling: int = setting(
         1, ge=1, le=2, description="the finest stage's field on a grid this many times finer than the camera's (2: light the "
         "sample scatters beyond the camera grid's Nyquist is propagated, not aliased; docs/physics.md, \"A finer field grid\"); "
-        "about 4× the finest stage's cost and memory", fix="1 (the camera grid) or 2")
+        "about 4× the finest stage's cost and memory. Not chosen from the data: the held-out images cannot judge it through a "
+        "volume trained on the camera grid (docs/decisions/model-parts.md, \"Forward-accuracy parts\"); `fdt info` says where "
+        "the camera grid aliases waves the medium carries", fix="1 (the camera grid) or 2")
     field_window: FieldWindow = setting(
         "auto", strict=False, description="window the multi-slice model's fields run on: `\"full\"` (each source's whole field, on a "
         "window that keeps its periodic copies off the image: 7-16x the image's area on the suite), `\"split\"` (the sources' "

@@ -1,17 +1,19 @@
 """Optional parts of the model, switched on where the data shows they matter (issue 13, ``docs/solver.md``).
 
-The parts: the camera's pixel integration (``pixel_integration``), the thin screen's obliquity correction
-(``obliquity_correction``), the spectral model of the emission band (``coherence``), a fit of the pupil's NA and
-edge (``calibrate_pupil``) and a fit of low-order aberrations (``calibrate_aberrations``). Each setting is
-``true``, ``false`` or ``"auto"`` (the default; for ``coherence`` the other values are the coherence models).
+The parts: sub-slices in the finest stage (``sub_slices``: diffraction inside thick slices; tried only where the
+slices are at least half the depth of field, :func:`~napari_fdt.recon.stages.thick_slices`), the camera's pixel
+integration (``pixel_integration``), the thin screen's obliquity correction (``obliquity_correction``), the spectral
+model of the emission band (``coherence``), a fit of the pupil's NA and edge (``calibrate_pupil``) and a fit of
+low-order aberrations (``calibrate_aberrations``). Each setting is ``true``, ``false`` or ``"auto"`` (the default; for
+``coherence`` the other values are the coherence models, for ``sub_slices`` the number of screens per slice).
 
-How "auto" chooses (:func:`napari_fdt.recon.parts_search.choose_parts`), once, in the finest stage after
-:data:`PARTS_SHARE` of its iterations (the full multi-slice model, and a volume holding the stage's detail: earlier, the
-held-out images' error is mostly the coarse volume's and hides what the model lacks):
+How "auto" chooses (:func:`napari_fdt.recon.parts_search.choose_parts`), once, at the end of the finest stage (the
+full multi-slice model, and a volume holding the stage's detail: earlier, the held-out images' error is mostly the
+coarse volume's and hides what the model lacks; :mod:`napari_fdt.recon.choices` says what runs again):
 
 1. The reference is the model with the auto parts off: the validation error of each held-out image
    (:mod:`napari_fdt.recon.validation`; positions as fitted to their own images, gains in closed form).
-2. The parts without parameters (pixel integration, obliquity, spectral), one at a time: the held-out images are
+2. The parts without parameters (sub-slices, pixel integration, obliquity, spectral), one at a time: the held-out images are
    predicted with the part on, through the same volume.
 3. The parts with parameters (pupil, aberrations), one at a time on top of what step 2 kept: their parameters are fitted
    to a subset of the *training* images with the volume and sources held fixed (:data:`FIT_ITERATIONS` Adam steps on
@@ -39,15 +41,16 @@ import numpy as np
 from napari_fdt.recon.config import AUTO, SolverConfig
 
 __all__ = ["PARTS", "BINARY_PARTS", "FITTED_PARTS", "SETTING_OF", "STANDARD_ERRORS_LEVEL", "standard_errors", "MIN_IMPROVEMENT", "FIT_ITERATIONS",
-           "FIT_IMAGES", "FIT_RATES", "PARTS_SHARE", "PartsChoice", "decide", "switch", "requested_parts", "parts_stage"]
+           "FIT_IMAGES", "FIT_RATES", "FINEST_ONLY_PARTS", "PartsChoice", "decide", "switch", "requested_parts", "parts_stage"]
 
-#: Parts without parameters, tried first, in this order.
-BINARY_PARTS: tuple[str, ...] = ("pixel_integration", "obliquity", "spectral")
+#: Parts without parameters, tried first, in this order (sub-slices first: a spectral model or a pupil fit can absorb
+#: part of a thin screen's error, as the spectral model did on beads simulated with sub-slices, docs/benchmarks.md).
+BINARY_PARTS: tuple[str, ...] = ("sub_slices", "pixel_integration", "obliquity", "spectral")
 #: Parts with fitted parameters, tried on top of the kept binary parts.
 FITTED_PARTS: tuple[str, ...] = ("pupil", "aberrations")
 PARTS: tuple[str, ...] = BINARY_PARTS + FITTED_PARTS
 #: The setting of each part.
-SETTING_OF: dict[str, str] = {"pixel_integration": "pixel_integration", "obliquity": "obliquity_correction", "spectral": "coherence",
+SETTING_OF: dict[str, str] = {"sub_slices": "sub_slices", "pixel_integration": "pixel_integration", "obliquity": "obliquity_correction", "spectral": "coherence",
                               "pupil": "calibrate_pupil", "aberrations": "calibrate_aberrations"}
 #: One-sided false-positive rate of the test per part: the mean paired improvement must exceed Student's t quantile
 #: ``t(1 − STANDARD_ERRORS_LEVEL, n − 1)`` standard errors of that mean (n held-out images; 1.96 for many images, 2.57
@@ -65,9 +68,9 @@ def standard_errors(n_images: int) -> float:
 #: Smallest mean improvement that counts, relative to the reference's validation error: below it a part's gain is
 #: not worth its cost whatever its significance.
 MIN_IMPROVEMENT = 0.01
-#: Share of the finest stage's iterations trained before the choice (with the auto parts off): the volume then holds
-#: the stage's detail, so that what is left of the held-out images' error is mostly what the model lacks.
-PARTS_SHARE = 0.25
+#: Parts that change only the finest stage's model (not the coarse stages'): where the choice keeps only these, the finest
+#: stage runs again from its start with them (the stages before it would run as they did), whatever ``parts_rerun`` says.
+FINEST_ONLY_PARTS: tuple[str, ...] = ("sub_slices",)
 #: Adam steps of the fit of a part's parameters with the volume fixed.
 FIT_ITERATIONS = 30
 #: Training images the parameters are fitted to (evenly spread over the training images).
@@ -88,7 +91,8 @@ def switch(value: Any) -> bool | None:
 def requested_parts(config: SolverConfig) -> dict[str, bool | None]:
     """Each part's setting: True / False when given, None when ``"auto"`` (before what the acquisition states:
     ``pixel_integration`` stated by ``acquisition.json`` is resolved by the caller)."""
-    out = {part: switch(getattr(config, SETTING_OF[part])) for part in PARTS if part != "spectral"}
+    out = {part: switch(getattr(config, SETTING_OF[part])) for part in PARTS if part not in ("spectral", "sub_slices")}
+    out["sub_slices"] = None if config.sub_slices == AUTO else config.sub_slices > 1
     coherence = config.coherence
     out["spectral"] = None if coherence == AUTO else coherence in ("spectral", "mask+spectral")
     return {part: out[part] for part in PARTS}
@@ -143,7 +147,8 @@ class PartsChoice:
     trials: list[dict[str, Any]] = field(default_factory=list)
     fitted: dict[str, Any] = field(default_factory=dict)
     seconds: float = 0.0
-    #: ``"stages"`` when the choice kept a part and every stage ran again with it (``parts_rerun``), else None
+    #: ``"stages"`` when the choice kept a part and every stage ran again with it (``parts_rerun``); ``"finest"`` when it
+    #: kept only parts of the finest stage's model and that stage ran again with them (:data:`FINEST_ONLY_PARTS`); else None
     rerun: str | None = None
     #: the auto parts the finest stage of that second pass chooses again (empty once chosen)
     pending: list[str] = field(default_factory=list)
@@ -160,7 +165,10 @@ class PartsChoice:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "PartsChoice":
-        return cls(parts=dict(d["parts"]), chosen_by=dict(d["chosen_by"]), stage=int(d.get("stage", -1)), iteration=int(d.get("iteration", 0)),
+        # a choice saved before a part existed: that part off, as the run had it
+        parts = {**{p: False for p in PARTS}, **d["parts"]}
+        chosen_by = {**{p: "setting" for p in PARTS}, **d["chosen_by"]}
+        return cls(parts=parts, chosen_by=chosen_by, stage=int(d.get("stage", -1)), iteration=int(d.get("iteration", 0)),
                    reference_error=d.get("reference_error"), reference_image_errors=list(d.get("reference_image_errors", [])),
                    trials=list(d.get("trials", [])), fitted=dict(d.get("fitted", {})), seconds=float(d.get("seconds", 0.0)),
                    rerun=d.get("rerun"), pending=list(d.get("pending", [])))

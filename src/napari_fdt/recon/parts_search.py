@@ -113,11 +113,14 @@ def choose_parts(rec: Reconstructor, stage: Stage, mask: torch.Tensor | None, sh
                          fitted=pupil_values(rec, [p for p in FITTED_PARTS if rec.parts[p]]),
                          seconds=time.perf_counter() - t0)
     first = rec.parts_choice
-    if first is not None and first.rerun == "stages":  # the second pass's choice: both passes' trials, the first's reference
-        choice.trials = first.trials + [{**t, "pass": 2} for t in trials]
+    if first is not None and first.rerun in ("stages", "finest"):
+        # a later pass's choice (after every stage, or the finest stage, ran again with the kept parts): every pass's
+        # trials, each with its pass and what ran again before it, and the first pass's reference
+        n = 1 + max((t.get("pass", 1) for t in first.trials), default=1)
+        choice.trials = first.trials + [{**t, "pass": n, "after": first.rerun} for t in trials]
         choice.reference_error, choice.reference_image_errors = first.reference_error, first.reference_image_errors
         choice.seconds += first.seconds
-        choice.rerun = "stages"
+        choice.rerun = first.rerun
         rec._choose_again = []
     rec.apply_parts_choice(choice)
     return stage

@@ -11,12 +11,12 @@ from napari_fdt.model.coherence import emission_spectrum
 from napari_fdt.recon.calibration import PUPIL_PARAMETERS
 from napari_fdt.recon.model_parts import PARTS, PartsChoice, requested_parts
 from napari_fdt.recon.stage_roles import set_stage_roles
-from napari_fdt.recon.stages import camera_model_options, stated_pixel_integration
+from napari_fdt.recon.stages import camera_model_options, stated_pixel_integration, thick_slices
 
 if TYPE_CHECKING:
     from napari_fdt.recon.solver import Reconstructor
 
-__all__ = ["init_parts", "set_parts", "apply_parts_choice", "restart_with_parts"]
+__all__ = ["init_parts", "drop_parts_that_do_not_fit", "set_parts", "apply_parts_choice", "restart_with_parts", "finest_again_with_parts"]
 
 
 def requested_for(cfg, acquisition) -> tuple[dict[str, bool | None], dict[str, str]]:
@@ -27,6 +27,10 @@ def requested_for(cfg, acquisition) -> tuple[dict[str, bool | None], dict[str, s
     if cfg.pixel_integration == "auto" and stated is not None:
         chosen_by["pixel_integration"] = "acquisition"
     requested["pixel_integration"] = stated
+    if requested["sub_slices"] is None and not thick_slices(acquisition.optics):
+        # the physics' criterion: slices thin against the depth of field are thin screens, no trial needed
+        requested["sub_slices"] = False
+        chosen_by["sub_slices"] = "physics: slices under half the depth of field"
     extra = getattr(acquisition, "extra", None) or {}
     if requested["pupil"] is None and "pupil_edge" in extra and cfg.pupil_edge is None:
         # a pupil the acquisition states (as fdt simulate writes it) is taken as stated, like its pixel integration
@@ -57,6 +61,27 @@ def init_parts(rec: Reconstructor) -> None:
     rec._parts_chosen_by = chosen_by
 
 
+def drop_parts_that_do_not_fit(rec: Reconstructor, sources_um) -> None:
+    """The ``"auto"`` sub-slices are not tried where the finest stage would not fit in the device's memory with them
+    (``sources_um`` (N, 3) µm set the window); called after the check of the model the first pass runs, so that a part
+    that might be kept never refuses a run that fits without it."""
+    import dataclasses
+
+    from napari_fdt.recon.preflight import finest_stage_fits
+    from napari_fdt.recon.stages import AUTO_SUB_SLICES
+
+    if "sub_slices" not in rec._auto_parts or rec.parts_choice is not None:
+        return
+    cfg = dataclasses.replace(rec.config, sub_slices=AUTO_SUB_SLICES)
+    fits, gib = finest_stage_fits(rec.acquisition, cfg, sources_um, rec.device, len(rec.wavelengths) if rec.wavelengths else 1)
+    if fits:
+        return
+    rec._auto_parts = [p for p in rec._auto_parts if p != "sub_slices"]
+    rec._parts_chosen_by["sub_slices"] = f"memory: {AUTO_SUB_SLICES} screens per slice would need about {gib:.1f} GiB"
+    if not rec._auto_parts:
+        rec.apply_parts_choice(PartsChoice(dict(rec.parts), dict(rec._parts_chosen_by)))
+
+
 def set_parts(rec: Reconstructor, parts: dict[str, bool]) -> None:
     """Switch the parts: the spectral model's wavelengths and the calibration's pupil and aberration fits (the stage
     models take ``rec.parts`` when built)."""
@@ -79,6 +104,7 @@ def apply_parts_choice(rec: Reconstructor, choice: PartsChoice) -> None:
     set_parts(rec, choice.parts)
     if choice.rerun == "stages":
         use_rerun_coarse_model(rec)
+    if choice.rerun in ("stages", "finest"):
         rec._choose_again = list(choice.pending)
         if choice.pending:
             rec._auto_parts = list(choice.pending)
@@ -108,3 +134,16 @@ def restart_with_parts(rec: Reconstructor) -> None:
     fitted = rec.calibration.copy_values(PUPIL_PARAMETERS)
     rec._restart()
     rec.calibration.restore_values(fitted)  # the kept parts start from their fitted values
+
+
+def finest_again_with_parts(rec: Reconstructor) -> None:
+    """After a first choice that kept only parts of the finest stage's model (sub-slices): the finest stage runs again
+    from its start with them (the caller restores its start), and the auto parts not kept are tried again at its end,
+    through a volume trained with the kept ones (``rerun`` ``"finest"``, ``pending`` those parts)."""
+    choice = rec.parts_choice
+    kept = [p for p in rec._auto_parts if rec.parts[p]]
+    for t in choice.trials:
+        t.setdefault("pass", 1)
+    choice.rerun = "finest"
+    choice.pending = [p for p in rec._auto_parts if p not in kept]
+    rec.apply_parts_choice(choice)

@@ -79,6 +79,9 @@ def envelope_padded_shape(optics: Optics, image_shape: tuple[int, int], factor: 
     return envelope_window(optics, (image_shape[0] // factor, image_shape[1] // factor), factor)[0]
 
 
+#: The finest stage's model parts in words (the plan's summary).
+PART_WORDS: dict[str, str] = {"sub_slices": "sub-slices"}
+
 @dataclass(frozen=True)
 class Phase:
     """One phase of a run. ``pass_name``: the snapshot's ``phase`` ("tv_choice", "run", "rerun"); ``trials``: the
@@ -111,7 +114,7 @@ class Phase:
         where = f"stage {self.stage + 1}/{self.n_stages} (x{self.factor})"
         if self.pass_name == TV_CHOICE:
             return f"choosing the TV weight at {where}" if self.trials else f"choosing the TV weight: {where} with the lightest TV"
-        if self.pass_name == RERUN:
+        if self.pass_name == RERUN or self.parts:  # (a stage run again from its start with kept parts: parts_rerun "finest")
             return f"{where} again with {'+'.join(self.parts)}" if self.parts else f"{where} again"
         return where
 
@@ -130,6 +133,11 @@ class Plan:
     #: seconds more if the choice of model parts keeps one (every stage then runs again, its coarse stages multi-slice
     #: under ``coarse_model = "auto"``); None where no such choice is to come
     if_part_kept_s: float | None = None
+    #: seconds more if the choice keeps only parts of the finest stage's model (:data:`finest_parts`: the finest stage
+    #: then runs again with them), priced with all of them; None where none is to choose
+    if_finest_parts_kept_s: float | None = None
+    #: the "auto" parts of the finest stage's model to choose (sub-slices, the 2x field grid)
+    finest_parts: tuple[str, ...] = ()
 
     @property
     def iterations(self) -> int:
@@ -140,8 +148,10 @@ class Plan:
         return sum(p.predicted_s for p in self.phases)
 
     def index(self, pass_name: str, stage: int, trials: bool = False) -> int:
-        """The index of the phase of ``pass_name`` at ``stage`` (``trials``: the TV trials)."""
-        for i, p in enumerate(self.phases):
+        """The index of the phase of ``pass_name`` at ``stage`` (``trials``: the TV trials); the last one where the stage
+        runs again more than once (the finest stage again with sub-slices, then every stage again)."""
+        for i in reversed(range(len(self.phases))):
+            p = self.phases[i]
             if p.pass_name == pass_name and p.stage == stage and p.trials == trials:
                 return i
         raise KeyError(f"no phase {pass_name!r} at stage {stage} (trials {trials}) in the plan")
@@ -154,7 +164,7 @@ class Plan:
         """The plan with phase ``index`` cut to ``iterations`` (the TV trials that ended early)."""
         phases = list(self.phases)
         phases[index] = replace(phases[index], iterations=int(iterations))
-        return Plan(tuple(phases), self.device_type, self.if_part_kept_s)
+        return replace(self, phases=tuple(phases))
 
     def has(self, pass_name: str, stage: int, trials: bool = False) -> bool:
         """Whether the plan holds the phase of ``pass_name`` at ``stage``."""
@@ -172,16 +182,21 @@ class Plan:
                 phases += before
                 p = replace(p, iterations=p.iterations + p.first_iteration, first_iteration=0)
             phases.append(p)
-        return Plan(tuple(phases), self.device_type, self.if_part_kept_s)
+        return replace(self, phases=tuple(phases))
 
-    def with_rerun(self, reruns: Sequence[Phase]) -> "Plan":
-        """The plan with the phases of the stages run again appended (their ``pass_name`` set to "rerun")."""
-        return Plan(self.phases + tuple(replace(p, pass_name=RERUN) for p in reruns), self.device_type)  # no choice to come
+    def with_rerun(self, reruns: Sequence[Phase], choice_to_come: bool = False) -> "Plan":
+        """The plan with the phases of the stages run again appended (their ``pass_name`` set to "rerun"); without
+        ``choice_to_come`` no choice of parts is to come (and nothing more to price for one)."""
+        phases = self.phases + tuple(replace(p, pass_name=RERUN) for p in reruns)
+        if choice_to_come:
+            return replace(self, phases=phases, if_finest_parts_kept_s=None, finest_parts=())
+        return Plan(phases, self.device_type)
 
     def to_dict(self) -> dict[str, Any]:
         return {"device": self.device_type, "phases": [p.to_dict() for p in self.phases],
                 "iterations": self.iterations, "predicted_total_s": self.predicted_s,
-                "predicted_extra_s_if_a_part_is_kept": self.if_part_kept_s}
+                "predicted_extra_s_if_a_part_is_kept": self.if_part_kept_s,
+                "predicted_extra_s_if_finest_parts_are_kept": self.if_finest_parts_kept_s, "finest_parts": list(self.finest_parts)}
 
     def summary(self) -> str:
         """One line per phase with its iterations and predicted seconds, and the total."""
@@ -189,6 +204,9 @@ class Plan:
         if self.if_part_kept_s:
             lines.append(f"  if the data ask for a model part (pupil, aberrations, ...): every stage again, "
                          f"~{_seconds(self.if_part_kept_s)} more")
+        if self.if_finest_parts_kept_s:
+            what = " or ".join(PART_WORDS.get(p, p) for p in self.finest_parts)
+            lines.append(f"  if the data ask for {what} alone: the finest stage again with them, ~{_seconds(self.if_finest_parts_kept_s)} more")
         return "\n".join([f"plan ({self.device_type}): {len(self.phases)} phases, {self.iterations} iterations, "
                           f"about {_seconds(self.predicted_s)}", *lines])
 
@@ -206,7 +224,7 @@ def stage_phase(config: SolverConfig, optics: Optics, image_shape: tuple[int, in
                 pixel_integration: bool = False, pupil_edge: float | None = None) -> Phase:
     """The phase of stage ``stage`` (its model, FFT grid and predicted seconds per iteration; ``pixel_integration``: the
     multi-slice model's camera integrates over its pixels; ``pupil_edge`` its pupil's edge, None the default)."""
-    from napari_fdt.recon.stages import config_uses_split_field, fine_field_grid, model_window, multislice_plan
+    from napari_fdt.recon.stages import config_uses_split_field, fine_field_grid, model_window, multislice_plan, stage_sub_slices
 
     sc = config.stages[stage]
     envelope = sc.factor > 1 and coarse_model == "envelope"
@@ -220,7 +238,7 @@ def stage_phase(config: SolverConfig, optics: Optics, image_shape: tuple[int, in
     model = "envelope" if envelope else "multislice"
     dev = "cuda" if device_type == "cuda" else "cpu"
     batch = config.stage_batch(stage)
-    screens = optics.n_slices * (1 if envelope else config.sub_slices)
+    screens = optics.n_slices * (1 if envelope else stage_sub_slices(config.sub_slices, "sub_slices" in parts, sc.factor))
     if not envelope and fine_field_grid(config.field_oversampling, sc.factor):  # the field on a grid twice as fine
         shape = (2 * shape[0], 2 * shape[1])
     source_pixels = camera_points = 0
@@ -237,7 +255,7 @@ def stage_phase(config: SolverConfig, optics: Optics, image_shape: tuple[int, in
 
 def make_plan(config: SolverConfig, optics: Optics, image_shape: tuple[int, int], sources_um: np.ndarray,
               coarse_model: str, device_type: str, choose_tv_at: int | None, pixel_integration: bool = False,
-              parts_to_choose: bool = False, pupil_edge: float | None = None) -> Plan:
+              parts_to_choose: bool = False, pupil_edge: float | None = None, finest_parts: tuple[str, ...] = ()) -> Plan:
     """The plan of a run of ``config`` (as run: its stages resolved) on ``device_type`` ("cpu" or "cuda"), with the
     initial ``sources_um`` (N, 3) µm, ``coarse_model`` resolved for the device; ``choose_tv_at``: the stage at whose
     start the ``"auto"`` TV weights are tried (None: no choice), every weight for :func:`probe_iterations` of its
@@ -245,7 +263,8 @@ def make_plan(config: SolverConfig, optics: Optics, image_shape: tuple[int, int]
     selection stage going on after the winner's probe: the plan of the common case, where that smallest weight wins
     (:meth:`Plan.with_stages_again` adds the stages before, run again, where a larger weight wins);
     ``pixel_integration``, ``pupil_edge``: the camera model's (as the first pass runs it); ``parts_to_choose``: "auto" model parts will
-    be chosen from the data (:attr:`Plan.if_part_kept_s` then says what keeping one would add)."""
+    be chosen from the data (:attr:`Plan.if_part_kept_s` then says what keeping one would add); ``finest_parts``: the
+    ``"auto"`` parts of the finest stage's model among them (:attr:`Plan.if_finest_parts_kept_s`)."""
     src = np.asarray(sources_um, dtype=np.float64)
     stages = [stage_phase(config, optics, image_shape, src, i, coarse_model, device_type, pixel_integration=pixel_integration,
                           pupil_edge=pupil_edge)
@@ -266,7 +285,12 @@ def make_plan(config: SolverConfig, optics: Optics, image_shape: tuple[int, int]
                                 pixel_integration=pixel_integration, pupil_edge=pupil_edge).predicted_s for i in range(len(config.stages)))
     elif parts_to_choose:  # parts_rerun "finest": the finest stage again
         extra = stages[-1].predicted_s
-    return Plan(tuple(phases), "cuda" if device_type == "cuda" else "cpu", extra)
+    finest_again, finest_parts = None, tuple(finest_parts) if parts_to_choose else ()
+    if finest_parts:
+        last = len(config.stages) - 1
+        finest_again = stage_phase(config, optics, image_shape, src, last, coarse_model, device_type, RERUN, finest_parts,
+                                   pixel_integration=pixel_integration, pupil_edge=pupil_edge).predicted_s
+    return Plan(tuple(phases), "cuda" if device_type == "cuda" else "cpu", extra, finest_again, finest_parts)
 
 
 def plan_for(acquisition, config: SolverConfig, device_type: str, sources_um: np.ndarray | None = None) -> tuple[Plan, np.ndarray]:
@@ -294,13 +318,15 @@ def plan_for(acquisition, config: SolverConfig, device_type: str, sources_um: np
     o = acquisition.optics
     stated = stated_pixel_integration(cfg, acquisition)
     integrate = stated if stated is not None else (not split and needs_pixel_integration(o.na, o.wavelength_um, o.pixel_size_um))
+    from napari_fdt.recon.model_parts import FINEST_ONLY_PARTS
     from napari_fdt.recon.parts_switch import requested_for
 
     requested, _ = requested_for(cfg, acquisition)
     plan = make_plan(cfg, o, acquisition.image_shape, src, resolve_coarse_model(cfg.coarse_model, device_type),
                      device_type, choose_tv_at, pixel_integration=integrate,
                      parts_to_choose=split and any(v is None for v in requested.values()),
-                     pupil_edge=camera_model_options(cfg, acquisition)["pupil_edge"])
+                     pupil_edge=camera_model_options(cfg, acquisition)["pupil_edge"],
+                     finest_parts=tuple(p for p in FINEST_ONLY_PARTS if requested[p] is None))
     return plan, src
 
 

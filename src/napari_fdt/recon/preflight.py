@@ -20,7 +20,7 @@ from napari_fdt.errors import FDTInputError, FDTWarning
 from napari_fdt.physics.grid import plan_for_sources
 from napari_fdt.recon.config import SolverConfig
 
-__all__ = ["warn_about_images", "warn_about_sampling", "finest_stage_bytes", "check_memory"]
+__all__ = ["warn_about_images", "warn_about_sampling", "finest_stage_bytes", "check_memory", "finest_stage_fits"]
 
 
 def warn_about_images(acquisition: Acquisition, stacklevel: int = 3) -> None:
@@ -67,7 +67,7 @@ def finest_stage_bytes(acquisition: Acquisition, config: SolverConfig, sources_u
     from napari_fdt.model.memory import grid_is_unitary, leanest_mode, split_training_bytes, training_bytes
     from napari_fdt.model.oversampled import fine_plan
     from napari_fdt.model.split_field import split_plan
-    from napari_fdt.recon.stages import camera_model_options, config_uses_split_field, fine_field_grid, multislice_plan
+    from napari_fdt.recon.stages import camera_model_options, config_uses_split_field, fine_field_grid, multislice_plan, stage_sub_slices
 
     cfg, o, full_shape = config, acquisition.optics, acquisition.image_shape
     finest_index = min(range(len(cfg.stages)), key=lambda i: cfg.stages[i].factor)
@@ -76,7 +76,7 @@ def finest_stage_bytes(acquisition: Acquisition, config: SolverConfig, sources_u
     if batch is None:
         batch = min(cfg.stage_batch(finest_index), acquisition.n_images)
     images = images_on_device(acquisition, device_type)
-    screens = o.n_slices * cfg.sub_slices
+    screens = o.n_slices * stage_sub_slices(cfg.sub_slices, False, factor)  # as the first pass runs ("auto": one screen)
     options = camera_model_options(cfg, acquisition)
     if config_uses_split_field(cfg, device_type, factor, plan, opt, options["pupil_edge"]):
         plan = split_plan(plan, opt)  # the split model's loop runs on plain autograd
@@ -89,6 +89,17 @@ def finest_stage_bytes(acquisition: Acquisition, config: SolverConfig, sources_u
     if fine_field_grid(cfg.field_oversampling, factor):  # the field on a grid twice as fine
         plan = fine_plan(plan)
     return training_bytes(plan.padded_shape, screens, batch, n_wavelengths, mode) + images, plan, batch, mode
+
+
+def finest_stage_fits(acquisition: Acquisition, config: SolverConfig, sources_um: np.ndarray, device: torch.device,
+                      n_wavelengths: int) -> tuple[bool, float]:
+    """Whether the finest stage of ``config`` fits in 90 % of the device's free memory (True where that is unknown), and
+    the GiB it needs (:func:`finest_stage_bytes`)."""
+    from napari_fdt.device import available_bytes
+
+    need = finest_stage_bytes(acquisition, config, sources_um, n_wavelengths, torch.device(device).type)[0]
+    free = available_bytes(device)
+    return (free is None or need <= 0.9 * free), need / 2.0**30
 
 
 def check_memory(acquisition: Acquisition, config: SolverConfig, sources_um: np.ndarray, device: torch.device,

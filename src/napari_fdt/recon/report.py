@@ -158,7 +158,8 @@ def describe_parts(summary: dict[str, Any]) -> str:
     needed = ", ".join(summary.get("needed") or []) or "none"
     if not chosen:
         return f"model parts on: {needed}"
-    tried = ", ".join(f"{t['part']}{' (again, all stages rerun)' if t.get('pass') == 2 else ''} {'on' if t['on'] else 'off'} "
+    again = {"stages": " (again, all stages rerun)", "finest": " (again, finest stage rerun)"}
+    tried = ", ".join(f"{t['part']}{again[t.get('after', 'stages')] if t.get('pass', 1) > 1 else ''} {'on' if t['on'] else 'off'} "
                       f"({-100 * t.get('improvement', 0.0) / max(chosen['reference_error'] or 1e-30, 1e-30):+.1f} %)"
                       for t in chosen["trials"] if "improvement" in t)
     return (f"model parts on: {needed} (chosen by the validation error {chosen['reference_error']:.4f} in stage {chosen['stage'] + 1}, "

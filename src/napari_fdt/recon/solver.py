@@ -55,11 +55,11 @@ from napari_fdt.recon.checkpoint import (
 from napari_fdt.recon.choices import default_choices
 from napari_fdt.recon.config import SolverConfig, resolve_coarse_model, resolve_stage_lengths
 from napari_fdt.recon.losses import BatchShare, LossWeights, total_loss
-from napari_fdt.recon.model_parts import PartsChoice
+from napari_fdt.recon.model_parts import FINEST_ONLY_PARTS, PartsChoice
 from napari_fdt.recon.parts_search import choice_errors, fit_images
-from napari_fdt.recon.parts_switch import apply_parts_choice, init_parts
+from napari_fdt.recon.parts_switch import apply_parts_choice, drop_parts_that_do_not_fit, init_parts
 from napari_fdt.recon.phases import RERUN, RUN, TV_CHOICE
-from napari_fdt.recon.plan import Pace, Plan, make_plan, stage_phase
+from napari_fdt.recon.plan import Pace, Phase, Plan, make_plan, stage_phase
 from napari_fdt.recon.preflight import check_memory, warn_about_images, warn_about_sampling
 from napari_fdt.recon.regularisation import TV_PATH, TVChoice, candidate_weights, selection_stages, tv_is_auto
 from napari_fdt.recon.run_state import InState, RunState
@@ -69,7 +69,7 @@ from napari_fdt.recon.snapshot import Snapshot, StageRecord, complete_stage, rer
 from napari_fdt.recon.stage_images import LazyImages
 from napari_fdt.recon.stage_loop import StageWork, Verdict, new_optimiser, train_stage
 from napari_fdt.recon.stage_roles import depth_frozen_stages, envelope_stages, position_frozen_stages, set_stage_roles
-from napari_fdt.recon.stages import Stage, build_stage, camera_model_options
+from napari_fdt.recon.stages import Stage, build_stage, camera_model_options, stage_sub_slices
 from napari_fdt.recon.validation import BestIterate, holdout_indices, relative_image_error
 from napari_fdt.recon.volume import RIVolume
 
@@ -176,6 +176,7 @@ class Reconstructor:
                           f"(tau_xy {xy:g}, tau_z {z:g}). Give validation_fraction > 0 or fixed weights", FDTWarning, stacklevel=2)
             self.tv_choice = TVChoice(xy, z, stage=0, probe_iterations=0, reason="no validation split")
         check_memory(acquisition, cfg, src, self.device, len(self.wavelengths) if self.wavelengths else 1)
+        drop_parts_that_do_not_fit(self, src)
         self._make_plan()
 
     # -- the plan ---------------------------------------------------------------------------------
@@ -189,7 +190,8 @@ class Reconstructor:
         #: the phases of the run, known before its first iteration (revised when a choice adds or shortens phases)
         self.plan = make_plan(self.config, self.acquisition.optics, self.full_shape, self.initial_sources_um, self.coarse_model,
                               self.device.type, choose_tv_at, pixel_integration=self.parts["pixel_integration"],
-                              parts_to_choose=self.parts_choice is None, pupil_edge=self._pupil_edge())
+                              parts_to_choose=self.parts_choice is None, pupil_edge=self._pupil_edge(),
+                              finest_parts=tuple(p for p in FINEST_ONLY_PARTS if p in self._auto_parts))
         #: the time-left estimate from the plan and the measured times
         self.pace = Pace(self.plan)
         #: the index in :attr:`plan` of the phase now running
@@ -206,13 +208,16 @@ class Reconstructor:
         self.plan = plan
         self.pace.plan = plan
 
+    def _stage_phase(self, stage: int, pass_name: str, parts: tuple[str, ...]) -> Phase:
+        """The plan's phase of stage ``stage`` as this run makes it, with the model ``parts`` on."""
+        return stage_phase(self.config, self.acquisition.optics, self.full_shape, self.initial_sources_um, stage, self.coarse_model,
+                           self.device.type, pass_name, parts, self.parts["pixel_integration"], self._pupil_edge())
+
     def _add_rerun_phases(self) -> None:
         """Append every stage again, as the kept parts make them run (with their coarse model); once."""
         if any(p.pass_name == RERUN and p.stage == 0 for p in self.plan.phases):
             return
-        again = [stage_phase(self.config, self.acquisition.optics, self.full_shape, self.initial_sources_um, i, self.coarse_model,
-                             self.device.type, RERUN, rerun_parts(self), self.parts["pixel_integration"], self._pupil_edge())
-                 for i in range(len(self.config.stages))]
+        again = [self._stage_phase(i, RERUN, rerun_parts(self)) for i in range(len(self.config.stages))]
         self._revise_plan(self.plan.with_rerun(again))
 
     def _enter_stage_phase(self, stage_index: int) -> None:
@@ -338,13 +343,14 @@ class Reconstructor:
         sc = self.config.stages[stage_index]
         return build_stage(stage_index, sc.factor, sc.iterations, self.acquisition.optics, self.images,
                            self.calibration.sources_um(), device=self.device, coarse_model=self.coarse_model,
-                           **self._model_options())
+                           **self._model_options(sc.factor))
 
-    def _model_options(self) -> dict[str, Any]:
-        """The multi-slice model's options as the run has them: backward mode, sub-slices, field grid and window,
-        obliquity, pupil edge and pixel integration (the parts as switched)."""
+    def _model_options(self, factor: int = 1) -> dict[str, Any]:
+        """The multi-slice model's options as the run has them for a stage of ``factor``: backward mode, sub-slices, field
+        grid and window, obliquity, pupil edge and pixel integration (the parts as switched)."""
         cfg = self.config
-        return dict(backward_mode=cfg.backward_mode, sub_slices=cfg.sub_slices, field_oversampling=cfg.field_oversampling,
+        return dict(backward_mode=cfg.backward_mode, sub_slices=stage_sub_slices(cfg.sub_slices, self.parts["sub_slices"], factor),
+                    field_oversampling=cfg.field_oversampling,
                     field_window=cfg.field_window,
                     obliquity="per_source" if self.parts["obliquity"] else "none",
                     **{**camera_model_options(cfg, self.acquisition), "pixel_integration": self.parts["pixel_integration"]})
