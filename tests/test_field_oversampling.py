@@ -137,3 +137,63 @@ def test_the_solver_runs_its_finest_stage_on_the_fine_grid(scene16) -> None:
     assert np.isfinite(two.delta_n_full()).all() and two.completed_stages == 2
     assert two.parts_choice is not None
     assert any(t.get("part") == "pupil" for t in two.parts_choice.trials), two.parts_choice.trials
+
+
+# -- the "auto" 2x field grid (part "field_grid"): tried where the camera grid aliases waves the medium carries -------
+
+
+def test_auto_field_grid_is_tried_only_where_the_camera_grid_aliases_the_medium_band() -> None:
+    """1/(2·0.33 µm) = 1.52 cycles/µm lies below n_b/λ = 2.09: tried; at 0.2 µm pixels (2.5 cycles/µm) nothing aliases."""
+    from types import SimpleNamespace
+
+    from napari_fdt import Optics
+    from napari_fdt.recon.config import SolverConfig
+    from napari_fdt.recon.parts_switch import requested_for
+
+    camera = dict(OPTICS)
+    auto = SolverConfig(field_oversampling="auto")
+    assert requested_for(SolverConfig(), SimpleNamespace(optics=Optics(**camera), extra={}))[0]["field_grid"] is False  # default 1
+    requested, why = requested_for(auto, SimpleNamespace(optics=Optics(**camera), extra={}))
+    assert requested["field_grid"] is None and why["field_grid"] == "setting"
+    requested, why = requested_for(auto, SimpleNamespace(optics=Optics(**{**camera, "pixel_size_um": 0.2}), extra={}))
+    assert requested["field_grid"] is False and why["field_grid"].startswith("physics")
+    assert requested_for(SolverConfig(field_oversampling=2), SimpleNamespace(optics=Optics(**camera), extra={}))[0]["field_grid"]
+
+
+def test_auto_field_grid_stays_off_on_data_made_on_the_camera_grid() -> None:
+    """Through a volume fitted on the camera grid to data made there, the 2x grid predicts the test images worse; its
+    trial predicts the held-out images and at most GRID_TRIAL_TRAINING_IMAGES training images."""
+    from napari_fdt.recon.parts_search import GRID_TRIAL_TRAINING_IMAGES
+    from napari_fdt.recon.solver import Reconstructor
+    from tests.test_sub_slices import _auto_config, _letters_acquisition
+
+    rec = Reconstructor(_letters_acquisition(1), _auto_config(sub_slices=1, field_oversampling="auto"), device="cpu")
+    list(rec.run())
+    choice = rec.parts_choice
+    trial = next(t for t in choice.trials if t["part"] == "field_grid")
+    assert not choice.parts["field_grid"] and trial["improvement"] < -trial["threshold"] * trial["standard_error"], trial
+    n_train = len(choice.reference_image_errors) - len(rec.validation_indices)
+    assert len(trial["image_errors"]) == len(rec.validation_indices) + min(n_train, GRID_TRIAL_TRAINING_IMAGES)
+    assert type(rec._build_stage(1).model).__name__ != "OversampledModel"
+
+
+def test_a_kept_field_grid_runs_the_finest_stage_again_on_the_fine_grid(monkeypatch) -> None:
+    """Kept (the verdict forced: the mechanics are under test), the finest stage runs again from its start with its
+    field on the 2x grid; the coarse stage keeps the envelope model; the phase is priced on the fine grid."""
+    from napari_fdt.model.oversampled import OversampledModel
+    from napari_fdt.recon.solver import Reconstructor
+    from tests.test_sub_slices import _auto_config, _forced, _letters_acquisition
+
+    _forced(monkeypatch, {1})
+    rec = Reconstructor(_letters_acquisition(1), _auto_config(sub_slices=1, field_oversampling="auto"), device="cpu")
+    list(rec.run())
+    choice = rec.parts_choice
+    assert choice.parts["field_grid"] and choice.rerun is None  # (nothing else to choose again)
+    assert [t["part"] for t in choice.trials] == ["field_grid"]
+    assert isinstance(rec._build_stage(1).model, OversampledModel) and rec._build_stage(0).envelope
+    assert isinstance(rec.evaluation_stage().model, OversampledModel)
+    again = rec.plan.phases[-1]
+    # on the full window (the split one holds no fine grid) at twice its pixels a side
+    assert again.parts == ("field_grid",) and again.fft_shape[0] >= 2 * rec.plan.phases[-2].fft_shape[0]
+    assert again.seconds_per_iteration > 3 * rec.plan.phases[-2].seconds_per_iteration
+    assert np.isfinite(rec.delta_n_full()).all()

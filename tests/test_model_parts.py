@@ -17,9 +17,11 @@ from napari_fdt.recon.solver import Reconstructor
 def test_settings_accept_auto_true_false() -> None:
     cfg = SolverConfig()
     assert (cfg.calibrate_pupil, cfg.calibrate_aberrations, cfg.obliquity_correction, cfg.coherence) == ("auto",) * 4
-    assert requested_parts(cfg) == {p: None for p in PARTS} | {"pixel_integration": None}
+    assert requested_parts(cfg) == {p: None for p in PARTS} | {"field_grid": False}  # the 2x grid: 1 unless asked
+    assert requested_parts(SolverConfig(field_oversampling="auto"))["field_grid"] is None
     fixed = SolverConfig(calibrate_pupil=True, calibrate_aberrations="false", obliquity_correction=False, coherence="spectral")
-    assert requested_parts(fixed) == {"sub_slices": None, "pixel_integration": None, "obliquity": False, "spectral": True, "pupil": True, "aberrations": False}
+    assert requested_parts(fixed) == {"sub_slices": None, "field_grid": False,
+                                     "pixel_integration": None, "obliquity": False, "spectral": True, "pupil": True, "aberrations": False}
     assert switch("auto") is None and switch("true") is True and switch(False) is False
     with pytest.raises(FDTInputError, match=r"^calibrate_pupil: "):
         SolverConfig(calibrate_pupil="maybe")
@@ -104,7 +106,7 @@ def scenes():
 def _config(**kw) -> SolverConfig:
     base = dict(stages=[StageConfig(2, 10), StageConfig(1, 30)], batch_size=8, snapshot_every=5, validation_fraction=0.25,
                 tv_xy_weight=0.0, tv_z_weight=0.0, pixel_integration="false", coherence="none", obliquity_correction="false",
-                sub_slices=1)
+                sub_slices=1, field_oversampling=1)
     base.update(kw)
     return SolverConfig(**base)
 

@@ -245,12 +245,17 @@ def test_the_plan_says_what_keeping_a_model_part_would_add(sample) -> None:
     # the sample's 2 µm slices are 0.84 of the depth of field: sub-slices are to choose, and keeping them alone runs the
     # finest stage again with 2 screens per slice
     finest = plan.phases[-1]
+    # finest again with 2 screens per slice: more than once, less than twice the finest stage; with the "auto" 2x field
+    # grid (its Nyquist 1/(2·0.33 µm) = 1.5 below n_b/λ = 2.1 cycles/µm) priced on 4x the pixels
     assert plan.finest_parts == ("sub_slices",)
     per_it = plan.if_finest_parts_kept_s / finest.iterations
     assert finest.seconds_per_iteration < per_it < 2 * finest.seconds_per_iteration
     assert "if the data ask for sub-slices alone: the finest stage again" in plan.summary()
+    both = plan_for(sample, replace(cfg, field_oversampling="auto"), "cpu")[0]
+    assert both.finest_parts == ("sub_slices", "field_grid") and both.if_finest_parts_kept_s > 3 * plan.if_finest_parts_kept_s
+    assert "if the data ask for sub-slices or the 2x field grid alone: the finest stage again" in both.summary()
     fixed = replace(cfg, pixel_integration=False, obliquity_correction=False, coherence="none", calibrate_pupil=False,
-                    calibrate_aberrations=False, sub_slices=1)
+                    calibrate_aberrations=False, sub_slices=1, field_oversampling=1)
     plan, _ = plan_for(sample, fixed, "cpu")
     assert plan.if_part_kept_s is None and "model part" not in plan.summary()
     assert plan.if_finest_parts_kept_s is None and "sub-slices" not in plan.summary()

@@ -158,7 +158,7 @@ def _auto_config(**kw):
 
     base = dict(stages=[StageConfig(2, 10), StageConfig(1, 30)], batch_size=8, snapshot_every=5, validation_fraction=0.25,
                 final_stage_min_passes=0, tv_xy_weight=0.0, tv_z_weight=0.0, pixel_integration="false", coherence="none",
-                obliquity_correction="false", calibrate_pupil="false", calibrate_aberrations="false")
+                obliquity_correction="false", calibrate_pupil="false", calibrate_aberrations="false", field_oversampling=1)
     return SolverConfig(**{**base, **kw})
 
 

@@ -303,7 +303,7 @@ def _cmd_info(args: argparse.Namespace) -> int:
         print(f"field grid: the camera's pixels hold waves up to {nyquist:.2f} cycles/µm of the {medium:.2f} the medium "
               "carries; what the sample scatters above is aliased (camera-grid images 1.4-4.1 % off on the suite's "
               "phantoms at 0.33 µm, NA 0.8; docs/physics.md, \"A finer field grid\"): --field-oversampling 2 propagates it "
-              "at about 4x the finest stage's cost")
+              "at about 4x the finest stage's cost; --field-oversampling auto tries it and keeps it where the held-out images show it")
     if acq.sources_um is None:
         print("sources: none given (the solver fits them)")
         return 0

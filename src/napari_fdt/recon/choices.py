@@ -86,7 +86,8 @@ class ChooseModelParts:
         if rec.config.parts_rerun == "stages" and rec.parts_choice.rerun != "stages" and not finest_only:
             restart_with_parts(rec)  # every stage again from the first with the kept parts (the plan appends them)
             return Verdict.FROM_FIRST_STAGE
-        choose_again = finest_only and rec.parts_choice.rerun is None and rec.config.parts_rerun == "stages"
+        not_kept = [p for p in rec._auto_parts if p not in kept]
+        choose_again = finest_only and bool(not_kept) and rec.parts_choice.rerun is None and rec.config.parts_rerun == "stages"
         if choose_again:  # the parts not kept are tried again at the end, through a volume trained with the kept ones
             finest_again_with_parts(rec)
             work.choosing["parts_from"] = start
@@ -94,7 +95,8 @@ class ChooseModelParts:
         # with them)
         phase = rec.plan.phases[rec._phase_index]
         priced = rec._stage_phase(phase.stage, phase.pass_name, kept)
-        again = dataclasses.replace(phase, parts=kept, seconds_per_iteration=priced.seconds_per_iteration)
+        again = dataclasses.replace(phase, parts=kept, seconds_per_iteration=priced.seconds_per_iteration,
+                                    fft_shape=priced.fft_shape)
         rec._revise_plan(rec.plan.with_rerun([again], choice_to_come=choose_again))
         rec._phase_index = len(rec.plan.phases) - 1
         fitted = rec.calibration.copy_values(PUPIL_PARAMETERS)

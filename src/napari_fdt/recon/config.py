@@ -85,6 +85,8 @@ AutoWeight = typing.Union[typing.Annotated[float, Field(ge=0, strict=True)], Lit
 #: Screens per slice: a whole number 1-16, or ``"auto"``: a model part chosen by the held-out images where the physics
 #: says the slices are thick (:mod:`napari_fdt.recon.model_parts`).
 SubSlices = typing.Union[typing.Annotated[int, Field(ge=1, le=16, strict=True)], Literal["auto"]]
+#: The finest stage's field grid over the camera's: 1, 2, or ``"auto"`` (a model part, as :data:`SubSlices`).
+FieldOversampling = typing.Union[typing.Annotated[int, Field(ge=1, le=2, strict=True)], Literal["auto"]]
 
 #: The value of a setting chosen from the data.
 AUTO = "auto"
@@ -255,12 +257,14 @@ class SolverConfig:
         "least half the depth of field λ/(n_b(1 − cos θ)) and kept where the held-out images show it (the finest stage then "
         "runs again with it; docs/decisions/model-parts.md); one screen elsewhere",
         fix="\"auto\", 1 (one thin screen per slice), or 2-4 for slices thick against the depth of field")
-    field_oversampling: int = setting(
-        1, ge=1, le=2, description="the finest stage's field on a grid this many times finer than the camera's (2: light the "
+    field_oversampling: FieldOversampling = setting(
+        1, strict=False, description="the finest stage's field on a grid this many times finer than the camera's (2: light the "
         "sample scatters beyond the camera grid's Nyquist is propagated, not aliased; docs/physics.md, \"A finer field grid\"); "
-        "about 4× the finest stage's cost and memory. Not chosen from the data: the held-out images cannot judge it through a "
-        "volume trained on the camera grid (docs/decisions/model-parts.md, \"Forward-accuracy parts\"); `fdt info` says where "
-        "the camera grid aliases waves the medium carries", fix="1 (the camera grid) or 2")
+        "about 4× the finest stage's cost and memory. `\"auto\"`: a model part tried with 2 where the camera grid's Nyquist "
+        "1/(2·pixel_size_um) is below the medium's n_b/λ and the finest stage fits in memory with it, kept where the held-out "
+        "images show it (the finest stage then runs again with it). Not the default: no suite scene kept it, those made on the "
+        "2x grid included, and its trial costs 4-6 % of a run (docs/decisions/model-parts.md, \"Forward-accuracy parts\")",
+        fix="1 (the camera grid), 2 or \"auto\"")
     field_window: FieldWindow = setting(
         "auto", strict=False, description="window the multi-slice model's fields run on: `\"full\"` (each source's whole field, on a "
         "window that keeps its periodic copies off the image: 7-16x the image's area on the suite), `\"split\"` (the sources' "

@@ -1,11 +1,13 @@
 """Optional parts of the model, switched on where the data shows they matter (issue 13, ``docs/solver.md``).
 
 The parts: sub-slices in the finest stage (``sub_slices``: diffraction inside thick slices; tried only where the
-slices are at least half the depth of field, :func:`~napari_fdt.recon.stages.thick_slices`), the camera's pixel
+slices are at least half the depth of field, :func:`~napari_fdt.recon.stages.thick_slices`), the finest stage's field
+on a grid twice as fine as the camera's (``field_oversampling``, part ``field_grid``: tried only where the camera grid
+aliases waves the medium carries, :func:`~napari_fdt.recon.stages.camera_grid_drops_band`), the camera's pixel
 integration (``pixel_integration``), the thin screen's obliquity correction (``obliquity_correction``), the spectral
 model of the emission band (``coherence``), a fit of the pupil's NA and edge (``calibrate_pupil``) and a fit of
 low-order aberrations (``calibrate_aberrations``). Each setting is ``true``, ``false`` or ``"auto"`` (the default; for
-``coherence`` the other values are the coherence models, for ``sub_slices`` the number of screens per slice).
+``coherence`` the other values are the coherence models, for ``sub_slices`` and ``field_oversampling`` numbers).
 
 How "auto" chooses (:func:`napari_fdt.recon.parts_search.choose_parts`), once, at the end of the finest stage (the
 full multi-slice model, and a volume holding the stage's detail: earlier, the held-out images' error is mostly the
@@ -13,7 +15,7 @@ coarse volume's and hides what the model lacks; :mod:`napari_fdt.recon.choices` 
 
 1. The reference is the model with the auto parts off: the validation error of each held-out image
    (:mod:`napari_fdt.recon.validation`; positions as fitted to their own images, gains in closed form).
-2. The parts without parameters (sub-slices, pixel integration, obliquity, spectral), one at a time: the held-out images are
+2. The parts without parameters (sub-slices, field grid, pixel integration, obliquity, spectral), one at a time: the held-out images are
    predicted with the part on, through the same volume.
 3. The parts with parameters (pupil, aberrations), one at a time on top of what step 2 kept: their parameters are fitted
    to a subset of the *training* images with the volume and sources held fixed (:data:`FIT_ITERATIONS` Adam steps on
@@ -45,12 +47,13 @@ __all__ = ["PARTS", "BINARY_PARTS", "FITTED_PARTS", "SETTING_OF", "STANDARD_ERRO
 
 #: Parts without parameters, tried first, in this order (sub-slices first: a spectral model or a pupil fit can absorb
 #: part of a thin screen's error, as the spectral model did on beads simulated with sub-slices, docs/benchmarks.md).
-BINARY_PARTS: tuple[str, ...] = ("sub_slices", "pixel_integration", "obliquity", "spectral")
+BINARY_PARTS: tuple[str, ...] = ("sub_slices", "field_grid", "pixel_integration", "obliquity", "spectral")
 #: Parts with fitted parameters, tried on top of the kept binary parts.
 FITTED_PARTS: tuple[str, ...] = ("pupil", "aberrations")
 PARTS: tuple[str, ...] = BINARY_PARTS + FITTED_PARTS
 #: The setting of each part.
-SETTING_OF: dict[str, str] = {"sub_slices": "sub_slices", "pixel_integration": "pixel_integration", "obliquity": "obliquity_correction", "spectral": "coherence",
+SETTING_OF: dict[str, str] = {"sub_slices": "sub_slices", "field_grid": "field_oversampling",
+                              "pixel_integration": "pixel_integration", "obliquity": "obliquity_correction", "spectral": "coherence",
                               "pupil": "calibrate_pupil", "aberrations": "calibrate_aberrations"}
 #: One-sided false-positive rate of the test per part: the mean paired improvement must exceed Student's t quantile
 #: ``t(1 − STANDARD_ERRORS_LEVEL, n − 1)`` standard errors of that mean (n held-out images; 1.96 for many images, 2.57
@@ -70,7 +73,7 @@ def standard_errors(n_images: int) -> float:
 MIN_IMPROVEMENT = 0.01
 #: Parts that change only the finest stage's model (not the coarse stages'): where the choice keeps only these, the finest
 #: stage runs again from its start with them (the stages before it would run as they did), whatever ``parts_rerun`` says.
-FINEST_ONLY_PARTS: tuple[str, ...] = ("sub_slices",)
+FINEST_ONLY_PARTS: tuple[str, ...] = ("sub_slices", "field_grid")
 #: Adam steps of the fit of a part's parameters with the volume fixed.
 FIT_ITERATIONS = 30
 #: Training images the parameters are fitted to (evenly spread over the training images).
@@ -91,8 +94,9 @@ def switch(value: Any) -> bool | None:
 def requested_parts(config: SolverConfig) -> dict[str, bool | None]:
     """Each part's setting: True / False when given, None when ``"auto"`` (before what the acquisition states:
     ``pixel_integration`` stated by ``acquisition.json`` is resolved by the caller)."""
-    out = {part: switch(getattr(config, SETTING_OF[part])) for part in PARTS if part not in ("spectral", "sub_slices")}
+    out = {part: switch(getattr(config, SETTING_OF[part])) for part in PARTS if part not in ("spectral", "sub_slices", "field_grid")}
     out["sub_slices"] = None if config.sub_slices == AUTO else config.sub_slices > 1
+    out["field_grid"] = None if config.field_oversampling == AUTO else config.field_oversampling == 2
     coherence = config.coherence
     out["spectral"] = None if coherence == AUTO else coherence in ("spectral", "mask+spectral")
     return {part: out[part] for part in PARTS}

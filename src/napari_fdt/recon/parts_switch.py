@@ -11,7 +11,7 @@ from napari_fdt.model.coherence import emission_spectrum
 from napari_fdt.recon.calibration import PUPIL_PARAMETERS
 from napari_fdt.recon.model_parts import PARTS, PartsChoice, requested_parts
 from napari_fdt.recon.stage_roles import set_stage_roles
-from napari_fdt.recon.stages import camera_model_options, stated_pixel_integration, thick_slices
+from napari_fdt.recon.stages import camera_grid_drops_band, camera_model_options, stated_pixel_integration, thick_slices
 
 if TYPE_CHECKING:
     from napari_fdt.recon.solver import Reconstructor
@@ -31,6 +31,10 @@ def requested_for(cfg, acquisition) -> tuple[dict[str, bool | None], dict[str, s
         # the physics' criterion: slices thin against the depth of field are thin screens, no trial needed
         requested["sub_slices"] = False
         chosen_by["sub_slices"] = "physics: slices under half the depth of field"
+    if requested["field_grid"] is None and not camera_grid_drops_band(acquisition.optics):
+        # the physics' criterion: the camera grid holds every wave the medium carries, nothing aliases
+        requested["field_grid"] = False
+        chosen_by["field_grid"] = "physics: the camera grid holds the medium's band"
     extra = getattr(acquisition, "extra", None) or {}
     if requested["pupil"] is None and "pupil_edge" in extra and cfg.pupil_edge is None:
         # a pupil the acquisition states (as fdt simulate writes it) is taken as stated, like its pixel integration
@@ -62,22 +66,27 @@ def init_parts(rec: Reconstructor) -> None:
 
 
 def drop_parts_that_do_not_fit(rec: Reconstructor, sources_um) -> None:
-    """The ``"auto"`` sub-slices are not tried where the finest stage would not fit in the device's memory with them
-    (``sources_um`` (N, 3) µm set the window); called after the check of the model the first pass runs, so that a part
-    that might be kept never refuses a run that fits without it."""
+    """The ``"auto"`` sub-slices and 2x field grid are not tried where the finest stage would not fit in the device's
+    memory with them (the grid checked with the sub-slices it may run with; ``sources_um`` (N, 3) µm set the window);
+    called after the check of the model the first pass runs, so that a part that might be kept never refuses a run that
+    fits without it."""
     import dataclasses
 
     from napari_fdt.recon.preflight import finest_stage_fits
     from napari_fdt.recon.stages import AUTO_SUB_SLICES
 
-    if "sub_slices" not in rec._auto_parts or rec.parts_choice is not None:
+    if rec.parts_choice is not None:
         return
-    cfg = dataclasses.replace(rec.config, sub_slices=AUTO_SUB_SLICES)
-    fits, gib = finest_stage_fits(rec.acquisition, cfg, sources_um, rec.device, len(rec.wavelengths) if rec.wavelengths else 1)
-    if fits:
-        return
-    rec._auto_parts = [p for p in rec._auto_parts if p != "sub_slices"]
-    rec._parts_chosen_by["sub_slices"] = f"memory: {AUTO_SUB_SLICES} screens per slice would need about {gib:.1f} GiB"
+    n_wavelengths = len(rec.wavelengths) if rec.wavelengths else 1
+    sub = AUTO_SUB_SLICES if "sub_slices" in rec._auto_parts else rec.config.sub_slices
+    for part, changes, what in (("sub_slices", {"sub_slices": AUTO_SUB_SLICES}, f"{AUTO_SUB_SLICES} screens per slice"),
+                                ("field_grid", {"field_oversampling": 2, "sub_slices": sub}, "the 2x field grid")):
+        if part not in rec._auto_parts:
+            continue
+        fits, gib = finest_stage_fits(rec.acquisition, dataclasses.replace(rec.config, **changes), sources_um, rec.device, n_wavelengths)
+        if not fits:
+            rec._auto_parts = [p for p in rec._auto_parts if p != part]
+            rec._parts_chosen_by[part] = f"memory: {what} would need about {gib:.1f} GiB"
     if not rec._auto_parts:
         rec.apply_parts_choice(PartsChoice(dict(rec.parts), dict(rec._parts_chosen_by)))
 

@@ -80,7 +80,7 @@ def envelope_padded_shape(optics: Optics, image_shape: tuple[int, int], factor: 
 
 
 #: The finest stage's model parts in words (the plan's summary).
-PART_WORDS: dict[str, str] = {"sub_slices": "sub-slices"}
+PART_WORDS: dict[str, str] = {"sub_slices": "sub-slices", "field_grid": "the 2x field grid"}
 
 @dataclass(frozen=True)
 class Phase:
@@ -224,7 +224,7 @@ def stage_phase(config: SolverConfig, optics: Optics, image_shape: tuple[int, in
                 pixel_integration: bool = False, pupil_edge: float | None = None) -> Phase:
     """The phase of stage ``stage`` (its model, FFT grid and predicted seconds per iteration; ``pixel_integration``: the
     multi-slice model's camera integrates over its pixels; ``pupil_edge`` its pupil's edge, None the default)."""
-    from napari_fdt.recon.stages import config_uses_split_field, fine_field_grid, model_window, multislice_plan, stage_sub_slices
+    from napari_fdt.recon.stages import config_uses_split_field, fine_field_grid, model_window, multislice_plan, stage_field_oversampling, stage_sub_slices
 
     sc = config.stages[stage]
     envelope = sc.factor > 1 and coarse_model == "envelope"
@@ -233,13 +233,14 @@ def stage_phase(config: SolverConfig, optics: Optics, image_shape: tuple[int, in
         shape = envelope_padded_shape(optics, image_shape, sc.factor)
     else:
         _, opt, _, window = multislice_plan(optics, sc.factor, image_shape, sources_um)
-        split = config_uses_split_field(config, device_type, sc.factor, window, opt, pupil_edge)
+        split = config_uses_split_field(config, device_type, sc.factor, window, opt, pupil_edge, field_grid="field_grid" in parts)
         shape = model_window(window, opt, split)
     model = "envelope" if envelope else "multislice"
     dev = "cuda" if device_type == "cuda" else "cpu"
     batch = config.stage_batch(stage)
     screens = optics.n_slices * (1 if envelope else stage_sub_slices(config.sub_slices, "sub_slices" in parts, sc.factor))
-    if not envelope and fine_field_grid(config.field_oversampling, sc.factor):  # the field on a grid twice as fine
+    fine = stage_field_oversampling(config.field_oversampling, "field_grid" in parts)
+    if not envelope and fine_field_grid(fine, sc.factor):  # the field on a grid twice as fine
         shape = (2 * shape[0], 2 * shape[1])
     source_pixels = camera_points = 0
     if split:

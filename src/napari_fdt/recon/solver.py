@@ -69,7 +69,7 @@ from napari_fdt.recon.snapshot import Snapshot, StageRecord, complete_stage, rer
 from napari_fdt.recon.stage_images import LazyImages
 from napari_fdt.recon.stage_loop import StageWork, Verdict, new_optimiser, train_stage
 from napari_fdt.recon.stage_roles import depth_frozen_stages, envelope_stages, position_frozen_stages, set_stage_roles
-from napari_fdt.recon.stages import Stage, build_stage, camera_model_options, stage_sub_slices
+from napari_fdt.recon.stages import Stage, build_stage, camera_model_options, stage_field_oversampling, stage_sub_slices
 from napari_fdt.recon.validation import BestIterate, holdout_indices, relative_image_error
 from napari_fdt.recon.volume import RIVolume
 
@@ -350,7 +350,7 @@ class Reconstructor:
         grid and window, obliquity, pupil edge and pixel integration (the parts as switched)."""
         cfg = self.config
         return dict(backward_mode=cfg.backward_mode, sub_slices=stage_sub_slices(cfg.sub_slices, self.parts["sub_slices"], factor),
-                    field_oversampling=cfg.field_oversampling,
+                    field_oversampling=stage_field_oversampling(cfg.field_oversampling, self.parts["field_grid"]),
                     field_window=cfg.field_window,
                     obliquity="per_source" if self.parts["obliquity"] else "none",
                     **{**camera_model_options(cfg, self.acquisition), "pixel_integration": self.parts["pixel_integration"]})

@@ -34,6 +34,7 @@ from napari_fdt.recon.stage_images import LazyImages, block_average, stage_image
 from napari_fdt.recon.volume import upsample_to
 
 __all__ = ["Stage", "build_stage", "fine_field_grid", "stage_sub_slices", "thick_slices", "AUTO_SUB_SLICES", "SUB_SLICE_MIN_DOF_RATIO",
+           "camera_grid_drops_band", "stage_field_oversampling",
            "uses_split_field", "config_uses_split_field", "split_window_fraction",
            "model_window", "block_average", "stage_optics", "field_factor", "multislice_plan", "camera_model_options",
            "stated_pixel_integration"]
@@ -158,9 +159,24 @@ def stage_sub_slices(setting: int | str, part_on: bool, factor: int) -> int:
     return AUTO_SUB_SLICES if part_on and factor == 1 else 1
 
 
-def fine_field_grid(field_oversampling: int, factor: int) -> bool:
+def camera_grid_drops_band(optics: Optics) -> bool:
+    """Whether the camera grid's Nyquist frequency ``1/(2·pixel_size_um)`` lies below the medium's ``n_b/λ`` (cycles/µm):
+    waves scattered between the two are aliased on the camera grid, and the ``"auto"`` 2x field grid is worth trying."""
+    return 0.5 / optics.pixel_size_um < optics.n_background / optics.wavelength_um
+
+
+def stage_field_oversampling(setting: int | str, part_on: bool) -> int:
+    """The field grid's factor over the camera's for the ``field_oversampling`` setting: the number when given; for
+    ``"auto"`` 2 where the part (``field_grid``) is on, else 1 (it applies to factor-1 stages: :func:`fine_field_grid`)."""
+    if setting != "auto":
+        return int(setting)
+    return 2 if part_on else 1
+
+
+def fine_field_grid(field_oversampling: int | str, factor: int) -> bool:
     """Whether a multi-slice stage of ``factor`` runs its field on the 2× grid (:class:`OversampledModel`):
-    ``field_oversampling`` 2 applies to factor-1 stages only (coarse stages keep their grids)."""
+    ``field_oversampling`` 2 applies to factor-1 stages only (coarse stages keep their grids); ``"auto"`` is 1 until the
+    part is chosen (:func:`stage_field_oversampling`)."""
     return field_oversampling == 2 and factor == 1
 
 
@@ -200,13 +216,14 @@ def model_window(plan: GridPlan, optics: Optics, split: bool) -> tuple[int, int]
 
 
 def config_uses_split_field(config, device_type: str, factor: int, plan: GridPlan, optics: Optics,
-                            pupil_edge: float | None) -> bool:
+                            pupil_edge: float | None, field_grid: bool = False) -> bool:
     """:func:`uses_split_field` for a solver configuration's stage of ``factor`` (its full window ``plan`` and stage
     ``optics``), as the plan and the memory check price it before the run (obliquity as configured: the parts' choice
-    comes later)."""
+    comes later; ``field_grid``: the ``"auto"`` 2x field grid on)."""
     return uses_split_field(config.field_window, device_type, factor, split_window_fraction(plan, optics),
                             obliquity="per_source" if config.obliquity_correction == "true" else "none",
-                            field_oversampling=config.field_oversampling, pupil_edge=pupil_edge)
+                            field_oversampling=stage_field_oversampling(config.field_oversampling, field_grid),
+                            pupil_edge=pupil_edge)
 
 
 def build_stage(
