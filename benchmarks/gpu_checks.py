@@ -6,7 +6,7 @@ Checks, each against a reference in float64 on the CPU, on fresh random inputs:
 1. the Triton adjoint kernel (:mod:`napari_fdt.model._triton_slice`) against the torch version (outputs poisoned
    first: every element written);
 2. every backward mode of the slice loop on CUDA (float32) against plain autograd in float64;
-3. the model's images on CUDA against the CPU;
+3. the model's images on CUDA against the CPU, also with 2 sub-slices and on the 2x field grid;
 4. a short reconstruction on CUDA against the same on the CPU (envelope coarse stage: the batched path on CUDA);
 5. the envelope model's batched path on CUDA (float32), eager and captured in a CUDA graph, against its per-slice
    path in float64 on the CPU: images and gradients (issue 16).
@@ -97,13 +97,19 @@ def check_modes(dev) -> None:
 
 
 def check_model(dev) -> None:
+    """The model's images, and those of the two accuracy parts the solver may switch on (issue 27): 2 screens per
+    slice, and the field on the 2x grid (:class:`~napari_fdt.model.oversampled.OversampledModel`)."""
+    from napari_fdt.model.oversampled import OversampledModel
+
     o = Optics(wavelength_um=0.6, n_background=1.33, na=0.65, pixel_size_um=0.33, n_slices=14, slice_spacing_um=1.5, image_plane_um=10.5)
     src = source_grid(4, 40.0, 50.0)
     plan = plan_for_sources(o, (128, 128), src, warn=False)
     dn = 0.03 * np.random.default_rng(0).random((14, 128, 128)).astype(np.float32)
-    cpu = MultiSliceModel(o, plan, device="cpu", dtype=torch.float64)(torch.tensor(dn, dtype=torch.float64), torch.tensor(src))
-    gpu = MultiSliceModel(o, plan, device=dev)(torch.tensor(dn), torch.tensor(src, dtype=torch.float32))
-    report("model images cuda fp32 vs cpu fp64", rel(gpu, cpu), 1e-4)
+    for label, cls, kw in (("", MultiSliceModel, {}), (" (2 sub-slices)", MultiSliceModel, {"sub_slices": 2}),
+                           (" (2x field grid)", OversampledModel, {})):
+        cpu = cls(o, plan, device="cpu", dtype=torch.float64, **kw)(torch.tensor(dn, dtype=torch.float64), torch.tensor(src))
+        gpu = cls(o, plan, device=dev, **kw)(torch.tensor(dn), torch.tensor(src, dtype=torch.float32))
+        report(f"model images{label} cuda fp32 vs cpu fp64", rel(gpu, cpu), 1e-4)
 
 
 def check_reconstruction(dev) -> None:
