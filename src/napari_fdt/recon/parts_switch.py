@@ -133,13 +133,7 @@ def restart_with_parts(rec: Reconstructor) -> None:
     the kept parts on from the first stage (their parameters start from the fitted values and train from
     ``calibration_from_stage`` on) and the coarse stages multi-slice; the finest stage chooses the other auto parts
     again (now on top of the kept ones, through a volume trained with them)."""
-    choice = rec.parts_choice
-    kept = [p for p in rec._auto_parts if rec.parts[p]]
-    for t in choice.trials:
-        t.setdefault("pass", 1)
-    choice.rerun = "stages"
-    choice.pending = [p for p in rec._auto_parts if p not in kept]
-    rec.apply_parts_choice(choice)
+    _mark_rerun(rec, "stages")
     fitted = rec.calibration.copy_values(PUPIL_PARAMETERS)
     rec._restart()
     rec.calibration.restore_values(fitted)  # the kept parts start from their fitted values
@@ -149,10 +143,15 @@ def finest_again_with_parts(rec: Reconstructor) -> None:
     """After a first choice that kept only parts of the finest stage's model (sub-slices): the finest stage runs again
     from its start with them (the caller restores its start), and the auto parts not kept are tried again at its end,
     through a volume trained with the kept ones (``rerun`` ``"finest"``, ``pending`` those parts)."""
+    _mark_rerun(rec, "finest")
+
+
+def _mark_rerun(rec: Reconstructor, rerun: str) -> None:
+    """The choice made as the first pass's (its trials marked pass 1), with what runs again (``rerun``) and the auto
+    parts not kept still to choose (``pending``); applied."""
     choice = rec.parts_choice
-    kept = [p for p in rec._auto_parts if rec.parts[p]]
     for t in choice.trials:
         t.setdefault("pass", 1)
-    choice.rerun = "finest"
-    choice.pending = [p for p in rec._auto_parts if p not in kept]
+    choice.rerun = rerun
+    choice.pending = [p for p in rec._auto_parts if not rec.parts[p]]
     rec.apply_parts_choice(choice)

@@ -20,6 +20,9 @@ from napari_fdt.errors import FDTInputError, FDTWarning
 from napari_fdt.physics.grid import plan_for_sources
 from napari_fdt.recon.config import SolverConfig
 
+#: Share of the device's free memory a run may plan to use (the rest: allocator slack, other tensors).
+USABLE_SHARE = 0.9
+
 __all__ = ["warn_about_images", "warn_about_sampling", "finest_stage_bytes", "check_memory", "finest_stage_fits"]
 
 
@@ -99,7 +102,7 @@ def finest_stage_fits(acquisition: Acquisition, config: SolverConfig, sources_um
 
     need = finest_stage_bytes(acquisition, config, sources_um, n_wavelengths, torch.device(device).type)[0]
     free = available_bytes(device)
-    return (free is None or need <= 0.9 * free), need / 2.0**30
+    return (free is None or need <= USABLE_SHARE * free), need / 2.0**30
 
 
 def check_memory(acquisition: Acquisition, config: SolverConfig, sources_um: np.ndarray, device: torch.device,
@@ -117,10 +120,10 @@ def check_memory(acquisition: Acquisition, config: SolverConfig, sources_um: np.
     need, plan, batch, mode = finest_stage_bytes(acquisition, config, sources_um, n_wavelengths, torch.device(device).type)
     o, k = acquisition.optics, n_wavelengths
     images = images_on_device(acquisition, torch.device(device).type)
-    if need <= 0.9 * free:
+    if need <= USABLE_SHARE * free:
         return
     one = finest_stage_bytes(acquisition, config, sources_um, n_wavelengths, torch.device(device).type, batch=1)[0] - images
-    fits = int((0.9 * free - images) // max(1, one))
+    fits = int((USABLE_SHARE * free - images) // max(1, one))
     gib = 2.0**30
     fix = (f"lower batch_size to {fits}" if fits >= 1 else
            "crop the images, use fewer slices or fewer wavelengths, or a device with more memory")
