@@ -80,6 +80,9 @@ def schema_widget(model: type, name: str, *, label: str | None = None, value: An
         return ComboBox(name=name, label=label, choices=list(options), value=value, tooltip=tooltip)
     if kind is int:
         lo, hi = _limits(info, int, clamp)
+        if accepts_auto(info):  # a whole number or "auto" (sub_slices)
+            spin = SpinBox(name=name + "_number", value=int(lo) if value == "auto" else value, min=int(lo), max=int(hi), tooltip=tooltip)
+            return AutoNumber(spin, name=name, label=label, value=value, tooltip=tooltip)
         return SpinBox(name=name, label=label, value=value, min=int(lo), max=int(hi), tooltip=tooltip)
     if kind is float:
         lo, hi = _limits(info, float, clamp)

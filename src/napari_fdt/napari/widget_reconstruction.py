@@ -69,7 +69,7 @@ _FIELDS = ("stages", "coarse_model", "batch_size", "l1_l2_total", "ssim_weight",
            "calibrate_sources", "calibrate_gain", "calibrate_source_depth", "calibrate_pixel_size",
            "calibrate_slice_spacing", "calibration_from_stage", "coherence", "mask_threshold", "seed", "snapshot_every",
            "validation_fraction", "early_stopping", "pixel_integration", "obliquity_correction", "calibrate_pupil",
-           "calibrate_aberrations")  # (no experimental setting: a loaded settings file keeps them)
+           "calibrate_aberrations", "sub_slices")  # (no experimental setting: a loaded settings file keeps them)
 #: Settings the widget numbers from 1 (as the status line does) while the configuration counts from 0.
 _ONE_BASED = ("calibration_from_stage",)
 
@@ -113,6 +113,7 @@ class ReconstructionWidget(ResultActions, Container):
         self.obliquity_correction = f("obliquity_correction", "tilted-ray correction", "obliquity correction")
         self.calibrate_pupil = f("calibrate_pupil", "fit pupil (NA, edge)")
         self.calibrate_aberrations = f("calibrate_aberrations", "fit aberrations")
+        self.sub_slices = f("sub_slices", "screens per slice")
         #: which optional parts the last run needed, and why (RI.json's model_parts)
         self.parts_info = Label(value="")
         self.coherence = f("coherence", "coherent-light model", "partial coherence model")
@@ -151,7 +152,7 @@ class ReconstructionWidget(ResultActions, Container):
         calibration = Container(widgets=[self.calibrate_sources, self.calibrate_gain, self.calibrate_source_depth,
                                          self.calibrate_pixel_size, self.calibrate_slice_spacing, self.calibration_from_stage])
         coherence = Container(widgets=[self.coherence, self.mask_threshold, self.masks_button])
-        parts = Container(widgets=[self.pixel_integration, self.obliquity_correction, self.calibrate_pupil,
+        parts = Container(widgets=[self.sub_slices, self.pixel_integration, self.obliquity_correction, self.calibrate_pupil,
                                    self.calibrate_aberrations, self.parts_info])
         run = Container(widgets=[
             self.device, self.seed, self.snapshot_every, self.validation_fraction, self.early_stopping,
