@@ -91,8 +91,11 @@ def profile_solver_demo(device: str = "cuda", side: int = 512, n_slices: int = 1
     activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if dev.type == "cuda" else [])
     sort_device = "cuda_time_total" if dev.type == "cuda" else "cpu_time_total"
     for factor in (4, 2, 1):
+        # calibration_from_stage 0: the sources train in this one stage, as in a real run's later stages (with the
+        # default 1 a one-stage run never calibrates them, and {"calibrate_sources": false} changed nothing, H100
+        # 2026-11-26)
         cfg = SolverConfig(stages=[StageConfig(factor, 40)], batch_size=30, snapshot_every=1000,
-                           tv_xy_weight=1.0, tv_z_weight=0.5)
+                           tv_xy_weight=1.0, tv_z_weight=0.5, calibration_from_stage=0)
         if overrides:  # e.g. {"calibrate_sources": false}: what a part of the iteration costs
             cfg = SolverConfig.from_dict({**cfg.to_dict(), **overrides})
         rec = Reconstructor(acq, cfg, device=device)
