@@ -146,3 +146,15 @@ def test_the_solver_uses_it_where_it_holds() -> None:
     dn, src, o, plan = _setup()
     with pytest.raises(FDTInputError, match="obliquity"):
         SplitFieldModel(o, plan, device="cpu", obliquity="per_source")
+
+
+def test_a_sample_that_is_not_there_adds_no_field() -> None:
+    """Δn ≡ 0 (a constant the loop would multiply by 1): the sample's field S is zero, so the images are the
+    homogeneous medium's, as the independent reference gives them for a volume of n_b alone (the pupil pilot's model,
+    ``recon/parts_pilot.py``, relies on it to skip the slice loop)."""
+    dn, src, o, plan = _setup()
+    zero = np.zeros_like(dn)
+    model = SplitFieldModel(o, plan, device="cpu", dtype=torch.float64)
+    spec, _ = model.exit_spectra(torch.from_numpy(zero), torch.from_numpy(src))
+    assert spec.shape[-2:] == model.plan.padded_shape and not bool(spec.any())
+    assert _rel(_images(model, zero, src), _wide_reference(zero, src, plan)) < 3e-4

@@ -235,6 +235,9 @@ class SplitFieldModel(MultiSliceModel):
         k = k or self._default
         h, w = self.plan.image_shape
         delta_n = self.pad_volume(delta_n)
+        if not delta_n.requires_grad and not bool(delta_n.any()):  # t ≡ 1: the sample adds nothing (S ≡ 0)
+            z = torch.zeros((sources_um.shape[0], *self.plan.padded_shape), device=self.device, dtype=self.dtype)
+            return torch.complex(z, z), None
         if self.sub_slices > 1:
             delta_n = delta_n.repeat_interleave(self.sub_slices, dim=0)
         hp, wp = self.plan.padded_shape
