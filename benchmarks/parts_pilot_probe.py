@@ -36,25 +36,51 @@ def main() -> None:
     ap.add_argument("acquisition")
     ap.add_argument("--iterations", type=int, default=80)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--subset", action="store_true", help="train only the fit images and the held-out images")
+    ap.add_argument("--subset-batch", type=int, default=8, help="images of each kind per iteration with --subset")
+    ap.add_argument("--exact-zero", action="store_true", help="Δn exactly 0 instead of the activation's floor (1e-4)")
     a = ap.parse_args()
     acq = read_acquisition(a.acquisition)
     cfg = SolverConfig.from_dict({**SolverConfig().to_dict(), "tv_xy_weight": 1.0, "tv_z_weight": 0.5, "seed": a.seed,
                                   "stages": [{"factor": 1, "iterations": 1000, "batch_size": None}],
-                                  "final_stage_min_passes": 0, "early_stopping": "off", "calibration_from_stage": 0})
+                                  "final_stage_min_passes": 0, "early_stopping": "off", "calibration_from_stage": 0,
+                                  # with --subset only the held-out images' positions are fitted: they alone are the test
+                                  **({"parts_test_images": "held_out"} if a.subset else {})})
     rec = Reconstructor(acq, cfg, device="cpu")
     stage = rec._build_stage(0)
     rec._carry_volume_to(stage)
     mask = rec._loss_mask(stage)
     rec._init_gains(stage, mask)
     rec.calibration.set_trainable(0)
-    frozen = torch.optim.Adam([rec.volume.x], lr=0.0)  # the volume stays at zero
+    frozen = torch.optim.Adam([rec.volume.x], lr=0.0)
+    if a.exact_zero:  # Δn exactly 0 (the split-field model then skips its slice loop), not the activation's floor
+        shape = tuple(rec.volume.x.shape)
+        rec.volume.delta_n = lambda: torch.zeros(shape, device=rec.device, dtype=rec.volume.x.dtype)
     t0 = time.perf_counter()
     start_err = ps.choice_errors(rec, stage, mask)[0]
-    for _ in range(a.iterations):
-        rec._step(stage, mask, frozen, cfg.batch_size, 1.0, 0.5)
+    if a.subset:  # only the images the test reads: the pupil fit's images and the held-out ones
+        from napari_fdt.recon.losses import total_loss
+        held = torch.as_tensor(rec.validation_indices, device=rec.device)
+        fit = ps.fit_images(rec)
+        rng = np.random.default_rng(a.seed)
+        cal = rec.calibration
+        zero = rec.volume.delta_n().detach()
+        for it in range(a.iterations):
+            f = fit[torch.as_tensor(rng.permutation(len(fit))[: a.subset_batch], device=rec.device)]
+            h = held[torch.as_tensor(rng.permutation(len(held))[: a.subset_batch], device=rec.device)]
+            pred = torch.cat([rec._predict_normalised(stage, zero, f), rec._predict_normalised(stage, zero, h, held_out=True)])
+            idx = torch.cat([f, h])
+            loss, _ = total_loss(pred, stage.images[idx], zero, rec.loss_weights, 0.5, mask=None if mask is None else mask[idx],
+                                 data_range=float(stage.images.max()))
+            cal.optimiser.zero_grad(set_to_none=True)
+            loss.backward()
+            cal.optimiser.step()
+    else:
+        for _ in range(a.iterations):
+            rec._step(stage, mask, frozen, cfg.batch_size, 1.0, 0.5)
     pilot_s = time.perf_counter() - t0
     ref_err, ref_each = ps.choice_errors(rec, stage, mask)
-    row = {"scene": a.acquisition, "seed": a.seed, "iterations": a.iterations, "pilot_s": pilot_s,
+    row = {"scene": a.acquisition, "seed": a.seed, "iterations": a.iterations, "exact_zero": a.exact_zero, "subset": a.subset, "pilot_s": pilot_s,
            "held_out_error_start": start_err, "held_out_error": ref_err, "parts": {}}
     print(f"{a.acquisition}: pilot {a.iterations} it, {pilot_s:.1f} s; held-out error {start_err:.4f} -> {ref_err:.4f}")
     for part in [p for p in ("pixel_integration", "obliquity", "spectral") if p in rec._auto_parts]:
