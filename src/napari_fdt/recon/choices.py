@@ -4,7 +4,8 @@
     At the selection stage's start (``"auto"`` TV weights): the trials of :mod:`napari_fdt.recon.tv_search`; the stage
     goes on from the winner, or every stage runs again with it where it changes what the stages before did.
 :class:`ChooseModelParts`
-    At the end of the first multi-slice stage (``"auto"`` model parts): the paired test of
+    Before the first stage, the pupil parts from a pilot at Δn = 0 (:mod:`napari_fdt.recon.parts_pilot`: a part kept
+    there is on from the first stage). At the end of the first multi-slice stage (``"auto"`` model parts): the paired test of
     :mod:`napari_fdt.recon.parts_search`; where a part is kept, every stage runs again with it (``parts_rerun``
     ``"stages"``) or the stage again from its start (``"finest"``). Where the kept parts change only the finest stage's
     model (:data:`~napari_fdt.recon.model_parts.FINEST_ONLY_PARTS`), the finest stage runs again from its start with
@@ -19,6 +20,7 @@ from typing import TYPE_CHECKING, Callable, Generator
 
 from napari_fdt.recon.calibration import PUPIL_PARAMETERS
 from napari_fdt.recon.model_parts import FINEST_ONLY_PARTS, PARTS, PartsChoice, parts_stage
+from napari_fdt.recon.parts_pilot import choose_pupil_parts_first, pilot_due, start_with_parts
 from napari_fdt.recon.parts_search import choose_parts
 from napari_fdt.recon.parts_switch import finest_again_with_parts, restart_with_parts
 from napari_fdt.recon.regularisation import selection_stages, tv_is_auto
@@ -60,6 +62,14 @@ class ChooseModelParts:
     def at_start(self, rec: Reconstructor, work: StageWork, again: int,
                  should_stop: Callable[[], bool] | None) -> Generator[Snapshot, None, Verdict]:
         cfg = rec.config
+        if work.stage.index == 0 and not again and pilot_due(rec):  # the pupil parts first, from the sources' light
+            outcome = choose_pupil_parts_first(rec, should_stop)
+            if outcome is None:
+                return Verdict.STOPPED
+            if outcome.kept:  # on from the first stage: no stage runs twice for them
+                start_with_parts(rec, outcome)
+                return Verdict.FROM_FIRST_STAGE
+            rec._pilot_record = outcome
         due = (rec.parts_choice is None or rec._choose_again) and work.stage.index == parts_stage(cfg)
         if again or not due:
             return Verdict.GO_ON

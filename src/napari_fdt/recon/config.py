@@ -290,6 +290,11 @@ class SolverConfig:
         "model holds none of the parts) and chooses the other auto parts again in the finest stage; `\"finest\"` runs only "
         "the finest stage again (cheaper; the coarse volume keeps what it absorbed of the parts; docs/solver.md, \"Model parts\")",
         fix="use \"stages\" or \"finest\"", tier="experimental")
+    parts_pilot: bool = setting(
+        True, description="also choose the \"auto\" pupil parts (`calibrate_pupil`, `calibrate_aberrations`) before the stages, from a "
+        "pilot at Δn = 0 (the sources' positions and gains fitted through the finest stage's model, then the paired test): a part "
+        "kept there is on from the first stage, so no stage runs twice for it; a part not kept is tried again at the finest "
+        "stage's end (docs/solver.md, \"Model parts\")")
     parts_test_images: PartsTestImages = setting(
         "held_out+training", strict=False, description="images the paired test of the \"auto\" model parts runs on: `\"held_out\"` "
         "(the validation split) or `\"held_out+training\"` (also the training images a part's parameters are not fitted to: "

@@ -116,12 +116,18 @@ def choose_parts(rec: Reconstructor, stage: Stage, mask: torch.Tensor | None, sh
                          fitted=pupil_values(rec, [p for p in FITTED_PARTS if rec.parts[p]]),
                          seconds=time.perf_counter() - t0)
     first = rec.parts_choice
-    if first is not None and first.rerun in ("stages", "finest"):
-        # a later pass's choice (after every stage, or the finest stage, ran again with the kept parts): every pass's
-        # trials, each with its pass and what ran again before it, and the first pass's reference
+    pilot = rec._pilot_record
+    if first is None and pilot is not None:  # the pilot before the stages kept nothing: its trials come first
+        choice.trials = pilot.trials + trials
+        choice.seconds += pilot.seconds
+    if first is not None and first.rerun in ("stages", "finest", "before"):
+        # a later pass's choice (after every stage, or the finest stage, ran again with the kept parts; or after the
+        # pilot kept parts before the stages): every pass's trials, each with its pass and what ran again before it,
+        # and the first pass's reference (the pilot's, at Δn = 0, is not this choice's)
         n = 1 + max((t.get("pass", 1) for t in first.trials), default=1)
         choice.trials = first.trials + [{**t, "pass": n, "after": first.rerun} for t in trials]
-        choice.reference_error, choice.reference_image_errors = first.reference_error, first.reference_image_errors
+        if first.rerun != "before":
+            choice.reference_error, choice.reference_image_errors = first.reference_error, first.reference_image_errors
         choice.seconds += first.seconds
         choice.rerun = first.rerun
         rec._choose_again = []

@@ -111,9 +111,9 @@ def apply_parts_choice(rec: Reconstructor, choice: PartsChoice) -> None:
     model they run with and the parts still to choose in the finest stage."""
     rec.parts_choice = choice
     set_parts(rec, choice.parts)
-    if choice.rerun == "stages":
+    if choice.rerun in ("stages", "before"):
         use_rerun_coarse_model(rec)
-    if choice.rerun in ("stages", "finest"):
+    if choice.rerun in ("stages", "finest", "before"):
         rec._choose_again = list(choice.pending)
         if choice.pending:
             rec._auto_parts = list(choice.pending)

@@ -138,6 +138,8 @@ class Plan:
     if_finest_parts_kept_s: float | None = None
     #: the "auto" parts of the finest stage's model to choose (sub-slices, the 2x field grid)
     finest_parts: tuple[str, ...] = ()
+    #: the "auto" pupil is tried before the stages, from a pilot at Δn = 0 (:mod:`napari_fdt.recon.parts_pilot`)
+    pupil_pilot: bool = False
 
     @property
     def iterations(self) -> int:
@@ -196,11 +198,14 @@ class Plan:
         return {"device": self.device_type, "phases": [p.to_dict() for p in self.phases],
                 "iterations": self.iterations, "predicted_total_s": self.predicted_s,
                 "predicted_extra_s_if_a_part_is_kept": self.if_part_kept_s,
-                "predicted_extra_s_if_finest_parts_are_kept": self.if_finest_parts_kept_s, "finest_parts": list(self.finest_parts)}
+                "predicted_extra_s_if_finest_parts_are_kept": self.if_finest_parts_kept_s, "finest_parts": list(self.finest_parts),
+                "pupil_pilot": self.pupil_pilot}
 
     def summary(self) -> str:
         """One line per phase with its iterations and predicted seconds, and the total."""
         lines = [f"  {p.name}: {p.iterations} it, ~{_seconds(p.predicted_s)}" for p in self.phases]
+        if self.pupil_pilot:
+            lines.insert(0, "  first the pupil, tried at Δn = 0 (a few seconds): if the data ask for it, every stage runs with it, once")
         if self.if_part_kept_s:
             lines.append(f"  if the data ask for a model part (pupil, aberrations, ...): every stage again, "
                          f"~{_seconds(self.if_part_kept_s)} more")
@@ -256,7 +261,8 @@ def stage_phase(config: SolverConfig, optics: Optics, image_shape: tuple[int, in
 
 def make_plan(config: SolverConfig, optics: Optics, image_shape: tuple[int, int], sources_um: np.ndarray,
               coarse_model: str, device_type: str, choose_tv_at: int | None, pixel_integration: bool = False,
-              parts_to_choose: bool = False, pupil_edge: float | None = None, finest_parts: tuple[str, ...] = ()) -> Plan:
+              parts_to_choose: bool = False, pupil_edge: float | None = None, finest_parts: tuple[str, ...] = (),
+              pupil_pilot: bool = False) -> Plan:
     """The plan of a run of ``config`` (as run: its stages resolved) on ``device_type`` ("cpu" or "cuda"), with the
     initial ``sources_um`` (N, 3) µm, ``coarse_model`` resolved for the device; ``choose_tv_at``: the stage at whose
     start the ``"auto"`` TV weights are tried (None: no choice), every weight for :func:`probe_iterations` of its
@@ -265,7 +271,8 @@ def make_plan(config: SolverConfig, optics: Optics, image_shape: tuple[int, int]
     (:meth:`Plan.with_stages_again` adds the stages before, run again, where a larger weight wins);
     ``pixel_integration``, ``pupil_edge``: the camera model's (as the first pass runs it); ``parts_to_choose``: "auto" model parts will
     be chosen from the data (:attr:`Plan.if_part_kept_s` then says what keeping one would add); ``finest_parts``: the
-    ``"auto"`` parts of the finest stage's model among them (:attr:`Plan.if_finest_parts_kept_s`)."""
+    ``"auto"`` parts of the finest stage's model among them (:attr:`Plan.if_finest_parts_kept_s`); ``pupil_pilot``: the
+    pupil is tried before the stages (:attr:`Plan.pupil_pilot`)."""
     src = np.asarray(sources_um, dtype=np.float64)
     stages = [stage_phase(config, optics, image_shape, src, i, coarse_model, device_type, pixel_integration=pixel_integration,
                           pupil_edge=pupil_edge)
@@ -291,7 +298,7 @@ def make_plan(config: SolverConfig, optics: Optics, image_shape: tuple[int, int]
         last = len(config.stages) - 1
         finest_again = stage_phase(config, optics, image_shape, src, last, coarse_model, device_type, RERUN, finest_parts,
                                    pixel_integration=pixel_integration, pupil_edge=pupil_edge).predicted_s
-    return Plan(tuple(phases), "cuda" if device_type == "cuda" else "cpu", extra, finest_again, finest_parts)
+    return Plan(tuple(phases), "cuda" if device_type == "cuda" else "cpu", extra, finest_again, finest_parts, pupil_pilot)
 
 
 def plan_for(acquisition, config: SolverConfig, device_type: str, sources_um: np.ndarray | None = None) -> tuple[Plan, np.ndarray]:
@@ -327,7 +334,8 @@ def plan_for(acquisition, config: SolverConfig, device_type: str, sources_um: np
                      device_type, choose_tv_at, pixel_integration=integrate,
                      parts_to_choose=split and any(v is None for v in requested.values()),
                      pupil_edge=camera_model_options(cfg, acquisition)["pupil_edge"],
-                     finest_parts=tuple(p for p in FINEST_ONLY_PARTS if requested[p] is None))
+                     finest_parts=tuple(p for p in FINEST_ONLY_PARTS if requested[p] is None),
+                     pupil_pilot=split and cfg.parts_pilot and requested["pupil"] is None)
     return plan, src
 
 

@@ -158,11 +158,14 @@ def describe_parts(summary: dict[str, Any]) -> str:
     needed = ", ".join(summary.get("needed") or []) or "none"
     if not chosen:
         return f"model parts on: {needed}"
-    again = {"stages": " (again, all stages rerun)", "finest": " (again, finest stage rerun)"}
-    tried = ", ".join(f"{t['part']}{again[t.get('after', 'stages')] if t.get('pass', 1) > 1 else ''} {'on' if t['on'] else 'off'} "
-                      f"({-100 * t.get('improvement', 0.0) / max(chosen['reference_error'] or 1e-30, 1e-30):+.1f} %)"
+    again = {"stages": " (again, all stages rerun)", "finest": " (again, finest stage rerun)", "before": ""}
+    when = {0: " (before the stages, at Δn = 0)"}
+    tried = ", ".join(f"{t['part']}{again[t.get('after', 'stages')] if t.get('pass', 1) > 1 else when.get(t.get('pass', 1), '')} "
+                      f"{'on' if t['on'] else 'off'} "
+                      f"({-100 * t.get('improvement', 0.0) / max(t.get('reference_error') or chosen['reference_error'] or 1e-30, 1e-30):+.1f} %)"
                       for t in chosen["trials"] if "improvement" in t)
-    return (f"model parts on: {needed} (chosen by the validation error {chosen['reference_error']:.4f} in stage {chosen['stage'] + 1}, "
+    where = f"in stage {chosen['stage'] + 1}" if chosen["stage"] >= 0 else "before the stages"
+    return (f"model parts on: {needed} (chosen by the validation error {chosen['reference_error']:.4f} {where}, "
             f"{chosen['seconds']:.1f} s; change of the held-out error with each part: {tried})")
 
 

@@ -56,6 +56,7 @@ from napari_fdt.recon.choices import default_choices
 from napari_fdt.recon.config import SolverConfig, resolve_coarse_model, resolve_stage_lengths
 from napari_fdt.recon.losses import BatchShare, LossWeights, total_loss
 from napari_fdt.recon.model_parts import FINEST_ONLY_PARTS, PartsChoice
+from napari_fdt.recon.parts_pilot import pilot_due
 from napari_fdt.recon.parts_search import choice_errors, fit_images
 from napari_fdt.recon.parts_switch import apply_parts_choice, drop_parts_that_do_not_fit, init_parts
 from napari_fdt.recon.phases import RERUN, RUN, TV_CHOICE
@@ -163,6 +164,8 @@ class Reconstructor:
         self.wavelengths, self.weights = None, None
         #: auto parts the finest stage chooses again after every stage ran again with the kept ones (``parts_rerun``)
         self._choose_again: list[str] = []
+        #: the pilot before the stages that kept no part (:mod:`napari_fdt.recon.parts_pilot`), whose trials the choice records
+        self._pilot_record = None
         #: the choices plugged into every stage (:mod:`napari_fdt.recon.choices`)
         self.choices = default_choices()
         init_parts(self)
@@ -191,7 +194,7 @@ class Reconstructor:
         self.plan = make_plan(self.config, self.acquisition.optics, self.full_shape, self.initial_sources_um, self.coarse_model,
                               self.device.type, choose_tv_at, pixel_integration=self.parts["pixel_integration"],
                               parts_to_choose=self.parts_choice is None, pupil_edge=self._pupil_edge(),
-                              finest_parts=tuple(p for p in FINEST_ONLY_PARTS if p in self._auto_parts))
+                              finest_parts=tuple(p for p in FINEST_ONLY_PARTS if p in self._auto_parts), pupil_pilot=pilot_due(self))
         #: the time-left estimate from the plan and the measured times
         self.pace = Pace(self.plan)
         #: the index in :attr:`plan` of the phase now running

@@ -1,0 +1,167 @@
+"""The pupil chosen before the stages, from the sources' own light (a pilot at Δn = 0).
+
+The paired test of the fitted model parts (the pupil's NA and edge, the aberrations;
+:mod:`napari_fdt.recon.parts_search`) is made at the finest stage's end. A part kept there makes every stage run again,
+since the coarse stages must model it: the default then cost 1.6–2.6× a plain pass on a scene with a hard pupil
+(docs/decisions/one-pass-default-vs-plain.md). The pupil shapes the images of the sources themselves, which are most of
+each image's light. So the part can be seen before any volume exists: with Δn = 0 (the sample's light left
+unexplained, the same for both sides of the test), the positions, the depth offset and the gains of the images the
+test reads (the pupil fit's training images and the held-out ones) are fitted through the finest stage's model for
+:data:`PILOT_ITERATIONS` steps; then each fitted part is fitted and tested as at the finest stage's end, on the
+held-out images. A part kept here is on from the first stage (coarse stages multi-slice, as a rerun would run them),
+and the run needs no second pass for it. A part not kept here is tried again at the finest stage's end, as before.
+Everything the pilot trained is set back to its start; the kept parts start from their fitted values.
+
+Measured (``benchmarks/parts_pilot_probe.py``, docs/decisions/one-pass-default-vs-plain.md): cells_pupil (a hard pupil the
+files do not state) keeps the pupil (held-out error −2.5 % and −3.2 %, z 3.9 and 5.1); the sample does not (z −0.6).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import copy
+import time
+from dataclasses import dataclass, field, replace
+from typing import TYPE_CHECKING, Any, Callable, Iterator
+
+import numpy as np
+import torch
+
+from napari_fdt.recon.calibration import PUPIL_PARAMETERS
+from napari_fdt.recon.losses import total_loss
+from napari_fdt.recon.model_parts import PARTS, PartsChoice, decide
+from napari_fdt.recon.parts_search import exit_cache, fit_images, fit_pupil_parts, pupil_values
+from napari_fdt.recon.parts_switch import set_parts
+from napari_fdt.recon.run_validation import validation
+
+if TYPE_CHECKING:
+    from napari_fdt.recon.solver import Reconstructor
+
+__all__ = ["PILOT_ITERATIONS", "PILOT_BATCH", "PILOT_PARTS", "PilotOutcome", "pilot_due", "choose_pupil_parts_first", "start_with_parts"]
+
+#: Steps of the pilot's calibration. On cells_pupil the test keeps the pupil after 60 (held-out error −2.5 %) but
+#: not after 80 steps of the whole training set (+0.7 %): the test needs the positions of its own images converged.
+PILOT_ITERATIONS = 60
+#: Images of each kind (fit images, held-out images) per pilot step.
+PILOT_BATCH = 8
+#: The parts the pilot tests. The aberrations are not among them: on the tests' scene with 1.2 rad of spherical
+#: aberration the pilot missed them (z 0.8) where the finest stage's end finds them, so their test there stays the only one.
+PILOT_PARTS = ("pupil",)
+
+
+@dataclass
+class PilotOutcome:
+    """What the pilot found: ``kept`` parts, their ``fitted`` values (calibration tensors, :data:`PUPIL_PARAMETERS`),
+    the ``trials`` (as :class:`~napari_fdt.recon.model_parts.PartsChoice`'s, each with ``"pass": 0``), the held-out
+    error the parts were compared with, and the pilot's seconds."""
+
+    kept: list[str]
+    fitted: dict[str, torch.Tensor]
+    trials: list[dict[str, Any]] = field(default_factory=list)
+    reference_error: float | None = None
+    reference_image_errors: list[float] = field(default_factory=list)
+    seconds: float = 0.0
+
+
+def pilot_due(rec: Reconstructor) -> bool:
+    """A pilot runs where ``parts_pilot`` is on, a fitted part is ``"auto"``, nothing is chosen yet (once a run) and at least two
+    images are held out (the test's noise estimate)."""
+    return (rec.config.parts_pilot and rec.parts_choice is None and rec._pilot_record is None
+            and len(rec.validation_indices) >= 2 and any(p in rec._auto_parts for p in PILOT_PARTS))
+
+
+@contextlib.contextmanager
+def _no_sample(rec: Reconstructor, shape: tuple[int, ...]) -> Iterator[torch.Tensor]:
+    """Δn = 0 on the grid ``shape`` for everything that reads the volume (validation, the pupil fits' exit fields)."""
+    zero = torch.zeros(shape, device=rec.device, dtype=rec.volume.x.dtype)
+    volume = rec.volume
+    volume.delta_n = lambda: zero  # an instance attribute over the method, removed below
+    try:
+        yield zero
+    finally:
+        del volume.delta_n
+
+
+def choose_pupil_parts_first(rec: Reconstructor, should_stop: Callable[[], bool] | None) -> PilotOutcome | None:
+    """Run the pilot and the fitted parts' tests (see the module); the run's state is set back. None when stopped."""
+    t0 = time.perf_counter()
+    cal = rec.calibration
+    # what the pilot trains, to set back (the volume and the batch order it does not touch: the stage's optimiser holds
+    # the volume's tensor, which must stay the same object)
+    start_values, start_opt = cal.copy_values(), copy.deepcopy(cal.optimiser.state_dict())
+    last = len(rec.config.stages) - 1
+    stage = rec._build_stage(last)
+    mask = rec._loss_mask(stage)
+    cal.set_trainable(last)
+    held = torch.as_tensor(rec.validation_indices, device=rec.device)
+    fit = fit_images(rec)
+    rng = np.random.default_rng(rec.config.seed)
+    data_range = float(stage.images.max())
+    outcome = PilotOutcome([], {})
+    try:
+        with _no_sample(rec, (rec.acquisition.optics.n_slices, *rec.full_shape)) as zero:
+            for _ in range(PILOT_ITERATIONS):
+                if rec._stop_requested(should_stop):
+                    return None
+                f = fit[torch.as_tensor(rng.permutation(len(fit))[:PILOT_BATCH], device=rec.device)]
+                h = held[torch.as_tensor(rng.permutation(len(held))[:PILOT_BATCH], device=rec.device)]
+                idx = torch.cat([f, h])
+                pred = torch.cat([rec._predict_normalised(stage, zero, f), rec._predict_normalised(stage, zero, h, held_out=True)])
+                loss, _ = total_loss(pred, stage.images[idx], zero, rec.loss_weights, 0.0, mask=None if mask is None else mask[idx],
+                                     data_range=data_range)
+                cal.optimiser.zero_grad(set_to_none=True)
+                loss.backward()
+                cal.optimiser.step()
+            ref_err, ref_each = validation(rec, stage, mask, per_image=True)
+            outcome.reference_error, outcome.reference_image_errors = ref_err, list(ref_each)
+            for part in [p for p in PILOT_PARTS if p in rec._auto_parts]:
+                t1 = time.perf_counter()
+                before = cal.copy_values()
+                set_parts(rec, {**rec.parts, part: True})
+                variant = rec._build_stage(last)
+                if not fit_pupil_parts(rec, variant, exit_cache(rec, variant), [part], should_stop):
+                    return None
+                err, each = validation(rec, variant, rec._loss_mask(variant), per_image=True)
+                verdict = decide(np.asarray(ref_each), each)
+                outcome.trials.append({"part": part, "validation_error": err, "image_errors": each, **verdict,
+                                       "fitted": pupil_values(rec, [part]), "seconds": time.perf_counter() - t1, "pass": 0,
+                                       "reference_error": ref_err})
+                if verdict["on"]:
+                    outcome.kept.append(part)
+                    ref_each = each
+                else:
+                    set_parts(rec, {**rec.parts, part: False})
+                    cal.restore_values(before)
+            outcome.fitted = cal.copy_values(PUPIL_PARAMETERS)
+    finally:
+        kept = {p: p in outcome.kept for p in PILOT_PARTS if p in rec._auto_parts}
+        set_parts(rec, {**rec.parts, **{p: False for p in kept}})
+        cal.restore_values(start_values)
+        cal.optimiser.load_state_dict(start_opt)
+        cal.set_trainable(0)
+    outcome.seconds = time.perf_counter() - t0
+    for t in outcome.trials:  # the whole pilot's time (its calibration steps and the tests) on its trials, for RI.json
+        t["pilot_s"] = outcome.seconds
+    return outcome
+
+
+def start_with_parts(rec: Reconstructor, outcome: PilotOutcome) -> None:
+    """The pilot kept ``outcome.kept``: a choice made before the stages (``rerun`` ``"before"``). The kept parts are on
+    from the first stage, from their fitted values, with multi-slice coarse stages (under ``coarse_model`` ``"auto"``,
+    as a rerun with them has); the other auto parts are chosen at the finest stage's end; the plan's phases are priced
+    again for that model."""
+    parts = {**rec.parts, **{p: True for p in outcome.kept}}
+    chosen_by = {p: ("validation" if p in rec._auto_parts else rec._parts_chosen_by[p]) for p in PARTS}
+    fitted = {k: v for t in outcome.trials if t["part"] in outcome.kept for k, v in t["fitted"].items()}
+    choice = PartsChoice(parts, chosen_by, stage=-1, reference_error=outcome.reference_error,
+                         reference_image_errors=outcome.reference_image_errors, trials=list(outcome.trials), fitted=fitted,
+                         seconds=outcome.seconds, rerun="before", pending=[p for p in rec._auto_parts if not parts[p]])
+    rec.apply_parts_choice(choice)
+    rec._restart()
+    rec.calibration.restore_values(outcome.fitted)  # the kept parts start from their fitted values
+    kept = tuple(outcome.kept)
+    phases = []
+    for p in rec.plan.phases:
+        q = rec._stage_phase(p.stage, p.pass_name, kept)
+        phases.append(replace(p, model=q.model, fft_shape=q.fft_shape, seconds_per_iteration=q.seconds_per_iteration))
+    rec._revise_plan(replace(rec.plan, phases=tuple(phases)))
