@@ -64,9 +64,10 @@ class PilotOutcome:
 
 
 def pilot_due(rec: Reconstructor) -> bool:
-    """A pilot runs where ``parts_pilot`` is on, a fitted part is ``"auto"``, nothing is chosen yet (once a run) and at least two
-    images are held out (the test's noise estimate)."""
-    return (rec.config.parts_pilot and rec.parts_choice is None and rec._pilot_record is None
+    """A pilot runs where ``parts_pilot`` is on, the pupil is ``"auto"``, nothing is chosen yet (once a run) and at least
+    two images are held out (the test's noise estimate); not in a distributed run (its ranks hold parts of the images:
+    the finest stage's end chooses the pupil there)."""
+    return (rec.config.parts_pilot and rec.parts_choice is None and rec._pilot_record is None and rec.group is None
             and len(rec.validation_indices) >= 2 and any(p in rec._auto_parts for p in PILOT_PARTS))
 
 
