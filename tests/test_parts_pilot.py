@@ -7,6 +7,8 @@ import pytest
 
 from napari_fdt.recon import parts_pilot
 from napari_fdt.recon.config import SolverConfig, StageConfig
+from napari_fdt.recon.model_parts import PILOT_ITERATIONS
+from napari_fdt.recon.phases import PUPIL_PILOT
 from napari_fdt.recon.plan import RERUN
 from napari_fdt.recon.report import describe_parts, model_parts_summary
 from napari_fdt.recon.solver import Reconstructor
@@ -36,16 +38,15 @@ def _config(**kw) -> SolverConfig:
     return SolverConfig(**base)
 
 
-def _run(acq, cfg) -> tuple[Reconstructor, list[int]]:
+def _run(acq, cfg) -> tuple[Reconstructor, list]:
     rec = Reconstructor(acq, cfg, device="cpu")
-    iterations = [s.global_iteration for s in rec.run()]
-    return rec, iterations
+    return rec, list(rec.run())
 
 
 def test_a_pilot_that_keeps_nothing_leaves_the_run_as_it_was(soft_pupil) -> None:
     """The images need no pupil part: the pilot keeps none, and since it sets back everything it trained, the run is
     the run without a pilot to the bit; its trial comes first in the record (pass 0)."""
-    with_pilot, _ = _run(soft_pupil, _config())
+    with_pilot, snaps = _run(soft_pupil, _config())
     without, _ = _run(soft_pupil, _config(parts_pilot=False))
     choice = with_pilot.parts_choice
     first = choice.trials[0]
@@ -57,6 +58,14 @@ def test_a_pilot_that_keeps_nothing_leaves_the_run_as_it_was(soft_pupil) -> None
     assert rest == [(t["part"], t["on"], t["validation_error"]) for t in without.parts_choice.trials]
     assert choice.seconds > without.parts_choice.seconds  # the pilot's time is the choice's
     assert "pupil (before the stages, at Δn = 0) off" in describe_parts(model_parts_summary(with_pilot))
+    # the pilot is the plan's first phase: its snapshots move the progress along it (no volume of the run in them, no
+    # loss history), then the stages go on from there; the count never goes back
+    pilot = [s for s in snaps if s.phase == PUPIL_PILOT]
+    assert [s.plan_iteration for s in pilot] == list(range(10, PILOT_ITERATIONS + 1, 10))
+    assert all(s.phase_name == "checking the pupil at Δn = 0, before the stages" and not s.delta_n.any() for s in pilot)
+    counts = [s.plan_iteration for s in snaps]
+    assert counts == sorted(counts) and counts[-1] == with_pilot.plan.iterations
+    assert len(with_pilot.history) == len(without.history)
 
 
 def test_a_pupil_kept_before_the_stages_is_on_from_the_first(soft_pupil, monkeypatch) -> None:
@@ -65,14 +74,17 @@ def test_a_pupil_kept_before_the_stages_is_on_from_the_first(soft_pupil, monkeyp
     the finest stage's end still chooses the other auto parts."""
     monkeypatch.setattr(parts_pilot, "decide", lambda ref, cand: {"on": True, "improvement": 1.0, "standard_error": 0.1,
                                                                   "threshold": 2.0})
-    rec, iterations = _run(soft_pupil, _config(obliquity_correction="auto"))
+    rec, snaps = _run(soft_pupil, _config(obliquity_correction="auto"))
+    iterations = [s.global_iteration for s in snaps if s.phase != PUPIL_PILOT]
     choice = rec.parts_choice
     assert iterations == sorted(iterations) and iterations[-1] == sum(s.iterations for s in rec.config.stages)
+    assert [s.plan_iteration for s in snaps] == sorted(s.plan_iteration for s in snaps)  # the bar never goes back
     assert choice.rerun == "before" and choice.parts["pupil"] and choice.chosen_by["pupil"] == "validation"
     assert choice.trials[0]["part"] == "pupil" and choice.trials[0]["pass"] == 0
     assert {t["part"] for t in choice.trials if t.get("pass") == 1} == {"obliquity"}  # chosen at the finest stage's end
     assert rec.coarse_model == "multislice" and not rec._build_stage(0).envelope
     assert rec.calibration.fit_pupil and all(s.model == "multislice" for s in rec.plan.phases)
+    assert rec.plan.phases[0].pass_name == PUPIL_PILOT
     assert not any(p.pass_name == RERUN for p in rec.plan.phases)
     assert len(rec.stages) == len(rec.config.stages)
     assert "pupil (before the stages, at Δn = 0) on" in describe_parts(model_parts_summary(rec))

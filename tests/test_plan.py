@@ -186,7 +186,9 @@ def test_fdt_plan_prints_the_plan_the_solver_makes(sample, capsys) -> None:
     assert out["peak_memory_bytes"] > images
     assert main(["plan", str(ROOT / "sample_data" / "letters"), "--device", "cpu", "--tv-xy-weight", "1", "--tv-z-weight", "0.5"]) == 0
     text = capsys.readouterr().out
-    assert text.startswith("plan (cpu): 3 phases") and "TV" not in text and "peak memory: about" in text
+    # the pupil's pilot (the sample's files do not state their pupil), then the three stages
+    assert text.startswith("plan (cpu): 4 phases") and "TV" not in text and "peak memory: about" in text
+    assert text.splitlines()[1].startswith("  checking the pupil at Δn = 0, before the stages: 60 it")
 
 
 def test_fdt_reconstruct_prints_its_plan_even_when_quiet_and_warns_about_a_long_cpu_run(scene16, tmp_path, capsys) -> None:

@@ -20,7 +20,7 @@ import numpy as np
 
 from napari_fdt.data.acquisition import Acquisition
 from napari_fdt.recon.config import SolverConfig
-from napari_fdt.recon.phases import TV_CHOICE
+from napari_fdt.recon.phases import CANDIDATE_PHASES
 
 __all__ = ["Update", "JobResult", "reconstruction_job"]
 
@@ -90,8 +90,8 @@ def reconstruction_job(
         for snap in rec.run(should_stop=stop.is_set, checkpoint_dir=folder):
             now = time.perf_counter()
             ri = None
-            # a TV trial's volume (phase "tv_choice") is a candidate, not the run's: no RI for it
-            if snap.phase != TV_CHOICE and (snap.stage_complete or now - last >= min_interval_s):
+            # a TV trial's volume (phase "tv_choice") is a candidate, the pupil pilot's is zero: not the run's, no RI for it
+            if snap.phase not in CANDIDATE_PHASES and (snap.stage_complete or now - last >= min_interval_s):
                 ri = n_b + snap.delta_n_full()
                 last = time.perf_counter()
             yield Update("snapshot", snapshot=snap, ri=ri)

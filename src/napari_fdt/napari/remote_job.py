@@ -32,7 +32,7 @@ from napari_fdt.errors import FDTInputError
 from napari_fdt.napari.compute_process import AUTHKEY_ENV
 from napari_fdt.napari.job import JobResult, Update
 from napari_fdt.recon.config import SolverConfig
-from napari_fdt.recon.phases import TV_CHOICE
+from napari_fdt.recon.phases import CANDIDATE_PHASES
 
 __all__ = ["remote_reconstruction", "RunResult", "ComputeProcessDied", "JOB_TARGET", "START_TIMEOUT_S"]
 
@@ -242,7 +242,7 @@ def remote_reconstruction(
             kind = msg[0]
             if kind == "update":
                 _, ukind, snap, ri = msg
-                if ukind == "snapshot" and snap.stage_complete and ri is not None and snap.phase != TV_CHOICE:
+                if ukind == "snapshot" and snap.stage_complete and ri is not None and snap.phase not in CANDIDATE_PHASES:
                     completed, last_ri = snap.stage + 1, ri
                 yield Update(ukind, snapshot=snap, ri=ri)
             elif kind == "warning":

@@ -43,7 +43,7 @@ from napari_fdt.napari.widget_layout import claim_dock_height, follow_ndisplay, 
 from napari_fdt.napari.widget_results import ResultActions, with_tiff_suffix
 from napari_fdt.napari.widget_tasks import BackgroundTasks, CloseWatcher, Feedback
 from napari_fdt.recon.config import SolverConfig, load_config, resolve_stage_lengths
-from napari_fdt.recon.phases import TV_CHOICE
+from napari_fdt.recon.phases import CANDIDATE_PHASES
 from napari_fdt.recon.report import describe_parts
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -450,11 +450,11 @@ class ReconstructionWidget(ResultActions, Container):
         self.progress.value = min(int(snap.plan_iteration), self.progress.max)
         left_txt = f", about {_duration(snap.eta_s)} left" if snap.eta_s and snap.eta_s > 0 else ""
         tried = f", tried xy {snap.tv_weights[0]:g}, z {snap.tv_weights[1]:g}" if snap.tv_weights is not None else ""
-        where = "" if snap.phase == TV_CHOICE else f", iteration {snap.iteration}/{snap.stage_iterations}"
+        where = "" if snap.phase in CANDIDATE_PHASES else f", iteration {snap.iteration}/{snap.stage_iterations}"
         self.status.value = (f"run #{self._runs}: {snap.phase_name}{tried}{where}; "
                              f"{_duration(snap.elapsed_s)} elapsed{left_txt}")
         self.losses.value = "loss: " + ", ".join(f"{k} {v:.4g}" for k, v in snap.losses.items())
-        if snap.phase == TV_CHOICE:  # a TV trial's volume is a candidate: no volume, no curve point
+        if snap.phase in CANDIDATE_PHASES:  # a TV trial's volume is a candidate, the pupil pilot's zero: no curve point
             return
         if snap.stage_complete:
             self._complete_at = int(snap.plan_iteration)

@@ -63,7 +63,7 @@ class ChooseModelParts:
                  should_stop: Callable[[], bool] | None) -> Generator[Snapshot, None, Verdict]:
         cfg = rec.config
         if work.stage.index == 0 and not again and pilot_due(rec):  # the pupil parts first, from the sources' light
-            outcome = choose_pupil_parts_first(rec, should_stop)
+            outcome = yield from choose_pupil_parts_first(rec, work, should_stop)
             if outcome is None:
                 return Verdict.STOPPED
             if outcome.kept:  # on from the first stage: no stage runs twice for them

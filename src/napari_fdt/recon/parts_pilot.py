@@ -22,28 +22,28 @@ import contextlib
 import copy
 import time
 from dataclasses import dataclass, field, replace
-from typing import TYPE_CHECKING, Any, Callable, Iterator
+from typing import TYPE_CHECKING, Any, Callable, Generator, Iterator
 
 import numpy as np
 import torch
 
 from napari_fdt.recon.calibration import PUPIL_PARAMETERS
 from napari_fdt.recon.losses import total_loss
-from napari_fdt.recon.model_parts import PARTS, PartsChoice, decide
+from napari_fdt.recon.model_parts import PARTS, PILOT_BATCH, PILOT_ITERATIONS, PartsChoice, decide
 from napari_fdt.recon.parts_search import exit_cache, fit_images, fit_pupil_parts, pupil_values
 from napari_fdt.recon.parts_switch import set_parts
+from napari_fdt.recon.phases import PUPIL_PILOT
 from napari_fdt.recon.run_validation import validation
+from napari_fdt.recon.snapshot import Snapshot, take_snapshot
 
 if TYPE_CHECKING:
     from napari_fdt.recon.solver import Reconstructor
+    from napari_fdt.recon.stage_loop import StageWork
 
 __all__ = ["PILOT_ITERATIONS", "PILOT_BATCH", "PILOT_PARTS", "PilotOutcome", "pilot_due", "choose_pupil_parts_first", "start_with_parts"]
 
-#: Steps of the pilot's calibration. On cells_pupil the test keeps the pupil after 60 (held-out error −2.5 %) but
-#: not after 80 steps of the whole training set (+0.7 %): the test needs the positions of its own images converged.
-PILOT_ITERATIONS = 60
-#: Images of each kind (fit images, held-out images) per pilot step.
-PILOT_BATCH = 8
+#: Pilot steps between its snapshots (the progress bar's and the widget's updates).
+SNAPSHOT_EVERY = 10
 #: The parts the pilot tests. The aberrations are not among them: on the tests' scene with 1.2 rad of spherical
 #: aberration the pilot missed them (z 0.8) where the finest stage's end finds them, so their test there stays the only one.
 PILOT_PARTS = ("pupil",)
@@ -83,8 +83,11 @@ def _no_sample(rec: Reconstructor, shape: tuple[int, ...]) -> Iterator[torch.Ten
         del volume.delta_n
 
 
-def choose_pupil_parts_first(rec: Reconstructor, should_stop: Callable[[], bool] | None) -> PilotOutcome | None:
-    """Run the pilot and the fitted parts' tests (see the module); the run's state is set back. None when stopped."""
+def choose_pupil_parts_first(rec: Reconstructor, work: StageWork,
+                             should_stop: Callable[[], bool] | None) -> Generator[Snapshot, None, PilotOutcome | None]:
+    """Run the pilot and the fitted parts' tests (see the module) at the start of the first stage (``work``); the run's
+    state is set back. Yields a snapshot every :data:`SNAPSHOT_EVERY` steps (phase ``"pupil_pilot"``: the plan's first
+    phase, its volume zero). Returns the outcome, None when stopped."""
     t0 = time.perf_counter()
     cal = rec.calibration
     # what the pilot trains, to set back (the volume and the batch order it does not touch: the stage's optimiser holds
@@ -99,20 +102,25 @@ def choose_pupil_parts_first(rec: Reconstructor, should_stop: Callable[[], bool]
     rng = np.random.default_rng(rec.config.seed)
     data_range = float(stage.images.max())
     outcome = PilotOutcome([], {})
+    stage_phase = rec._phase_index
+    rec._phase_index = rec.plan.index(PUPIL_PILOT, last)
     try:
         with _no_sample(rec, (rec.acquisition.optics.n_slices, *rec.full_shape)) as zero:
-            for _ in range(PILOT_ITERATIONS):
+            for step in range(1, PILOT_ITERATIONS + 1):
                 if rec._stop_requested(should_stop):
                     return None
                 f = fit[torch.as_tensor(rng.permutation(len(fit))[:PILOT_BATCH], device=rec.device)]
                 h = held[torch.as_tensor(rng.permutation(len(held))[:PILOT_BATCH], device=rec.device)]
                 idx = torch.cat([f, h])
                 pred = torch.cat([rec._predict_normalised(stage, zero, f), rec._predict_normalised(stage, zero, h, held_out=True)])
-                loss, _ = total_loss(pred, stage.images[idx], zero, rec.loss_weights, 0.0, mask=None if mask is None else mask[idx],
-                                     data_range=data_range)
+                loss, terms = total_loss(pred, stage.images[idx], zero, rec.loss_weights, 0.0,
+                                         mask=None if mask is None else mask[idx], data_range=data_range)
                 cal.optimiser.zero_grad(set_to_none=True)
                 loss.backward()
                 cal.optimiser.step()
+                if step % SNAPSHOT_EVERY == 0:
+                    yield from work.hand_over(take_snapshot(rec, stage, step, work.base_iteration, terms, work.t0, False,
+                                                            in_history=False))
             ref_err, ref_each = validation(rec, stage, mask, per_image=True)
             outcome.reference_error, outcome.reference_image_errors = ref_err, list(ref_each)
             for part in [p for p in PILOT_PARTS if p in rec._auto_parts]:
@@ -140,6 +148,7 @@ def choose_pupil_parts_first(rec: Reconstructor, should_stop: Callable[[], bool]
         cal.restore_values(start_values)
         cal.optimiser.load_state_dict(start_opt)
         cal.set_trainable(0)
+        rec._phase_index = stage_phase
     outcome.seconds = time.perf_counter() - t0
     for t in outcome.trials:  # the whole pilot's time (its calibration steps and the tests) on its trials, for RI.json
         t["pilot_s"] = outcome.seconds
@@ -163,6 +172,9 @@ def start_with_parts(rec: Reconstructor, outcome: PilotOutcome) -> None:
     kept = tuple(outcome.kept)
     phases = []
     for p in rec.plan.phases:
+        if p.pass_name == PUPIL_PILOT:  # (done)
+            phases.append(p)
+            continue
         q = rec._stage_phase(p.stage, p.pass_name, kept)
         phases.append(replace(p, model=q.model, fft_shape=q.fft_shape, seconds_per_iteration=q.seconds_per_iteration))
     rec._revise_plan(replace(rec.plan, phases=tuple(phases)))

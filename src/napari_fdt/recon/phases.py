@@ -11,6 +11,9 @@
 ``"rerun"``
     The stages run again from the first with the model parts the data needed (``rerun_with``; ``parts_rerun``
     ``"stages"``).
+``"pupil_pilot"``
+    Before the first stage, the pupil tried at Δn = 0 (:mod:`napari_fdt.recon.parts_pilot`): a few snapshots of the
+    pilot's steps, whose volume is zero (not the run's).
 
 Where the run stands is counted along its plan (:mod:`napari_fdt.recon.plan`): ``plan_iteration`` of
 ``plan_iterations`` for the whole run, ``phase_iteration`` of ``phase_iterations`` within the phase;
@@ -21,10 +24,12 @@ from __future__ import annotations
 
 from napari_fdt.recon.regularisation import PROBE_SHARE
 
-__all__ = ["TV_CHOICE", "RUN", "RERUN", "PHASES", "phase_label", "probe_iterations"]
+__all__ = ["TV_CHOICE", "RUN", "RERUN", "PUPIL_PILOT", "PHASES", "CANDIDATE_PHASES", "phase_label", "probe_iterations"]
 
-TV_CHOICE, RUN, RERUN = "tv_choice", "run", "rerun"
-PHASES = (RUN, TV_CHOICE, RERUN)
+TV_CHOICE, RUN, RERUN, PUPIL_PILOT = "tv_choice", "run", "rerun", "pupil_pilot"
+PHASES = (PUPIL_PILOT, RUN, TV_CHOICE, RERUN)
+#: phases whose snapshots carry no volume of the run (a TV trial's candidate, the pilot's zero): no RI layer or curve point
+CANDIDATE_PHASES = (TV_CHOICE, PUPIL_PILOT)
 
 
 def probe_iterations(stage_iterations: int) -> int:
@@ -39,6 +44,8 @@ def phase_label(phase: str, rerun_with: tuple[str, ...] = (), tv_weights: tuple[
         if tv_weights is not None:
             label += f": tried xy {tv_weights[0]:g}, z {tv_weights[1]:g}"
         return label
+    if phase == PUPIL_PILOT:
+        return "checking the pupil before the stages"
     if phase == RERUN:
         parts = " and ".join(p.replace("_", " ") for p in rerun_with)
         return f"reconstructing again with {parts}" if parts else "reconstructing again"

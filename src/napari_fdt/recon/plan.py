@@ -25,7 +25,8 @@ import numpy as np
 
 from napari_fdt.physics.optics import Optics
 from napari_fdt.recon.config import SolverConfig
-from napari_fdt.recon.phases import RERUN, RUN, TV_CHOICE, probe_iterations
+from napari_fdt.recon.model_parts import PILOT_BATCH, PILOT_COST_SHARE, PILOT_ITERATIONS
+from napari_fdt.recon.phases import PUPIL_PILOT, RERUN, RUN, TV_CHOICE, probe_iterations
 from napari_fdt.recon.regularisation import TV_PATH, selection_stages
 
 __all__ = ["SECONDS_PER_UNIT", "OVERHEAD_S", "SOURCE_FIELD_UNITS", "Phase", "Plan", "Pace", "iteration_units", "envelope_padded_shape", "stage_phase",
@@ -112,6 +113,8 @@ class Phase:
         trials),
         "choosing the TV weight at stage 2/3 (x2)" (the trials), …"""
         where = f"stage {self.stage + 1}/{self.n_stages} (x{self.factor})"
+        if self.pass_name == PUPIL_PILOT:
+            return "checking the pupil at Δn = 0, before the stages"
         if self.pass_name == TV_CHOICE:
             return f"choosing the TV weight at {where}" if self.trials else f"choosing the TV weight: {where} with the lightest TV"
         if self.pass_name == RERUN or self.parts:  # (a stage run again from its start with kept parts: parts_rerun "finest")
@@ -138,8 +141,12 @@ class Plan:
     if_finest_parts_kept_s: float | None = None
     #: the "auto" parts of the finest stage's model to choose (sub-slices, the 2x field grid)
     finest_parts: tuple[str, ...] = ()
-    #: the "auto" pupil is tried before the stages, from a pilot at Δn = 0 (:mod:`napari_fdt.recon.parts_pilot`)
-    pupil_pilot: bool = False
+
+    @property
+    def pupil_pilot(self) -> bool:
+        """Whether the "auto" pupil is tried before the stages, from a pilot at Δn = 0 (the first phase;
+        :mod:`napari_fdt.recon.parts_pilot`)."""
+        return any(p.pass_name == PUPIL_PILOT for p in self.phases)
 
     @property
     def iterations(self) -> int:
@@ -204,8 +211,6 @@ class Plan:
     def summary(self) -> str:
         """One line per phase with its iterations and predicted seconds, and the total."""
         lines = [f"  {p.name}: {p.iterations} it, ~{_seconds(p.predicted_s)}" for p in self.phases]
-        if self.pupil_pilot:
-            lines.insert(0, "  first the pupil, tried at Δn = 0 (a few seconds): if the data ask for it, every stage runs with it, once")
         if self.if_part_kept_s:
             lines.append(f"  if the data ask for a model part (pupil, aberrations, ...): every stage again, "
                          f"~{_seconds(self.if_part_kept_s)} more")
@@ -298,7 +303,13 @@ def make_plan(config: SolverConfig, optics: Optics, image_shape: tuple[int, int]
         last = len(config.stages) - 1
         finest_again = stage_phase(config, optics, image_shape, src, last, coarse_model, device_type, RERUN, finest_parts,
                                    pixel_integration=pixel_integration, pupil_edge=pupil_edge).predicted_s
-    return Plan(tuple(phases), "cuda" if device_type == "cuda" else "cpu", extra, finest_again, finest_parts, pupil_pilot)
+    if pupil_pilot:  # first, the pupil's pilot: steps of 2·PILOT_BATCH images through the finest stage's model at Δn = 0
+        fin = stage_phase(config, optics, image_shape, src, len(config.stages) - 1, coarse_model, device_type,
+                          pixel_integration=pixel_integration, pupil_edge=pupil_edge)
+        share = PILOT_COST_SHARE * 2 * PILOT_BATCH / max(1, config.stage_batch(len(config.stages) - 1))
+        phases.insert(0, replace(fin, pass_name=PUPIL_PILOT, iterations=PILOT_ITERATIONS,
+                                 seconds_per_iteration=share * fin.seconds_per_iteration, first_iteration=0))
+    return Plan(tuple(phases), "cuda" if device_type == "cuda" else "cpu", extra, finest_again, finest_parts)
 
 
 def plan_for(acquisition, config: SolverConfig, device_type: str, sources_um: np.ndarray | None = None) -> tuple[Plan, np.ndarray]:

@@ -151,8 +151,10 @@ def complete_stage(rec: Reconstructor, stage: Stage, record: StageRecord, global
 
 
 def take_snapshot(rec: Reconstructor, stage: Stage, it: int, global_it: int, terms: dict, stage_t0: float, complete: bool,
-                  validation_error: float | None = None, train_error: float | None = None, trial: int | None = None) -> Snapshot:
-    """The snapshot now (``trial``: the index in the TV path of the weight just tried)."""
+                  validation_error: float | None = None, train_error: float | None = None, trial: int | None = None,
+                  in_history: bool = True) -> Snapshot:
+    """The snapshot now (``trial``: the index in the TV path of the weight just tried; ``in_history`` False: not a
+    point of the run's loss history, as a trial's or the pupil pilot's)."""
     cfg = rec.config
     rerun_with = rerun_parts(rec)
     terms = rec._gather(terms, optimiser_state=complete)
@@ -178,7 +180,7 @@ def take_snapshot(rec: Reconstructor, stage: Stage, it: int, global_it: int, ter
         phase_iteration=within, phase_iterations=current.iterations,
         plan_iteration=plan_iteration, plan_iterations=rec.plan.iterations, phase_name=current.name,
     )
-    if trial is None:  # (a trial's losses are a candidate's, not the run's)
+    if trial is None and in_history:  # (a trial's losses are a candidate's, not the run's)
         rec.history.append({"stage": stage.index, "iteration": it, "global_iteration": global_it,
                             "elapsed_s": elapsed, **losses, "validation_error": validation_error, "train_error": train_error})
     return snap

@@ -194,7 +194,7 @@ class Reconstructor:
         self.plan = make_plan(self.config, self.acquisition.optics, self.full_shape, self.initial_sources_um, self.coarse_model,
                               self.device.type, choose_tv_at, pixel_integration=self.parts["pixel_integration"],
                               parts_to_choose=self.parts_choice is None, pupil_edge=self._pupil_edge(),
-                              finest_parts=tuple(p for p in FINEST_ONLY_PARTS if p in self._auto_parts), pupil_pilot=pilot_due(self))
+                              finest_parts=tuple(p for p in FINEST_ONLY_PARTS if p in self._auto_parts), pupil_pilot=self.completed_stages == 0 and pilot_due(self))
         #: the time-left estimate from the plan and the measured times
         self.pace = Pace(self.plan)
         #: the index in :attr:`plan` of the phase now running
