@@ -1,21 +1,20 @@
 """The pupil chosen before the stages, from the sources' own light (a pilot at Δn = 0).
 
-The paired test of the fitted model parts (the pupil's NA and edge, the aberrations;
-:mod:`napari_fdt.recon.parts_search`) is made at the finest stage's end. A part kept there makes every stage run again,
-since the coarse stages must model it: the default then cost 1.6–2.6× a plain pass on a scene with a hard pupil
-(docs/decisions/one-pass-default-vs-plain.md). The pupil shapes the images of the sources themselves, which are most of
-each image's light. So the part can be seen before any volume exists: with Δn = 0 (the sample's light left
-unexplained, the same for both sides of the test), the positions, the depth offset and the gains of the images the
-test reads (the pupil fit's training images and the held-out ones) are fitted through the finest stage's model for
-:data:`PILOT_ITERATIONS` steps; then each fitted part is fitted and tested as at the finest stage's end, on the
-held-out images. A part kept here is on from the first stage (coarse stages multi-slice, as a rerun would run them),
-and the run needs no second pass for it. A part not kept here is tried again at the finest stage's end, as before.
-Everything the pilot trained is set back to its start; the kept parts start from their fitted values.
+The paired test of the pupil (its NA and edge; :mod:`napari_fdt.recon.parts_search`) is made at the finest stage's end.
+A part kept there makes every stage run again, since the coarse stages must model it: the default then took 1.6–1.9×
+a plain pass on a scene with a hard pupil (docs/decisions/one-pass-default-vs-plain.md). The pupil shapes the images
+of the sources themselves, which are most of each image's light, so it can be seen before any volume exists. With
+Δn = 0 (the sample's light left unexplained, the same on both sides of the test), the positions, the depth offset and
+the gains of the images the test reads (the pupil fit's training images and the held-out ones) are fitted through the
+finest stage's model for :data:`~napari_fdt.recon.model_parts.PILOT_ITERATIONS` steps; then the pupil is fitted and
+tested as at the finest stage's end, on the held-out images. Kept here, it is on from the first stage (coarse stages
+multi-slice, as a rerun would run them) and no stage runs twice for it; not kept, it is tried again at the finest
+stage's end, as before. Everything the pilot trained is set back; a kept pupil starts from its fitted values.
 
-Measured (``benchmarks/parts_pilot_probe.py``, docs/decisions/one-pass-default-vs-plain.md): cells_pupil (a hard pupil the
-files do not state) keeps the pupil (held-out error −2.5 % and −3.2 %, z 3.9 and 5.1); the sample does not (z −0.6).
+Measured (docs/decisions/one-pass-default-vs-plain.md, last section): cells_pupil (a hard pupil its files do not state)
+keeps the pupil (held-out error −2.5 % and −3.2 %, z 3.9 and 5.1), and its default run takes 1.15–1.17× a plain pass
+with the pupil given; the sample does not (z −0.6), and its run is unchanged.
 """
-
 from __future__ import annotations
 
 import contextlib
@@ -40,7 +39,7 @@ if TYPE_CHECKING:
     from napari_fdt.recon.solver import Reconstructor
     from napari_fdt.recon.stage_loop import StageWork
 
-__all__ = ["PILOT_ITERATIONS", "PILOT_BATCH", "PILOT_PARTS", "PilotOutcome", "pilot_due", "choose_pupil_parts_first", "start_with_parts"]
+__all__ = ["SNAPSHOT_EVERY", "PILOT_PARTS", "PilotOutcome", "pilot_due", "choose_pupil_parts_first", "start_with_parts"]
 
 #: Pilot steps between its snapshots (the progress bar's and the widget's updates).
 SNAPSHOT_EVERY = 10
