@@ -44,7 +44,7 @@ from napari_fdt.recon.config import AUTO, SolverConfig
 
 __all__ = ["PARTS", "BINARY_PARTS", "FITTED_PARTS", "SETTING_OF", "STANDARD_ERRORS_LEVEL", "standard_errors", "MIN_IMPROVEMENT", "FIT_ITERATIONS",
            "FIT_IMAGES", "FIT_RATES", "PILOT_ITERATIONS", "PILOT_BATCH", "PILOT_COST_SHARE",
-           "FINEST_ONLY_PARTS", "PartsChoice", "decide", "switch", "requested_parts", "parts_stage"]
+           "FINEST_ONLY_PARTS", "PartsChoice", "pupil_pilot_wanted", "decide", "switch", "requested_parts", "parts_stage"]
 
 #: Parts without parameters, tried first, in this order (sub-slices first: a spectral model or a pupil fit can absorb
 #: part of a thin screen's error, as the spectral model did on beads simulated with sub-slices, docs/benchmarks.md).
@@ -109,6 +109,13 @@ def requested_parts(config: SolverConfig) -> dict[str, bool | None]:
     coherence = config.coherence
     out["spectral"] = None if coherence == AUTO else coherence in ("spectral", "mask+spectral")
     return {part: out[part] for part in PARTS}
+
+
+def pupil_pilot_wanted(config: SolverConfig, n_held_out: int, pupil_auto: bool) -> bool:
+    """Whether the pupil is tried before the stages (:mod:`napari_fdt.recon.parts_pilot`): ``parts_pilot`` on, the pupil
+    ``"auto"`` and at least two images held out (the paired test's noise estimate). The plan of ``fdt plan`` and the
+    solver's both read it."""
+    return bool(config.parts_pilot) and pupil_auto and n_held_out >= 2
 
 
 def parts_stage(config: SolverConfig) -> int:

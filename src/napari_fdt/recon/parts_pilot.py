@@ -28,7 +28,7 @@ import torch
 
 from napari_fdt.recon.calibration import PUPIL_PARAMETERS
 from napari_fdt.recon.losses import total_loss
-from napari_fdt.recon.model_parts import PARTS, PILOT_BATCH, PILOT_ITERATIONS, PartsChoice, decide
+from napari_fdt.recon.model_parts import PARTS, PILOT_BATCH, PILOT_ITERATIONS, PartsChoice, decide, pupil_pilot_wanted
 from napari_fdt.recon.parts_search import exit_cache, fit_images, fit_pupil_parts, pupil_values
 from napari_fdt.recon.parts_switch import set_parts
 from napari_fdt.recon.phases import PUPIL_PILOT
@@ -66,8 +66,8 @@ def pilot_due(rec: Reconstructor) -> bool:
     """A pilot runs where ``parts_pilot`` is on, the pupil is ``"auto"``, nothing is chosen yet (once a run) and at least
     two images are held out (the test's noise estimate); not in a distributed run (its ranks hold parts of the images:
     the finest stage's end chooses the pupil there)."""
-    return (rec.config.parts_pilot and rec.parts_choice is None and rec._pilot_record is None and rec.group is None
-            and len(rec.validation_indices) >= 2 and any(p in rec._auto_parts for p in PILOT_PARTS))
+    return (rec.parts_choice is None and rec._pilot_record is None and rec.group is None
+            and pupil_pilot_wanted(rec.config, len(rec.validation_indices), "pupil" in rec._auto_parts))
 
 
 @contextlib.contextmanager
@@ -142,8 +142,7 @@ def choose_pupil_parts_first(rec: Reconstructor, work: StageWork,
                     cal.restore_values(before)
             outcome.fitted = cal.copy_values(PUPIL_PARAMETERS)
     finally:
-        kept = {p: p in outcome.kept for p in PILOT_PARTS if p in rec._auto_parts}
-        set_parts(rec, {**rec.parts, **{p: False for p in kept}})
+        set_parts(rec, {**rec.parts, **{p: False for p in PILOT_PARTS if p in rec._auto_parts}})
         cal.restore_values(start_values)
         cal.optimiser.load_state_dict(start_opt)
         cal.set_trainable(0)

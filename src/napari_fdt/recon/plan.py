@@ -330,14 +330,15 @@ def plan_for(acquisition, config: SolverConfig, device_type: str, sources_um: np
 
         sources_um, _ = initial_sources(acquisition, depth_um=cfg.source_depth_um, device="cpu")
     src = np.asarray(sources_um, dtype=np.float64)
-    split = len(holdout_indices(src, cfg.validation_fraction)) > 0
+    n_held = len(holdout_indices(src, cfg.validation_fraction))
+    split = n_held > 0
     choose_tv_at = min(selection_stages(cfg)) if tv_is_auto(cfg) and split else None
     # the camera model as the first pass runs it: as stated, else off until the data choose it (the physical rule
     # without a validation split)
     o = acquisition.optics
     stated = stated_pixel_integration(cfg, acquisition)
     integrate = stated if stated is not None else (not split and needs_pixel_integration(o.na, o.wavelength_um, o.pixel_size_um))
-    from napari_fdt.recon.model_parts import FINEST_ONLY_PARTS
+    from napari_fdt.recon.model_parts import FINEST_ONLY_PARTS, pupil_pilot_wanted
     from napari_fdt.recon.parts_switch import requested_for
 
     requested, _ = requested_for(cfg, acquisition)
@@ -346,7 +347,7 @@ def plan_for(acquisition, config: SolverConfig, device_type: str, sources_um: np
                      parts_to_choose=split and any(v is None for v in requested.values()),
                      pupil_edge=camera_model_options(cfg, acquisition)["pupil_edge"],
                      finest_parts=tuple(p for p in FINEST_ONLY_PARTS if requested[p] is None),
-                     pupil_pilot=split and cfg.parts_pilot and requested["pupil"] is None)
+                     pupil_pilot=pupil_pilot_wanted(cfg, n_held, requested["pupil"] is None))
     return plan, src
 
 
