@@ -125,6 +125,25 @@ def test_gradients_are_those_of_the_images() -> None:
         assert float(abs(analytic - numeric)) < 2e-3 * float(abs(numeric)) + 1e-9, (name, float(analytic), float(numeric))
 
 
+def test_the_screens_written_out_backward_is_autograds() -> None:
+    """The screen on the window (``_ScreenUpdate``: S + (t − 1)·(S + U) on the image, its backward written out) against
+    torch's numerical gradients, complex, in S, t − 1 and U."""
+    from napari_fdt.model.split_field import _ScreenUpdate
+
+    g = torch.Generator().manual_seed(0)
+
+    def rand(*shape):
+        return torch.complex(torch.randn(*shape, generator=g, dtype=torch.float64),
+                             torch.randn(*shape, generator=g, dtype=torch.float64)).requires_grad_(True)
+
+    s, c, u = rand(2, 7, 8), rand(3, 4), rand(2, 3, 4)
+    # the update is in place: it gets a copy of S, as the model's loop gives it a fresh field
+    assert torch.autograd.gradcheck(lambda s, c, u: _ScreenUpdate.apply(s * 1.0, c, u, 2, 3), (s, c, u))
+    expected = s.detach().clone()
+    expected[:, 2:5, 3:7] += c.detach() * (expected[:, 2:5, 3:7] + u.detach())
+    assert torch.equal(_ScreenUpdate.apply(s.detach().clone(), c.detach(), u.detach(), 2, 3), expected)
+
+
 def _unit(t: torch.Tensor, index: tuple) -> torch.Tensor:
     u = torch.zeros_like(t.detach())
     u[index] = 1.0

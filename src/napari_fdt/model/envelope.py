@@ -32,7 +32,7 @@ import torch.nn.functional as F
 from napari_fdt.model.envelope_loop import envelope_loop, step_kernels
 from napari_fdt.physics.grid import next_fast_even
 from napari_fdt.physics.optics import Optics
-from napari_fdt.physics.propagation import axial_frequency_offset, pupil
+from napari_fdt.physics.propagation import axial_frequency_offset, phasor, pupil
 
 __all__ = ["EnvelopeModel", "padding_px", "envelope_window"]
 
@@ -147,7 +147,7 @@ class EnvelopeModel:
         f2 = f2p / (h0 * h0)[:, None, None]
         dz_eff = ((h1 - h0) * h0 / h1)[:, None, None]
         offset, prop = axial_frequency_offset(f2, n_background, wavelength_um)
-        return torch.polar(prop.to(f2.dtype), 2 * math.pi * dz_eff * offset)
+        return phasor(2 * math.pi * dz_eff * offset, prop.to(f2.dtype))
 
     def _heights(self, depth: torch.Tensor, dz, h_cam: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(n, B) heights of the screens above each source, and (n, B) the height each step ends at (next screen; camera)."""
@@ -220,7 +220,7 @@ class EnvelopeModel:
         f2 = f2p / (h0 * h0)[:, :, None, None]
         dz_eff = ((h1 - h0) * h0 / h1)[:, :, None, None]
         offset, prop = axial_frequency_offset(f2, n_background, wavelength_um)
-        return torch.polar(prop.to(f2.dtype), 2 * math.pi * dz_eff * offset)
+        return phasor(2 * math.pi * dz_eff * offset, prop.to(f2.dtype))
 
     def _camera(self, a: torch.Tensor, depth: torch.Tensor, h_cam: torch.Tensor, py: torch.Tensor, px: torch.Tensor,
                 lam, gain: torch.Tensor | None) -> torch.Tensor:
@@ -265,7 +265,7 @@ class EnvelopeModel:
             v = (2 * ((ys - self.shift_um[1]) / self.pixel_um + h // 2) + 1) / h - 1
             grid = torch.stack(torch.broadcast_tensors(u[:, None, :], v[:, :, None]), dim=-1)  # (B, hp, wp, 2)
             sample = F.grid_sample(vol[:, k : k + 1], grid, mode="bilinear", padding_mode="zeros", align_corners=False)[:, 0]
-            screen = torch.polar(torch.ones_like(sample), k0dz * sample)
+            screen = phasor(k0dz * sample)
             if a is None:
                 a = screen
             else:

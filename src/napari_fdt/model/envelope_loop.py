@@ -21,6 +21,8 @@ import math
 
 import torch
 
+from napari_fdt.physics.propagation import phasor
+
 __all__ = ["envelope_loop", "step_kernels"]
 
 
@@ -29,7 +31,7 @@ class _EnvelopeLoop(torch.autograd.Function):
     def forward(ctx, phases: torch.Tensor, kernels: torch.Tensor) -> torch.Tensor:  # type: ignore[override]
         n = phases.shape[0]
         need_k = ctx.needs_input_grad[1]
-        screens = torch.polar(torch.ones_like(phases), phases)
+        screens = phasor(phases)
         # conj_spectra[k] = conj(F(u_k)) (the gradient of K_k needs it); fields[k] = u_k (that of φ_k needs it)
         conj_spectra = torch.empty_like(kernels) if need_k else None
         fields = torch.empty_like(screens) if ctx.needs_input_grad[0] else None
@@ -57,7 +59,7 @@ class _EnvelopeLoop(torch.autograd.Function):
         conj_spectra = rest.pop(0) if need_k else None
         n = ctx.n
         conj_k = kernels.conj().resolve_conj()  # once for all slices (a conj view would be materialised per product)
-        conj_p = torch.polar(torch.ones_like(phases), -phases)
+        conj_p = phasor(-phases)
         grads_u = torch.empty_like(fields) if need_phi else None  # gradient of every u_k, for φ at the end
         grad_k = torch.empty_like(kernels) if need_k else None
         g = grad_out
@@ -102,7 +104,7 @@ class _StepKernels(torch.autograd.Function):
         prop = f2 < k * k
         # q_z − k written as −f²/(q_z + k) (full relative precision near the axis), 0 where evanescent
         offset = torch.clamp(k * k - f2, min=0.0).sqrt_().add_(k).reciprocal_().mul_(f2).mul_(prop).neg_()
-        kernel = torch.polar(prop.to(f2.dtype).mul_(scale), offset * (2 * math.pi) * dz_eff)
+        kernel = phasor(offset * (2 * math.pi) * dz_eff, prop.to(f2.dtype).mul_(scale))
         ctx.save_for_backward(f2p, h0, h1, kernel, offset)
         ctx.k = k
         return kernel

@@ -37,7 +37,7 @@ from napari_fdt.physics.free_field import (
 )
 from napari_fdt.physics.grid import GridPlan, frequency_grid
 from napari_fdt.physics.optics import Optics
-from napari_fdt.physics.propagation import phase_screen, propagation_kernel, pupil, screen_phase
+from napari_fdt.physics.propagation import phase_screen, phasor, propagation_kernel, pupil, screen_phase
 from napari_fdt.physics.sources import band_limit, centering_sign, point_source_spectrum
 
 __all__ = ["MultiSliceModel", "Kernels", "ray_secant"]
@@ -235,11 +235,11 @@ class MultiSliceModel:
         radial = aperture
         if coeffs is not None:
             phase_all = zernike_phase(fy, fx, o.na, o.wavelength_um, coeffs)
-            aperture = aperture * torch.polar(torch.ones_like(phase_all), phase_all)
+            aperture = aperture * phasor(phase_all)
             keep = [ZERNIKE_MODES.index(m) for m in RADIAL_MODES]
             radial_coeffs = torch.stack([coeffs[i] for i in keep])
             phase_r = zernike_phase(fy, fx, o.na, o.wavelength_um, radial_coeffs, RADIAL_MODES)
-            radial = radial * torch.polar(torch.ones_like(phase_r), phase_r)
+            radial = radial * phasor(phase_r)
         exit_kernel = propagation_kernel(f2, exit_distance, o.n_background, lam) * aperture
         free_kernel = None
         if self.exact_free_field:
@@ -377,14 +377,14 @@ class MultiSliceModel:
             if k.zernike is not None:
                 keep = [ZERNIKE_MODES.index(m) for m in RADIAL_MODES]
                 w_r = zernike_phase(torch.zeros_like(f), f, o.na, o.wavelength_um, torch.stack([k.zernike[i] for i in keep]), RADIAL_MODES)
-                amp = amp * torch.polar(torch.ones_like(w_r), w_r)
+                amp = amp * phasor(w_r)
             profile = free_field_profile(radii, src[:, 2], h, f, wts, amp, n_background=o.n_background, wavelength_um=lam, bessel=bessel)
             return interpolate_profile(profile, step, rho)
         # Angular harmonics: exp(i·W(f, φ)) = Σ_m c_m(f)·exp(i·m·φ) → E(ρ, θ) = Σ_m i^m·exp(i·m·θ)·2π∫A·c_m·J_m(2πfρ)·f df
         n_phi = 64
         ang = torch.arange(n_phi, device=self.device, dtype=self.dtype) * (2.0 * math.pi / n_phi)
         w_full = zernike_phase(f[:, None] * torch.sin(ang)[None, :], f[:, None] * torch.cos(ang)[None, :], o.na, o.wavelength_um, k.zernike)
-        coeffs, order = angular_harmonics(torch.polar(torch.ones_like(w_full), w_full))  # (2M+1, F)
+        coeffs, order = angular_harmonics(phasor(w_full))  # (2M+1, F)
         cplx = torch.complex128 if self.dtype == torch.float64 else torch.complex64
         unit = torch.complex(dxx, dy) / rho  # exp(i·θ) of each pixel seen from its source
         unit = unit.expand(src.shape[0], -1, -1) if unit.shape[0] != src.shape[0] else unit

@@ -32,6 +32,8 @@ import math
 
 import torch
 
+from napari_fdt.physics.propagation import phasor
+
 __all__ = ["slice_loop", "loop_forward", "choose_mode", "leanest_mode", "is_unitary", "loop_bytes", "MODES"]
 
 MODES = ("stored", "reversible", "checkpoint")
@@ -87,7 +89,7 @@ def choose_mode(field_bytes: int, n_slices: int, batch: int, unitary: bool, budg
 
 # -- per-slice arithmetic (torch fallback; the Triton kernel does the same in one pass) ------------
 def _screen(phi_k: torch.Tensor) -> torch.Tensor:
-    return torch.polar(torch.ones_like(phi_k), phi_k)
+    return phasor(phi_k)
 
 
 def _adjoint_screen(g: torch.Tensor, u: torch.Tensor, phi_k: torch.Tensor, v_out: torch.Tensor | None) -> torch.Tensor:

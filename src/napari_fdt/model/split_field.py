@@ -41,7 +41,7 @@ from napari_fdt.physics.camera import fine_field, pixel_average_from_fine
 from napari_fdt.physics.free_field import bessel_j0, free_field_profile, radial_nodes
 from napari_fdt.physics.grid import GridPlan, next_fast_even
 from napari_fdt.physics.optics import Optics
-from napari_fdt.physics.propagation import phase_screen, pupil
+from napari_fdt.physics.propagation import phase_screen, phasor, pupil
 from napari_fdt.physics.sources import band_limit
 
 __all__ = ["SplitFieldModel", "split_plan", "CLEARANCE_UM", "TABLE_STEP_UM", "CAMERA_TABLE_STEP_UM"]
@@ -56,6 +56,11 @@ TABLE_STEP_UM = 0.05
 CAMERA_TABLE_STEP_UM = 0.02
 #: The tables' quadrature panels end on the band's and the pupil's edges rounded to this, cycles/µm.
 EDGE_ROUNDING = 1e-3
+#: Oscillations of the integrand per 8-node Gauss–Legendre panel of the tables. Measured against 1/3 of an oscillation
+#: per panel (float64, the sample's sources at every screen and at the camera): 1 leaves 4e-8 (screens) and 2e-7
+#: (camera) of the field's largest value, 2 leaves 1.4e-7 and 1.4e-6, both far below the tables' interpolation
+#: (1e-4) and float32's rounding (1e-4 here); the tables' matrix products cost half.
+OSCILLATIONS_PER_PANEL = 2.0
 #: Bessel tables a model keeps (oldest dropped first): a few node sets of the sources' and the camera's tables.
 MAX_TABLES = 8
 #: Fine pixels around the image where pixel integration adds the sources' camera field.
@@ -108,16 +113,17 @@ class SplitFieldModel(MultiSliceModel):
         """Demodulated radial profiles (B·S, R) at radii ``r·step`` (µm) for source depths ``depth`` (B·S,) and
         source → plane distances ``heights`` (B·S,); ``amplitude_fn(f)`` the (real or complex) amplitude at the nodes.
 
-        Gauss–Legendre panels of 8 nodes, one per oscillation of the integrand in f (``H·tan θ_max + ρ_max`` per
-        cycle/µm: the phase ``2π·(q_z − n_b/λ)·H`` and the Bessel function's ``2π·f·ρ``); the Bessel table is kept
-        per ``name`` while the nodes stay."""
+        Gauss–Legendre panels of 8 nodes, one per :data:`OSCILLATIONS_PER_PANEL` oscillations of the integrand in f
+        (``H·tan θ_max + ρ_max`` per cycle/µm: the phase ``2π·(q_z − n_b/λ)·H`` and the Bessel function's
+        ``2π·f·ρ``); the Bessel table is kept per ``name`` while the nodes stay."""
         # the table's length and nodes in coarse buckets: the same for most batches (the Bessel table is reused, and an
         # image's field does not depend on the batch it is in: distributed runs match single-process ones)
         n_rho = 64 * int(math.ceil((rho_max / step + 3) / 64))
         s_max = min(0.999, _value(edges[-1]) * _value(lam) / self.optics.n_background)
         tan_max = s_max / math.sqrt(1.0 - s_max * s_max)
         reach = 12.8 * math.ceil(n_rho * step / 12.8)  # in 12.8 µm steps: the nodes change less often than the length
-        per_unit = 32.0 * math.ceil((float(heights.detach().max()) * tan_max + reach + 4.0) / 32.0)
+        rate = float(heights.detach().max()) * tan_max + reach + 4.0  # oscillations per cycle/µm, at most
+        per_unit = 16.0 * math.ceil(rate / (16.0 * OSCILLATIONS_PER_PANEL))
         # The panels end on the edges rounded to EDGE_ROUNDING: fixed nodes while a fit of the pupil moves its NA and
         # edge a little each step (the Bessel table is kept; the gradient flows through the amplitude at the nodes:
         # the raised cosine's derivative is continuous, so a kink within the rounding of a panel's end costs O(h³))
@@ -196,7 +202,7 @@ class SplitFieldModel(MultiSliceModel):
 
             def amplitude(f):
                 w_r = zernike_phase(torch.zeros_like(f), f, o.na, o.wavelength_um, coeffs, RADIAL_MODES)
-                return pupil(f * f, k.na, lam, edge) * torch.polar(torch.ones_like(w_r), w_r)
+                return pupil(f * f, k.na, lam, edge) * phasor(w_r)
 
         table = self._profile_table("camera", edges, amplitude, src[:, 2], heights, float(rho.detach().max()), lam,
                                     CAMERA_TABLE_STEP_UM)
@@ -243,16 +249,16 @@ class SplitFieldModel(MultiSliceModel):
         hp, wp = self.plan.padded_shape
         oy, ox = self.plan.offset
         pad = (ox, wp - w - ox, oy, hp - h - oy)
-        contrast = phase_screen(delta_n, k.step_um, k.wavelength_um) - 1.0  # t − 1: (screens, H, W), 0 beyond the image
-        sources = self.incident_fields(sources_um, k)  # (B, screens, H, W)
+        # t − 1 per screen (H, W) and the sources' field per screen (B, H, W): unbound, so that each one's gradient is
+        # one stack at the end of the backward pass, not a zero-filled copy of the whole stack per screen
+        contrast = (phase_screen(delta_n, k.step_um, k.wavelength_um) - 1.0).unbind(0)
+        sources = self.incident_fields(sources_um, k).unbind(1)
         s = None
-        for i in range(delta_n.shape[0]):
+        for i in range(len(contrast)):
             if s is None:  # below the first screen the field is the sources' alone
-                s = F.pad(contrast[i] * sources[:, i], pad)
+                s = F.pad(contrast[i] * sources[i], pad)
                 continue
-            s = torch.fft.ifft2(torch.fft.fft2(s) * k.slice_kernel)
-            # S·t + (t − 1)·U = S + (t − 1)·(S + U): only the image changes
-            s = s + F.pad(contrast[i] * (s[..., oy : oy + h, ox : ox + w] + sources[:, i]), pad)
+            s = _ScreenUpdate.apply(torch.fft.ifft2(torch.fft.fft2(s) * k.slice_kernel), contrast[i], sources[i], oy, ox)
         return torch.fft.fft2(s), None
 
     def _field_from_spectra(self, spec: torch.Tensor, free, sources_um: torch.Tensor, k: Kernels) -> torch.Tensor:
@@ -290,7 +296,41 @@ def _carrier(rho: torch.Tensor, heights: torch.Tensor, k_per_um, *, conj: bool =
     phase = (2.0 * math.pi) * k_per_um * _excess_path(rho, heights)
     if conj:
         phase = -phase
-    return torch.polar(torch.ones_like(phase), phase)
+    return phasor(phase)
+
+
+class _ScreenUpdate(torch.autograd.Function):
+    """A screen on the sample's field: ``S ← S·t + (t − 1)·U = S + (t − 1)·(S + U)`` on the image, in place.
+
+    Inputs: ``s`` (B, Hs, Ws) complex, the field on the window just below the screen (a fresh tensor that nothing
+    else keeps: it is changed in place); ``c`` (H, W) complex, ``t − 1``; ``u`` (B, H, W) complex, the sources' field
+    at the screen; ``oy``, ``ox`` the image's offset in the window. Only the image's pixels change, so the backward is
+    written out on them (``∂L/∂S = g + conj(c)·g`` on the image, ``∂L/∂U = conj(c)·g``, ``∂L/∂c = Σ_B conj(S + U)·g``),
+    where plain autograd through a crop and a zero padding would fill and copy the whole window twice per screen.
+    """
+
+    @staticmethod
+    def forward(ctx, s, c, u, oy, ox):
+        h, w = c.shape[-2:]
+        total = s[..., oy : oy + h, ox : ox + w] + u  # S + U on the image
+        s[..., oy : oy + h, ox : ox + w] += c * total
+        ctx.mark_dirty(s)
+        ctx.save_for_backward(c, total if ctx.needs_input_grad[1] else None)
+        ctx.region = (oy, ox, h, w)
+        return s
+
+    @staticmethod
+    def backward(ctx, grad):
+        c, total = ctx.saved_tensors
+        oy, ox, h, w = ctx.region
+        g = grad[..., oy : oy + h, ox : ox + w]
+        g_image = g * c.conj()
+        grad_c = (g * total.conj()).sum(0) if ctx.needs_input_grad[1] else None
+        grad_s = None
+        if ctx.needs_input_grad[0]:
+            grad_s = grad.clone()
+            grad_s[..., oy : oy + h, ox : ox + w] += g_image
+        return grad_s, grad_c, g_image if ctx.needs_input_grad[2] else None, None, None
 
 
 class _Lookup(torch.autograd.Function):
@@ -314,7 +354,7 @@ class _Lookup(torch.autograd.Function):
         v0 = torch.gather(table, 2, index)
         slope = torch.gather(table, 2, index + 1).sub_(v0)  # the table's step across the interval
         path = _excess_path(rho[:, None, :], heights[..., None])
-        carrier = torch.polar(torch.ones_like(path), path * ((2.0 * math.pi) * k))
+        carrier = phasor(path * ((2.0 * math.pi) * k))
         out = torch.addcmul(v0, slope, t[:, None, :].to(v0.dtype)).mul_(carrier)
         slope.mul_(carrier)
         ctx.step = step

@@ -13,10 +13,25 @@ import math
 
 import torch
 
-__all__ = ["axial_frequency_offset", "propagation_kernel", "phase_screen", "screen_phase", "pupil", "raised_cosine"]
+__all__ = ["axial_frequency_offset", "propagation_kernel", "phase_screen", "screen_phase", "pupil", "raised_cosine", "phasor"]
 
 #: Floor under square roots of squared frequencies, (cycles/µm)²: far below any grid frequency.
 _TINY = 1e-30
+
+
+def phasor(phase: torch.Tensor, magnitude: torch.Tensor | None = None) -> torch.Tensor:
+    """``magnitude·exp(i·phase)`` (magnitude 1 if None), complex, differentiable in both.
+
+    On the CPU it is assembled from ``cos`` and ``sin``: torch's ``polar`` kernel is not vectorised there (52.7 ms
+    against 8.7 ms for 1.1 million float32 phases, one thread, torch 2.13). On other devices it is ``torch.polar``,
+    one kernel instead of three (GPU iterations are bound by kernel launches).
+    """
+    if phase.device.type != "cpu":
+        return torch.polar(torch.ones_like(phase) if magnitude is None else magnitude, phase)
+    c, s = torch.cos(phase), torch.sin(phase)
+    if magnitude is not None:
+        c, s = magnitude * c, magnitude * s
+    return torch.complex(c, s)
 
 
 def axial_frequency_offset(
@@ -49,8 +64,7 @@ def propagation_kernel(
     """
     offset, propagating = axial_frequency_offset(f2, n_background, wavelength_um)
     phase = (2.0 * math.pi) * offset * distance_um
-    kernel = torch.polar(propagating.to(f2.dtype), phase)
-    return kernel
+    return phasor(phase, propagating.to(f2.dtype))
 
 
 def screen_phase(delta_n: torch.Tensor, slice_spacing_um: float | torch.Tensor, wavelength_um: float | torch.Tensor) -> torch.Tensor:
@@ -60,8 +74,7 @@ def screen_phase(delta_n: torch.Tensor, slice_spacing_um: float | torch.Tensor, 
 
 def phase_screen(delta_n: torch.Tensor, slice_spacing_um: float | torch.Tensor, wavelength_um: float | torch.Tensor) -> torch.Tensor:
     """Transmission ``exp(+i·2π/λ·Δz·Δn)`` of a thin slab of index contrast ``delta_n = n − n_b``."""
-    phase = screen_phase(delta_n, slice_spacing_um, wavelength_um)
-    return torch.polar(torch.ones_like(phase), phase)
+    return phasor(screen_phase(delta_n, slice_spacing_um, wavelength_um))
 
 
 def raised_cosine(f2: torch.Tensor, f_lo: float | torch.Tensor, f_hi: float | torch.Tensor) -> torch.Tensor:
