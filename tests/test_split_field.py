@@ -144,6 +144,19 @@ def test_the_screens_written_out_backward_is_autograds() -> None:
     assert torch.equal(_ScreenUpdate.apply(s.detach().clone(), c.detach(), u.detach(), 2, 3), expected)
 
 
+def test_the_propagators_adjoint_is_autograds() -> None:
+    """The step between screens with a constant kernel (``_Propagator``: its backward the same map with conj(K))
+    against torch's numerical gradient, and its values against plain FFTs."""
+    from napari_fdt.model.split_field import _Propagator
+
+    g = torch.Generator().manual_seed(1)
+    kernel = torch.exp(1j * torch.rand(6, 8, generator=g, dtype=torch.float64) * 6)
+    s = torch.randn(3, 6, 8, generator=g, dtype=torch.complex128).requires_grad_(True)
+    prop = _Propagator(kernel)
+    assert torch.autograd.gradcheck(prop, (s,))
+    assert torch.allclose(prop(s), torch.fft.ifft2(torch.fft.fft2(s) * kernel), atol=1e-14)
+
+
 def _unit(t: torch.Tensor, index: tuple) -> torch.Tensor:
     u = torch.zeros_like(t.detach())
     u[index] = 1.0

@@ -253,12 +253,15 @@ class SplitFieldModel(MultiSliceModel):
         # one stack at the end of the backward pass, not a zero-filled copy of the whole stack per screen
         contrast = (phase_screen(delta_n, k.step_um, k.wavelength_um) - 1.0).unbind(0)
         sources = self.incident_fields(sources_um, k).unbind(1)
+        kernel = k.slice_kernel
+        # a kernel with a gradient (a calibrated pixel, spacing or wavelength) goes through plain autograd
+        step = (lambda s: torch.fft.ifft2(torch.fft.fft2(s) * kernel)) if kernel.requires_grad else _Propagator(kernel)
         s = None
         for i in range(len(contrast)):
             if s is None:  # below the first screen the field is the sources' alone
                 s = F.pad(contrast[i] * sources[i], pad)
                 continue
-            s = _ScreenUpdate.apply(torch.fft.ifft2(torch.fft.fft2(s) * k.slice_kernel), contrast[i], sources[i], oy, ox)
+            s = _ScreenUpdate.apply(step(s), contrast[i], sources[i], oy, ox)
         return torch.fft.fft2(s), None
 
     def _field_from_spectra(self, spec: torch.Tensor, free, sources_um: torch.Tensor, k: Kernels) -> torch.Tensor:
@@ -297,6 +300,29 @@ def _carrier(rho: torch.Tensor, heights: torch.Tensor, k_per_um, *, conj: bool =
     if conj:
         phase = -phase
     return phasor(phase)
+
+
+class _Propagator:
+    """``S ↦ F⁻¹(K·F(S))`` for a constant kernel ``K`` (H, W) complex: its adjoint is the same map with ``conj(K)``
+    (formed once for all screens), each product in place on the transform's fresh output (:class:`_Propagate`)."""
+
+    def __init__(self, kernel: torch.Tensor) -> None:
+        self.kernel = kernel
+        self.conj_kernel = kernel.conj().resolve_conj()
+
+    def __call__(self, s: torch.Tensor) -> torch.Tensor:
+        return _Propagate.apply(s, self)
+
+
+class _Propagate(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, s, prop):
+        ctx.prop = prop
+        return torch.fft.ifft2(torch.fft.fft2(s).mul_(prop.kernel))
+
+    @staticmethod
+    def backward(ctx, grad):
+        return torch.fft.ifft2(torch.fft.fft2(grad).mul_(ctx.prop.conj_kernel)), None
 
 
 class _ScreenUpdate(torch.autograd.Function):
