@@ -2,13 +2,15 @@
 "The finest step against the naive step on the CPU").
 
     python -m benchmarks run step_profile_cpu [--acquisition DIR] [--pixel-integration] [--field-window full|split]
-                                              [--repeats 10] [--profile]
+                                              [--frozen-sources] [--repeats 10] [--profile]
 
 Times ``Reconstructor._step`` on an acquisition's (default the bundled sample's) finest stage (factor 1, TV 1/0.5,
-parts off, the default validation split: held-out images in a batch run through the model separately) and ``benchmarks/naive_step.py`` on the
+parts off, the default validation split: held-out images in a batch run through the model separately; the sources'
+positions and depths trained, as the finest stage of a run trains them, unless ``--frozen-sources``, the setting of
+the records before 2026-11-26 night) and ``benchmarks/naive_step.py`` on the
 planned full window (the one a plain multi-slice step needs: the split-field model's own window is smaller), batch and
 slices, in one process (host clock, after warm-up). ``--profile`` prints torch.profiler's
-operator table of 5 steps. Nothing is asserted; this reports.
+operator table of 5 steps, by operator and by operator and shape. Nothing is asserted; this reports.
 """
 
 from __future__ import annotations
@@ -56,9 +58,11 @@ def main() -> None:
     ap.add_argument("--acquisition", default=str(ROOT / "sample_data" / "letters"), help="default: the bundled sample")
     ap.add_argument("--pixel-integration", action="store_true", help="the camera's pixel integration on")
     ap.add_argument("--field-window", default="auto", choices=["auto", "full", "split"], help="the solver setting (auto: split on CPU)")
+    ap.add_argument("--frozen-sources", action="store_true", help="the sources' positions not trained (before 2026-11-26 night)")
     args = ap.parse_args()
     acq = read_acquisition(args.acquisition)
-    step, rec, stage = finest_stage_step(acq, pixel_integration=args.pixel_integration, field_window=args.field_window)
+    step, rec, stage = finest_stage_step(acq, pixel_integration=args.pixel_integration, field_window=args.field_window,
+                                         calibration_from_stage=1 if args.frozen_sources else 0)
     cfg = rec.config
 
     from napari_fdt.recon.stages import multislice_plan
@@ -90,6 +94,7 @@ def main() -> None:
         with profile(activities=[ProfilerActivity.CPU], record_shapes=True) as prof:
             for _ in range(5):
                 step()
+        print(prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=25))
         print(prof.key_averages(group_by_input_shape=True).table(sort_by="self_cpu_time_total", row_limit=20))
 
 

@@ -57,6 +57,8 @@ def test_a_pilot_that_keeps_nothing_leaves_the_run_as_it_was(soft_pupil) -> None
     rest = [(t["part"], t["on"], t["validation_error"]) for t in choice.trials[1:]]
     assert rest == [(t["part"], t["on"], t["validation_error"]) for t in without.parts_choice.trials]
     assert choice.seconds > without.parts_choice.seconds  # the pilot's time is the choice's
+    # ... and not the first stage's iterations': its seconds per iteration leave the pilot out
+    assert with_pilot.stages[0].choice_s >= with_pilot._pilot_record.seconds > 0 == without.stages[0].choice_s
     assert "pupil (before the stages, at Δn = 0) off" in describe_parts(model_parts_summary(with_pilot))
     # the pilot is the plan's first phase: its snapshots move the progress along it (no volume of the run in them, no
     # loss history), then the stages go on from there; the count never goes back

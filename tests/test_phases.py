@@ -55,7 +55,9 @@ def test_the_trials_report_their_progress_and_the_run_is_the_fixed_weights_run(s
     else:  # stage 0 again with the chosen weight, then every stage in full
         assert [(s.stage, s.iteration) for s in run] == [(0, 2), (0, 4), (1, 2), (1, 4), (1, 6), (2, 2), (2, 4), (2, 6)]
         assert snaps[-1].plan_iterations == 4 + 2 * n + 16
-        assert [r.stage for r in auto.stages] == [0, 1, 2] and all(r.choice_s == 0 for r in auto.stages)
+        assert [r.stage for r in auto.stages] == [0, 1, 2] and [r.choice_s == 0 for r in auto.stages] == [True, True, False]
+    # the finest stage's choice of model parts is not its iterations' time (nor is the trials' that lost, above)
+    assert abs(auto.stages[2].choice_s - auto.parts_choice.seconds) < 0.05 and auto.parts_choice.seconds < auto.stages[2].seconds
     done = [s.plan_iteration for s in snaps]
     assert done == sorted(done) and done[-1] == snaps[-1].plan_iterations  # one count, never back
     assert all(s.phase_label.startswith("choosing the smoothing (TV) weight") for s in before + trials)

@@ -16,6 +16,7 @@
 from __future__ import annotations
 
 import dataclasses
+import time
 from typing import TYPE_CHECKING, Callable, Generator
 
 from napari_fdt.recon.calibration import PUPIL_PARAMETERS
@@ -66,6 +67,7 @@ class ChooseModelParts:
             outcome = yield from choose_pupil_parts_first(rec, work, should_stop)
             if outcome is None:
                 return Verdict.STOPPED
+            work.record.choice_s += outcome.seconds  # not the stage's own iterations
             if outcome.kept:  # on from the first stage: no stage runs twice for them
                 start_with_parts(rec, outcome)
                 return Verdict.FROM_FIRST_STAGE
@@ -85,9 +87,11 @@ class ChooseModelParts:
         start = work.choosing.pop("parts_from", None)
         if start is None:
             return Verdict.GO_ON
+        t0 = time.perf_counter()
         chosen = choose_parts(rec, work.stage, work.mask, should_stop)
         if chosen is None:
             return Verdict.STOPPED
+        work.record.choice_s += time.perf_counter() - t0  # not the stage's own iterations
         rec.parts_choice.iteration = work.done
         if not any(rec.parts[p] for p in rec._auto_parts):
             return Verdict.GO_ON

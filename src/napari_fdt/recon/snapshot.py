@@ -109,7 +109,8 @@ class StageRecord:
     iterations: int
     seconds: float = 0.0
     model: str = "multislice"
-    #: seconds of the TV trials that lost (tried at this stage's start and dropped): not the stage's own iterations
+    #: seconds of the choices made in this stage that are not its own iterations: the TV trials that lost (tried at its
+    #: start and dropped), the pupil's pilot (before the first stage), the model parts' choice (at its end)
     choice_s: float = 0.0
     #: validation error the stage ended on, its iteration (earlier than ``iterations`` when the best iterate was
     #: kept), and the iteration early stopping ended the stage at (None: it ran to the end)

@@ -83,7 +83,7 @@ def choose_tv(rec: Reconstructor, work: StageWork, should_stop: Callable[[], boo
     work.optimiser = new_optimiser(rec)
     work.optimiser.load_state_dict(ends[k]["vol_opt"])
     work.done = n_probe
-    work.record.choice_s = sum(t["seconds"] for j, t in enumerate(trials) if j != k)
+    work.record.choice_s += sum(t["seconds"] for j, t in enumerate(trials) if j != k)
     if cfg.early_stopping != "off" and win["validation_error"] is not None:  # the winner's end is a candidate iterate
         work.best.update(n_probe, win["validation_error"], rec._capture)
     return Verdict.GO_ON
