@@ -111,20 +111,6 @@ def _pad_spectrum(spec: torch.Tensor) -> torch.Tensor:
     return _PadSpectrum.apply(spec)
 
 
-class _FoldQuadrants(torch.autograd.Function):
-    """The mean of the four (H, W) quadrants of a (..., 2H, 2W) spectrum (its samples at the even fine indices), with
-    the adjoint (the gradient tiled 2×2, over 4) as the backward: one allocation, not one per quadrant."""
-
-    @staticmethod
-    def forward(ctx, spec: torch.Tensor) -> torch.Tensor:  # noqa: D102
-        h, w = spec.shape[-2] // 2, spec.shape[-1] // 2
-        return (spec[..., :h, :w] + spec[..., h:, :w] + spec[..., :h, w:] + spec[..., h:, w:]) * 0.25
-
-    @staticmethod
-    def backward(ctx, grad: torch.Tensor) -> torch.Tensor:  # noqa: D102
-        return (0.25 * grad).repeat(*([1] * (grad.dim() - 2)), 2, 2)
-
-
 def fine_field(field_spectrum: torch.Tensor) -> torch.Tensor:
     """The field of an unshifted (..., Hp, Wp) spectrum on a grid twice as fine, (..., 2Hp, 2Wp) complex.
 
@@ -137,17 +123,26 @@ def fine_field(field_spectrum: torch.Tensor) -> torch.Tensor:
 
 
 def pixel_average_from_fine(fine: torch.Tensor) -> torch.Tensor:
-    """Mean of ``|E|²`` over each coarse pixel from the field on the twice-finer grid; (..., 2Hp, 2Wp) → (..., Hp, Wp)."""
+    """Mean of ``|E|²`` over each coarse pixel from the field on the twice-finer grid; (..., 2Hp, 2Wp) → (..., Hp, Wp).
+
+    The intensity's spectrum times the box's transfer function, sampled at the pixel centres (the even fine indices),
+    one axis at a time on real transforms: along x the fine intensity's ``rfft``, the sinc, and the fold onto the
+    coarse grid (``Y[c] = (X[c] + X[c + W])/2``, ``X[c + W] = conj(X[W − c])`` for a real signal), which leaves a
+    quarter of the fine grid's columns for the transforms along y (the same fold there), then the inverse ones. The
+    same numbers as one complex FFT of the whole fine grid (to rounding), at about a third of its cost.
+    """
     h, w = fine.shape[-2] // 2, fine.shape[-1] // 2
     intensity = fine.real.square() + fine.imag.square()
-    spec = torch.fft.fft2(intensity)
     real = intensity.dtype
     # box of one coarse pixel: transfer sinc(f·dx); the fine grid's frequencies are fftfreq(2n)·2 cycles per dx
-    ty = torch.sinc(torch.fft.fftfreq(2 * h, device=spec.device, dtype=real) * 2.0).reshape(2 * h, 1)
-    tx = torch.sinc(torch.fft.fftfreq(2 * w, device=spec.device, dtype=real) * 2.0).reshape(1, 2 * w)
-    spec = spec * (ty * tx)
-    # samples at the pixel centres (even fine indices): fold the four quadrants of the spectrum
-    return torch.fft.ifft2(_FoldQuadrants.apply(spec)).real
+    tx = torch.sinc(torch.fft.rfftfreq(2 * w, device=fine.device, dtype=real) * 2.0)  # (W + 1,)
+    ty = torch.sinc(torch.fft.fftfreq(2 * h, device=fine.device, dtype=real) * 2.0).reshape(2 * h, 1)
+    along_x = torch.fft.rfft(intensity, dim=-1) * tx  # (..., 2Hp, Wp + 1)
+    half = w // 2
+    along_x = 0.5 * (along_x[..., : half + 1] + along_x[..., w - half :].flip(-1).conj())  # (..., 2Hp, Wp/2 + 1)
+    both = torch.fft.fft(along_x, dim=-2) * ty
+    both = 0.5 * (both[..., :h, :] + both[..., h:, :])  # (..., Hp, Wp/2 + 1)
+    return torch.fft.irfft(torch.fft.ifft(both, dim=-2), n=w, dim=-1)
 
 
 def pixel_averaged_intensity(field_spectrum: torch.Tensor) -> torch.Tensor:
