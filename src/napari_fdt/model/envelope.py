@@ -69,15 +69,16 @@ class EnvelopeModel:
     shift_um: (x, y) position of the stage grid's block-centre origin relative to the convention
         (see :mod:`napari_fdt.recon.stages`).
     pupil_taper: soft edge of the angular aperture, as the pupil's.
-    batched: ``True``: all sources and slices in one batch (:meth:`images_batched`: few, large operations, for a GPU);
-        ``False``: one slice at a time (:meth:`images_per_slice`: many small operations on cache-sized arrays);
-        ``"auto"`` (default): batched on CUDA only, where it launches ~3× fewer kernels. Same images and gradients
-        (to rounding); on the CPU the two were within the run-to-run spread of each other (``docs/benchmarks.md``).
+    batched: ``True`` (default; ``"auto"`` is the same): all sources and slices in one batch (:meth:`images_batched`:
+        few, large operations: ~3× fewer kernel launches on CUDA, and on a 2-core CPU the training step 1.5–1.6× faster
+        on the suite scenes, 1.1–1.3× on the sample, measured 2026-11-26, ``docs/decisions/coarse-stage-models.md``);
+        ``False``: one slice at a time (:meth:`images_per_slice`: many small operations, the reference). Same images and
+        gradients (to rounding).
     """
 
     def __init__(self, optics: Optics, grid_shape: tuple[int, int], factor: int, shift_um: tuple[float, float],
                  *, pupil_taper: float = 0.03, device: torch.device | str = "cpu", dtype: torch.dtype = torch.float32,
-                 batched: bool | str = "auto") -> None:
+                 batched: bool | str = True) -> None:
         self.optics = optics
         self.grid_shape = tuple(int(s) for s in grid_shape)
         self.factor = int(factor)
@@ -88,7 +89,7 @@ class EnvelopeModel:
         self.dtype = dtype
         if batched not in (True, False, "auto"):
             raise ValueError(f"batched must be True, False or 'auto', got {batched!r}")
-        self.batched = self.device.type == "cuda" if batched == "auto" else bool(batched)
+        self.batched = batched in (True, "auto")
         h, w = self.grid_shape
         self.padded, self.lead = envelope_window(optics, self.grid_shape, self.factor)
 
