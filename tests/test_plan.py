@@ -231,6 +231,30 @@ def test_pixel_integration_costs_what_its_fine_grid_ffts_cost(sample) -> None:
     assert on.phases[2].seconds_per_iteration > 1.4 * off.phases[2].seconds_per_iteration
 
 
+def test_the_pupil_pilot_is_priced_by_what_it_runs(sample) -> None:
+    """The pilot's 60 steps (16 images at Δn = 0: the split model skips its slice loop, its camera's source field and
+    pixel integration remain) against a finest iteration, as measured on 2 cores (2026-11-26 night, an AMD EPYC):
+    the sample 1.9 and 2.1 s against 0.201 and 0.212 s per finest iteration (9.5 and 9.9 iterations' worth);
+    cells_pupil (pixel integration, 121 sources at 25 µm, NA 0.8) 9.1 s against 0.321 s (28.3), and, one thread while
+    another run shared the cores, 18.0 and 19.6 s against 0.603 and 0.585 s (29.9, 33.5). The plan before priced both
+    at 12."""
+    from napari_fdt import Optics, source_grid
+
+    def ratio(cfg, optics, shape, src, pixels):
+        plan = make_plan(cfg, optics, shape, np.asarray(src), "envelope", "cpu", choose_tv_at=None, pixel_integration=pixels,
+                         pupil_pilot=True)
+        assert plan.phases[0].name.startswith("checking the pupil") and plan.phases[0].iterations == 60
+        return plan.phases[0].predicted_s / plan.phases[-1].seconds_per_iteration
+
+    assert ratio(resolve_stage_lengths(SolverConfig(), sample.n_images), sample.optics, sample.image_shape,
+                 _sources(sample), False) == pytest.approx((9.5 + 9.9) / 2, rel=0.25)
+    cells = Optics(wavelength_um=0.635, n_background=1.33, na=0.8, pixel_size_um=0.33, n_slices=6, slice_spacing_um=2.0,
+                   image_plane_um=0.0)
+    src = source_grid(11, 29.0, 25.0)
+    assert ratio(resolve_stage_lengths(SolverConfig(), len(src)), cells, (96, 96), src, True) == pytest.approx(
+        (28.3 + 29.9 + 33.5) / 3, rel=0.25)
+
+
 def test_the_plan_says_what_keeping_a_model_part_would_add(sample) -> None:
     """Where "auto" model parts are still to be chosen, the plan prices every stage again (multi-slice coarse stages
     under coarse_model "auto") as its own line; with every part given as a setting there is no such line."""

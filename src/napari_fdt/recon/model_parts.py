@@ -43,7 +43,7 @@ import numpy as np
 from napari_fdt.recon.config import AUTO, SolverConfig
 
 __all__ = ["PARTS", "BINARY_PARTS", "FITTED_PARTS", "SETTING_OF", "STANDARD_ERRORS_LEVEL", "standard_errors", "MIN_IMPROVEMENT", "FIT_ITERATIONS",
-           "FIT_IMAGES", "FIT_RATES", "PILOT_ITERATIONS", "PILOT_BATCH", "PILOT_COST_SHARE",
+           "FIT_IMAGES", "FIT_RATES", "PILOT_ITERATIONS", "PILOT_BATCH",
            "FINEST_ONLY_PARTS", "PartsChoice", "pupil_pilot_wanted", "decide", "switch", "requested_parts", "parts_stage"]
 
 #: Parts without parameters, tried first, in this order (sub-slices first: a spectral model or a pupil fit can absorb
@@ -86,9 +86,6 @@ FIT_RATES: dict[str, float] = {"zernike": 0.05, "na_scale": 0.003, "pupil_edge":
 #: steps over the whole training set: the test needs the positions of its own images converged.
 PILOT_ITERATIONS = 60
 PILOT_BATCH = 8
-#: A pilot step's cost as a share of a finest-stage iteration, for the plan (measured on the sample: 1.6–1.9 s for
-#: 60 steps of 16 images at Δn = 0, where the split-field model skips its slice loop, against 0.13 s per iteration)
-PILOT_COST_SHARE = 0.2
 
 
 def switch(value: Any) -> bool | None:

@@ -25,7 +25,7 @@ import numpy as np
 
 from napari_fdt.physics.optics import Optics
 from napari_fdt.recon.config import SolverConfig
-from napari_fdt.recon.model_parts import PILOT_BATCH, PILOT_COST_SHARE, PILOT_ITERATIONS
+from napari_fdt.recon.model_parts import PILOT_BATCH, PILOT_ITERATIONS
 from napari_fdt.recon.phases import PUPIL_PILOT, RERUN, RUN, TV_CHOICE, probe_iterations
 from napari_fdt.recon.regularisation import TV_PATH, selection_stages
 
@@ -46,6 +46,11 @@ SECONDS_PER_UNIT: dict[tuple[str, str], float] = {
 }
 #: Seconds of one iteration that do not scale with its size (kernel launches), by device type.
 OVERHEAD_S: dict[str, float] = {"cpu": 0.0, "cuda": 1.7e-2}
+#: Seconds of one step of the pupil's pilot on the CPU that do not scale with its size (the sources' and gains'
+#: updates, Python), on the machine of :data:`SECONDS_PER_UNIT`: the sample's pilot took 2.1 s for 60 steps where its
+#: units give 0.6 s (an AMD EPYC whose finest sample iteration took 1.54x the plan's, 2026-11-26 night); on the GPU the
+#: iteration's overhead (:data:`OVERHEAD_S`) stands for it.
+PILOT_STEP_OVERHEAD_S = 0.016
 
 
 #: Cost units of the split-field model's source field at one image pixel of one screen of one image (the radial
@@ -231,9 +236,14 @@ def _seconds(s: float) -> str:
 
 def stage_phase(config: SolverConfig, optics: Optics, image_shape: tuple[int, int], sources_um: np.ndarray, stage: int,
                 coarse_model: str, device_type: str, pass_name: str = RUN, parts: tuple[str, ...] = (),
-                pixel_integration: bool = False, pupil_edge: float | None = None) -> Phase:
+                pixel_integration: bool = False, pupil_edge: float | None = None, pilot: bool = False) -> Phase:
     """The phase of stage ``stage`` (its model, FFT grid and predicted seconds per iteration; ``pixel_integration``: the
-    multi-slice model's camera integrates over its pixels; ``pupil_edge`` its pupil's edge, None the default)."""
+    multi-slice model's camera integrates over its pixels; ``pupil_edge`` its pupil's edge, None the default).
+
+    ``pilot``: a step of the pupil's pilot on this stage's model instead (:mod:`napari_fdt.recon.parts_pilot`):
+    ``2·PILOT_BATCH`` images at Δn = 0, where the split-field model skips its slice loop (its camera's source field and
+    pixel integration remain: on cells_pupil, with pixel integration, the pilot costs 31 finest iterations, on the
+    sample 10), plus :data:`PILOT_STEP_OVERHEAD_S` on the CPU."""
     from napari_fdt.recon.stages import config_uses_split_field, fine_field_grid, model_window, multislice_plan, stage_field_oversampling, stage_sub_slices
 
     sc = config.stages[stage]
@@ -247,8 +257,10 @@ def stage_phase(config: SolverConfig, optics: Optics, image_shape: tuple[int, in
         shape = model_window(window, opt, split)
     model = "envelope" if envelope else "multislice"
     dev = "cuda" if device_type == "cuda" else "cpu"
-    batch = config.stage_batch(stage)
+    batch = 2 * PILOT_BATCH if pilot else config.stage_batch(stage)
     screens = optics.n_slices * (1 if envelope else stage_sub_slices(config.sub_slices, "sub_slices" in parts, sc.factor))
+    if pilot and split:
+        screens = 0
     fine = stage_field_oversampling(config.field_oversampling, "field_grid" in parts)
     if not envelope and fine_field_grid(fine, sc.factor):  # the field on a grid twice as fine
         shape = (2 * shape[0], 2 * shape[1])
@@ -260,7 +272,7 @@ def stage_phase(config: SolverConfig, optics: Optics, image_shape: tuple[int, in
         source_pixels = h * w
         camera_points = (2 * h + 2 * FINE_MARGIN) * (2 * w + 2 * FINE_MARGIN) if pixel_integration else h * w
     units = iteration_units(batch, screens, shape, pixel_integration and not envelope, source_pixels, camera_points)
-    per_it = OVERHEAD_S[dev] + SECONDS_PER_UNIT[(dev, model)] * units
+    per_it = OVERHEAD_S[dev] + SECONDS_PER_UNIT[(dev, model)] * units + (PILOT_STEP_OVERHEAD_S if pilot and dev == "cpu" else 0.0)
     return Phase(pass_name, stage, len(config.stages), sc.factor, model, sc.iterations, shape, per_it, parts=parts)
 
 
@@ -304,11 +316,9 @@ def make_plan(config: SolverConfig, optics: Optics, image_shape: tuple[int, int]
         finest_again = stage_phase(config, optics, image_shape, src, last, coarse_model, device_type, RERUN, finest_parts,
                                    pixel_integration=pixel_integration, pupil_edge=pupil_edge).predicted_s
     if pupil_pilot:  # first, the pupil's pilot: steps of 2·PILOT_BATCH images through the finest stage's model at Δn = 0
-        fin = stage_phase(config, optics, image_shape, src, len(config.stages) - 1, coarse_model, device_type,
-                          pixel_integration=pixel_integration, pupil_edge=pupil_edge)
-        share = PILOT_COST_SHARE * 2 * PILOT_BATCH / max(1, config.stage_batch(len(config.stages) - 1))
-        phases.insert(0, replace(fin, pass_name=PUPIL_PILOT, iterations=PILOT_ITERATIONS,
-                                 seconds_per_iteration=share * fin.seconds_per_iteration, first_iteration=0))
+        pilot = stage_phase(config, optics, image_shape, src, len(config.stages) - 1, coarse_model, device_type,
+                            pixel_integration=pixel_integration, pupil_edge=pupil_edge, pilot=True)
+        phases.insert(0, replace(pilot, pass_name=PUPIL_PILOT, iterations=PILOT_ITERATIONS, first_iteration=0))
     return Plan(tuple(phases), "cuda" if device_type == "cuda" else "cpu", extra, finest_again, finest_parts)
 
 
