@@ -157,6 +157,29 @@ def test_the_propagators_adjoint_is_autograds() -> None:
     assert torch.allclose(prop(s), torch.fft.ifft2(torch.fft.fft2(s) * kernel), atol=1e-14)
 
 
+def test_the_tables_lookup_written_out_backward_is_autograds() -> None:
+    """The radial tables' lookup (``_Lookup``: a linear interpolation times the carrier exp(i·2πk·(√(ρ²+H²) − H)), its
+    backward written out) against torch's numerical gradients in the table, the radii, the heights and k, and its
+    values against the formula; radii beyond the table's end take its last entry."""
+    from napari_fdt.model.split_field import _Lookup
+
+    g = torch.Generator().manual_seed(2)
+    table = torch.randn(2, 3, 12, generator=g, dtype=torch.complex128).requires_grad_(True)
+    rho = (torch.rand(2, 9, generator=g, dtype=torch.float64) * 1.3).requires_grad_(True)  # some past the end (1.1)
+    heights = (2 + torch.rand(2, 3, generator=g, dtype=torch.float64)).requires_grad_(True)
+    k = torch.tensor(2.1, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda *a: _Lookup.apply(*a, 0.1), (table, rho, heights, k))
+    x = (rho.detach() / 0.1).clamp(max=11.0)
+    i0 = x.floor().clamp(max=10).long()
+    t = (x - i0)[:, None, :]
+    idx = i0[:, None, :].expand(2, 3, -1)
+    tab = table.detach()
+    value = torch.gather(tab, 2, idx) * (1 - t) + torch.gather(tab, 2, idx + 1) * t
+    r = torch.sqrt(rho.detach()[:, None, :] ** 2 + heights.detach()[..., None] ** 2)
+    expected = value * torch.exp(2j * torch.pi * 2.1 * (r - heights.detach()[..., None]))
+    assert torch.allclose(_Lookup.apply(tab, rho.detach(), heights.detach(), k.detach(), 0.1), expected, atol=1e-13)
+
+
 def _unit(t: torch.Tensor, index: tuple) -> torch.Tensor:
     u = torch.zeros_like(t.detach())
     u[index] = 1.0

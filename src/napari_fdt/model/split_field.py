@@ -378,38 +378,42 @@ class _Lookup(torch.autograd.Function):
         inside = (x >= 0) & (x <= n - 1)  # beyond the table the value is its last entry's (no slope)
         index = i0.long()[:, None, :].expand(b, s, -1)
         v0 = torch.gather(table, 2, index)
-        slope = torch.gather(table, 2, index + 1).sub_(v0)  # the table's step across the interval
-        path = _excess_path(rho[:, None, :], heights[..., None])
-        carrier = phasor(path * ((2.0 * math.pi) * k))
+        slope = torch.gather(table, 2, index + 1).sub_(v0)  # the table's step across the interval (demodulated)
+        rho2 = (rho * rho)[:, None, :]
+        h = heights[..., None]
+        r = torch.sqrt(rho2 + h * h)  # √(ρ² + H²)
+        # the carrier's phase 2π·k·(√(ρ² + H²) − H), written as 2π·k·ρ²/(√(ρ² + H²) + H) (no cancellation near the axis)
+        carrier = phasor(((2.0 * math.pi) * k * rho2) / (r + h))
         out = torch.addcmul(v0, slope, t[:, None, :].to(v0.dtype)).mul_(carrier)
-        slope.mul_(carrier)
         ctx.step = step
         ctx.table_len = n
-        ctx.save_for_backward(i0.to(torch.int32), t, inside, slope, carrier, out, rho, heights, path, k)
+        ctx.save_for_backward(i0.to(torch.int32), t, inside, slope, carrier, out, rho, heights, r, k)
         return out
 
     @staticmethod
     def backward(ctx, grad):
-        i0, t, inside, slope, carrier, out, rho, heights, path, k = ctx.saved_tensors
+        i0, t, inside, slope, carrier, out, rho, heights, r, k = ctx.saved_tensors
         b, s, p = out.shape
         grad_table = grad_rho = grad_h = grad_k = None
-        two_pi_k = 2.0 * math.pi * k
-        gr, gi = grad.real, grad.imag
+        g = grad * carrier.conj()  # ∂L/∂(interpolated value), in the demodulated frame
         if ctx.needs_input_grad[0]:
-            g = grad * carrier.conj()  # ∂L/∂(interpolated value)
-            tc = t[:, None, :].to(g.dtype)
+            tc = t[:, None, :]
             index = i0.long()[:, None, :].expand(b, s, -1)
             grad_table = torch.zeros((b, s, ctx.table_len), dtype=g.dtype, device=g.device)
             grad_table.scatter_add_(2, index + 1, g * tc)
-            grad_table.scatter_add_(2, index, g.mul_(1.0 - tc))
-        # the phase φ: dU/dφ = i·U, so ∂L/∂φ = Re(grad·conj(i·U)) = Im(grad)·Re(U) − Re(grad)·Im(U)
-        grad_phase = gi * out.real - gr * out.imag
-        r = path + heights[..., None]  # √(ρ²+H²)
+            grad_table.scatter_add_(2, index, g * (1.0 - tc))
+        if not any(ctx.needs_input_grad[1:4]):
+            return grad_table, None, None, None, None
+        # the phase φ: dU/dφ = i·U, so ∂L/∂φ = Re(grad·conj(i·U)) = Im(grad·conj(U))
+        grad_phase = torch.imag(grad * out.conj())
+        two_pi_k = 2.0 * math.pi * k
+        # dφ/dρ = 2πk·ρ/r, dφ/dH = 2πk·(H/r − 1): q = ∂L/∂φ · 2πk/r, summed over the planes or the points
+        q = grad_phase / r
         if ctx.needs_input_grad[1]:
-            along = (gr * slope.real + gi * slope.imag) * (inside[:, None, :] / ctx.step)  # the interpolation's slope
-            grad_rho = (along + grad_phase * two_pi_k * rho[:, None, :] / r).sum(1)
+            along = torch.real(g * slope.conj()).sum(1) * (inside / ctx.step)  # the interpolation's slope
+            grad_rho = along + two_pi_k * rho * q.sum(1)
         if ctx.needs_input_grad[2]:
-            grad_h = (grad_phase * two_pi_k * (heights[..., None] / r - 1.0)).sum(-1)
+            grad_h = two_pi_k * (heights * q.sum(-1) - grad_phase.sum(-1))
         if ctx.needs_input_grad[3]:
-            grad_k = (grad_phase * (2.0 * math.pi) * path).sum()
+            grad_k = (grad_phase * (r - heights[..., None])).sum() * (2.0 * math.pi)
         return grad_table, grad_rho, grad_h, grad_k, None
