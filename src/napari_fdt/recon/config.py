@@ -246,9 +246,9 @@ class SolverConfig:
     # camera and objective (docs/physics.md §3; issue 13)
     pixel_integration: PixelIntegration = setting(
         "auto", strict=False, description="record each pixel's mean intensity over its area instead of the value at its centre: "
-        "`\"auto\"`: what `acquisition.json`'s `pixel_integration` says, else chosen by the validation error (docs/solver.md, "
-        "\"Model parts\"; without a validation split: on when the intensity's band 2·NA/λ exceeds the camera's Nyquist "
-        "1/(2·pixel_size_um)); `true`, `false` (JSON booleans or strings). Multi-slice stages",
+        "`\"auto\"`: what `acquisition.json`'s `pixel_integration` says, else on when the intensity's band 2·NA/λ exceeds "
+        "the camera's Nyquist 1/(2·pixel_size_um) (every camera integrates; the data cannot choose it: docs/solver.md, "
+        "\"Model parts\"); `true`, `false` (JSON booleans or strings). Multi-slice stages",
         fix="use \"auto\", true or false")
     sub_slices: SubSlices = setting(
         "auto", strict=False, description="screens per slice in multi-slice stages: each slice crossed in this many symmetric steps, "

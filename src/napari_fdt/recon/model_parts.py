@@ -29,8 +29,9 @@ coarse volume's and hides what the model lacks; :mod:`napari_fdt.recon.choices` 
 
 The finest stage then goes on with the kept parts, from the fitted values. The volume the parts are judged with was
 trained without them, so the test is conservative: a part must show through a volume that may have absorbed some of
-its effect. Without a validation split the auto parts are off (pixel integration: the physical rule of
-:func:`napari_fdt.physics.camera.needs_pixel_integration`).
+its effect. Without a validation split the auto parts are off. (Pixel integration is not chosen here: where the files
+do not state it, the physical rule of :func:`napari_fdt.physics.camera.needs_pixel_integration` sets it,
+:func:`napari_fdt.recon.parts_switch.requested_for`.)
 """
 
 from __future__ import annotations

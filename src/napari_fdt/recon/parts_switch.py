@@ -8,10 +8,11 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 from napari_fdt.model.coherence import emission_spectrum
+from napari_fdt.physics.camera import needs_pixel_integration
 from napari_fdt.recon.calibration import PUPIL_PARAMETERS
 from napari_fdt.recon.model_parts import PARTS, PartsChoice, requested_parts
 from napari_fdt.recon.stage_roles import set_stage_roles
-from napari_fdt.recon.stages import camera_grid_drops_band, camera_model_options, stated_pixel_integration, thick_slices
+from napari_fdt.recon.stages import camera_grid_drops_band, stated_pixel_integration, thick_slices
 
 if TYPE_CHECKING:
     from napari_fdt.recon.solver import Reconstructor
@@ -26,6 +27,15 @@ def requested_for(cfg, acquisition) -> tuple[dict[str, bool | None], dict[str, s
     stated = stated_pixel_integration(cfg, acquisition)
     if cfg.pixel_integration == "auto" and stated is not None:
         chosen_by["pixel_integration"] = "acquisition"
+    elif stated is None:
+        # a real camera's files that do not say: every camera integrates over its pixels, and the physical rule says
+        # where that shows in the images. The data cannot choose it: at Δn = 0 the sources' smooth light does not show
+        # it (the pilot), and at the finest stage's end, through a volume trained without it, it made the held-out
+        # images worse on cells_pupil's images (+3.5 %) that have it (docs/decisions/model-parts.md)
+        o = acquisition.optics
+        stated = needs_pixel_integration(o.na, o.wavelength_um, o.pixel_size_um)
+        chosen_by["pixel_integration"] = "physics: " + ("the intensity's band 2·NA/λ exceeds the camera's Nyquist" if stated
+                                                        else "the camera's Nyquist holds the intensity's band 2·NA/λ")
     requested["pixel_integration"] = stated
     if requested["sub_slices"] is None and not thick_slices(acquisition.optics):
         # the physics' criterion: slices thin against the depth of field are thin screens, no trial needed
@@ -56,9 +66,6 @@ def init_parts(rec: Reconstructor) -> None:
     elif not len(rec.validation_indices):
         for p in rec._auto_parts:
             chosen_by[p] = "no validation split"
-            if p == "pixel_integration":  # the physical rule stands in for the data (camera_model_options applies it)
-                parts[p] = camera_model_options(cfg, rec.acquisition)["pixel_integration"]
-                chosen_by[p] = "no validation split: physical rule"
         rec.apply_parts_choice(PartsChoice(parts, chosen_by))
     else:
         set_parts(rec, parts)

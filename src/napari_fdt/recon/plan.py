@@ -343,11 +343,10 @@ def plan_for(acquisition, config: SolverConfig, device_type: str, sources_um: np
     n_held = len(holdout_indices(src, cfg.validation_fraction))
     split = n_held > 0
     choose_tv_at = min(selection_stages(cfg)) if tv_is_auto(cfg) and split else None
-    # the camera model as the first pass runs it: as stated, else off until the data choose it (the physical rule
-    # without a validation split)
+    # the camera model as the run has it: as stated, else the physical rule (parts_switch.requested_for)
     o = acquisition.optics
     stated = stated_pixel_integration(cfg, acquisition)
-    integrate = stated if stated is not None else (not split and needs_pixel_integration(o.na, o.wavelength_um, o.pixel_size_um))
+    integrate = stated if stated is not None else needs_pixel_integration(o.na, o.wavelength_um, o.pixel_size_um)
     from napari_fdt.recon.model_parts import FINEST_ONLY_PARTS, pupil_pilot_wanted
     from napari_fdt.recon.parts_switch import requested_for
 
