@@ -289,9 +289,17 @@ class SplitFieldModel(MultiSliceModel):
         raise NotImplementedError("the split-field model adds the exact homogeneous field itself")
 
 
+def _distance_and_excess_path(rho: torch.Tensor, heights: torch.Tensor, scale=1.0) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(√(ρ² + H²), scale·(√(ρ² + H²) − H))`` (µm; broadcast), the second written without the cancellation near the
+    axis, ``scale`` applied to ``ρ²`` (the smaller array where ρ is shared by several planes)."""
+    rho2 = rho * rho
+    r = torch.sqrt(rho2 + heights * heights)
+    return r, (scale * rho2) / (r + heights)
+
+
 def _excess_path(rho: torch.Tensor, heights: torch.Tensor) -> torch.Tensor:
     """``√(ρ² + H²) − H`` (µm), written without the cancellation near the axis."""
-    return rho * rho / (torch.sqrt(rho * rho + heights * heights) + heights)
+    return _distance_and_excess_path(rho, heights)[1]
 
 
 def _carrier(rho: torch.Tensor, heights: torch.Tensor, k_per_um, *, conj: bool = False) -> torch.Tensor:
@@ -379,11 +387,8 @@ class _Lookup(torch.autograd.Function):
         index = i0.long()[:, None, :].expand(b, s, -1)
         v0 = torch.gather(table, 2, index)
         slope = torch.gather(table, 2, index + 1).sub_(v0)  # the table's step across the interval (demodulated)
-        rho2 = (rho * rho)[:, None, :]
-        h = heights[..., None]
-        r = torch.sqrt(rho2 + h * h)  # √(ρ² + H²)
-        # the carrier's phase 2π·k·(√(ρ² + H²) − H), written as 2π·k·ρ²/(√(ρ² + H²) + H) (no cancellation near the axis)
-        carrier = phasor(((2.0 * math.pi) * k * rho2) / (r + h))
+        r, phase = _distance_and_excess_path(rho[:, None, :], heights[..., None], (2.0 * math.pi) * k)
+        carrier = phasor(phase)  # exp(i·2π·k·(√(ρ² + H²) − H))
         out = torch.addcmul(v0, slope, t[:, None, :].to(v0.dtype)).mul_(carrier)
         ctx.step = step
         ctx.table_len = n

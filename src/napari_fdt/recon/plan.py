@@ -326,10 +326,9 @@ def plan_for(acquisition, config: SolverConfig, device_type: str, sources_um: np
     """The plan a reconstruction of ``acquisition`` with ``config`` would run on ``device_type``, before anything is
     allocated (as :class:`~napari_fdt.recon.solver.Reconstructor` makes it), and the initial sources (N, 3) µm it used:
     ``sources_um``, else the acquisition's, else the 2D-Gaussian fit of the images (a few seconds)."""
-    from napari_fdt.physics.camera import needs_pixel_integration
     from napari_fdt.recon.config import resolve_coarse_model, resolve_stage_lengths
     from napari_fdt.recon.regularisation import tv_is_auto
-    from napari_fdt.recon.stages import camera_model_options, stated_pixel_integration
+    from napari_fdt.recon.stages import camera_model_options
     from napari_fdt.recon.validation import holdout_indices
 
     cfg = resolve_stage_lengths(config, acquisition.n_images)
@@ -343,16 +342,13 @@ def plan_for(acquisition, config: SolverConfig, device_type: str, sources_um: np
     n_held = len(holdout_indices(src, cfg.validation_fraction))
     split = n_held > 0
     choose_tv_at = min(selection_stages(cfg)) if tv_is_auto(cfg) and split else None
-    # the camera model as the run has it: as stated, else the physical rule (parts_switch.requested_for)
-    o = acquisition.optics
-    stated = stated_pixel_integration(cfg, acquisition)
-    integrate = stated if stated is not None else needs_pixel_integration(o.na, o.wavelength_um, o.pixel_size_um)
     from napari_fdt.recon.model_parts import FINEST_ONLY_PARTS, pupil_pilot_wanted
     from napari_fdt.recon.parts_switch import requested_for
 
+    # the parts as the run starts them; pixel integration as stated, else the physical rule
     requested, _ = requested_for(cfg, acquisition)
-    plan = make_plan(cfg, o, acquisition.image_shape, src, resolve_coarse_model(cfg.coarse_model, device_type),
-                     device_type, choose_tv_at, pixel_integration=integrate,
+    plan = make_plan(cfg, acquisition.optics, acquisition.image_shape, src, resolve_coarse_model(cfg.coarse_model, device_type),
+                     device_type, choose_tv_at, pixel_integration=requested["pixel_integration"],
                      parts_to_choose=split and any(v is None for v in requested.values()),
                      pupil_edge=camera_model_options(cfg, acquisition)["pupil_edge"],
                      finest_parts=tuple(p for p in FINEST_ONLY_PARTS if requested[p] is None),
