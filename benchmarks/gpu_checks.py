@@ -139,6 +139,18 @@ def check_reconstruction(dev) -> None:
     report("40-iteration reconstruction: |error on cuda − error on cpu|", abs(out["cpu"] - out[str(dev)]), 0.02)
 
 
+def images_and_gradients(model, dn, src, w, dtype, device, call=lambda m, *a: m):
+    """A model's images of Δn ``dn`` and sources ``src`` (gains 1) on ``device`` in ``dtype``, and the gradients of
+    ``sum(images · w)`` in Δn, the sources and the gains; ``call(model, dn, src, gain)`` gives the function run (the model
+    itself, or a CUDA graph of it)."""
+    d = dn.to(device, dtype).clone().requires_grad_()
+    s = src.to(device, dtype).clone().requires_grad_()
+    gain = torch.ones(len(src), device=device, dtype=dtype, requires_grad=True)
+    out = call(model, d, s, gain)(d, s, gain)
+    (out * w.to(device, dtype)).sum().backward()
+    return out, d.grad, s.grad, gain.grad
+
+
 def check_envelope(dev) -> None:
     from benchmarks._graphed import graphed_model
     from napari_fdt.model.envelope import EnvelopeModel
@@ -148,22 +160,12 @@ def check_envelope(dev) -> None:
     dn = 0.03 * torch.rand(14, 32, 32, generator=g, dtype=torch.float64)
     src = torch.tensor(source_grid(3, 20.0, 50.0))
     w = torch.rand(len(src), 32, 32, generator=g, dtype=torch.float64)
-
-    def run(model, call, dtype, device):
-        d = dn.to(device, dtype).clone().requires_grad_()
-        s = src.to(device, dtype).clone().requires_grad_()
-        gain = torch.ones(len(src), device=device, dtype=dtype, requires_grad=True)
-        f = call(model, d, s, gain)
-        out = f(d, s, gain)
-        (out * w.to(device, dtype)).sum().backward()
-        return out, d.grad, s.grad, gain.grad
-
-    ref = run(EnvelopeModel(o, (32, 32), 4, (0.0, 0.0), dtype=torch.float64, batched=False),
-              lambda m, *a: m, torch.float64, "cpu")
+    ref = images_and_gradients(EnvelopeModel(o, (32, 32), 4, (0.0, 0.0), dtype=torch.float64, batched=False), dn, src, w,
+                               torch.float64, "cpu")
     gpu = EnvelopeModel(o, (32, 32), 4, (0.0, 0.0), device=dev)
     report(f"envelope on cuda runs batched: {gpu.batched}", 0.0 if gpu.batched else 1.0, 0.0)
     for label, call in (("eager", lambda m, *a: m), ("CUDA graph", lambda m, *a: graphed_model(m, *a))):
-        out = run(gpu, call, torch.float32, dev)
+        out = images_and_gradients(gpu, dn, src, w, torch.float32, dev, call)
         for name, a, r in zip(("images", "grad dn", "grad sources", "grad gain"), out, ref):
             report(f"envelope batched {label} cuda fp32 vs per-slice cpu fp64: {name}", rel(a, r), 1e-4)
 
@@ -178,15 +180,8 @@ def check_split_field(dev) -> None:
     plan = plan_for_sources(o, (96, 96), src.numpy(), warn=False)
     w = torch.rand(len(src), 96, 96, generator=g, dtype=torch.float64)
     for pix in (False, True):
-        out = []
-        for device, dtype in (("cpu", torch.float64), (dev, torch.float32)):
-            model = SplitFieldModel(o, plan, device=device, dtype=dtype, pixel_integration=pix)
-            d = dn.to(device, dtype).clone().requires_grad_()
-            s = src.to(device, dtype).clone().requires_grad_()
-            gain = torch.ones(len(src), device=device, dtype=dtype, requires_grad=True)
-            img = model(d, s, gain)
-            (img * w.to(device, dtype)).sum().backward()
-            out.append((img, d.grad, s.grad, gain.grad))
+        out = [images_and_gradients(SplitFieldModel(o, plan, device=device, dtype=dtype, pixel_integration=pix), dn, src, w,
+                                    dtype, device) for device, dtype in (("cpu", torch.float64), (dev, torch.float32))]
         # the sources' gradient goes through the radial tables' interpolation: float32 on the CPU is 3.5e-4 from
         # float64 (2026-11-26), the model's own error in it 4.4e-3 (against a window 1.8x the plan's)
         for name, a, r, bound in zip(("images", "grad dn", "grad sources", "grad gain"), out[1], out[0], (1e-4, 1e-4, 1e-3, 1e-4)):
