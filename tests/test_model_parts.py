@@ -57,6 +57,17 @@ def test_decide_is_a_paired_test_against_noise() -> None:
         decide(ref, ref[:3])
 
 
+def test_next_pass_counts_the_passes_the_trials_were_made_in() -> None:
+    from napari_fdt.recon.model_parts import next_pass
+
+    assert next_pass([{"pass": 0}]) == 1  # after the pilot: the first pass's finest stage
+    assert next_pass([{"pass": 1}]) == 2  # after a first pass's finest stage (or its coarse stage's end)
+    assert next_pass([{"pass": 1, "at_stage": 1}]) == 2
+    # a coarse stage's trials in the second pass share its number with that pass's finest stage
+    assert next_pass([{"pass": 1, "at_stage": 1}, {"pass": 2, "at_stage": 1}]) == 2
+    assert next_pass([{"pass": 1}, {"pass": 2}]) == 3
+
+
 def test_parts_choice_round_trips() -> None:
     c = PartsChoice({p: p == "aberrations" for p in PARTS}, {p: "validation" for p in PARTS}, stage=2, iteration=10,
                     reference_error=0.1, reference_image_errors=[0.1, 0.1], trials=[{"part": "aberrations", "on": True}],
@@ -121,37 +132,91 @@ def _run(acq, cfg) -> Reconstructor:
 def test_auto_switches_the_aberrations_on_only_where_the_data_has_them(scenes) -> None:
     clean, aberrated = scenes
     rec = Reconstructor(aberrated, _config(obliquity_correction="auto"), device="cpu")
-    snaps = [(s_.global_iteration, s_.rerun_with) for s_ in rec.run()]
+    run = list(rec.run())
+    snaps = [(s_.global_iteration, s_.rerun_with, s_.stage) for s_ in run]
     choice = rec.parts_choice
+    along = [s_.plan_iteration for s_ in run]  # the progress bar never goes back, and ends at the plan's total
+    assert along == sorted(along) and along[-1] == rec.plan.iterations
     # the snapshots say when the stages run again and with what (the widget and the CLI show it: the count restarts)
-    back = next(i for i in range(1, len(snaps)) if snaps[i][0] < snaps[i - 1][0])
-    assert all(w == () for _, w in snaps[:back]) and all(w == ("aberrations",) for _, w in snaps[back:])
+    back = next(i for i, s_ in enumerate(snaps) if s_[1])
+    assert back > 0 and snaps[back][0] <= snaps[back - 1][0]
+    assert all(w == () for _, w, _ in snaps[:back]) and all(w == ("aberrations",) for _, w, _ in snaps[back:])
     assert choice is not None and choice.parts["aberrations"] and not choice.parts["obliquity"], choice.trials
     assert choice.chosen_by["aberrations"] == "validation" and choice.chosen_by["pixel_integration"] == "setting"
     assert choice.chosen_by["obliquity"] == "validation" and choice.chosen_by["pupil"] == "acquisition"
     # the right mode with the right sign: the fit with the volume held fixed finds part of it (the volume trained without
-    # the part holds the rest), the stage trained again with the part on most of it (true 1.2 rad; defocus and the
+    # the part holds the rest), the stages trained again with the part on most of it (true 1.2 rad; defocus and the
     # sources' common depth offset share some of it)
     assert 0.15 < choice.fitted["zernike_rad"]["spherical"] < 1.2
     assert 0.5 < rec.calibration.summary()["aberration_spherical_rad"] < 1.5
-    # the stage ran again with the part on: its held-out error is below the reference the choice started from
+    # the stages ran again with the part on: the held-out error is below the reference the choice started from
     assert rec.stages[-1].validation_error < choice.reference_error
     trial = next(t for t in choice.trials if t["part"] == "aberrations")
     assert trial["improvement"] > trial["threshold"] * trial["standard_error"]
+    # found at the coarse stage's end (recon/parts_coarse_end.py), through its volume on the finest model: every stage
+    # ran again before the first pass's finest stage ran (no snapshot of it; the plan never held it twice)
+    assert trial["at_stage"] == 0 and trial["pass"] == 1 and choice.stage == 0
+    assert all(st == 0 for _, _, st in snaps[:back])
+    assert [p.stage for p in rec.plan.phases] == [0, 0, 1]
     # parts_rerun "stages" (the default): the kept part made every stage run again, the coarse one multi-slice (the
-    # envelope model holds no aberration), and the finest stage chose the parts not kept again (pass 2)
+    # envelope model holds no aberration), and the finest stage chose the parts not kept (pass 2)
     assert choice.rerun == "stages" and choice.pending == []
     assert rec.coarse_model == "multislice" and all(not s_.envelope for s_ in [rec._build_stage(0)])
     assert {t["pass"] for t in choice.trials} == {1, 2}
-    assert {t["part"] for t in choice.trials if t["pass"] == 2} == {"obliquity"}  # the part not kept, tried again
-    # ... through a volume trained with the aberrations: the held-out images are explained better than in pass 1
-    first, second = (next(t for t in choice.trials if t["part"] == "obliquity" and t["pass"] == k) for k in (1, 2))
-    assert second["validation_error"] < first["validation_error"]
+    assert {t["part"] for t in choice.trials if t["pass"] == 2} == {"obliquity"}  # the part not tested before, tried now
     assert len(rec.stages) == len(rec.config.stages)  # the records are the second pass's
     rec0 = _run(clean, _config(obliquity_correction="auto"))
     assert not any(rec0.parts_choice.parts.values()), rec0.parts_choice.trials
     assert rec0.parts_choice.rerun is None and rec0.coarse_model == "envelope"  # nothing kept: nothing runs again
     assert rec0.parts == {p: False for p in PARTS}
+    # the coarse stage's test ran there too and its trial is listed first
+    assert [(t["part"], t.get("at_stage")) for t in rec0.parts_choice.trials][:1] == [("aberrations", 0)]
+
+
+def test_the_coarse_stages_test_keeping_nothing_leaves_the_run_as_it_was(scenes) -> None:
+    """Where the test at the coarse stage's end keeps nothing, the run is the run without it (the volume, sources and
+    pupil values set back; the test draws no random numbers)."""
+    clean, _ = scenes
+    cfg = _config(stages=[StageConfig(2, 10), StageConfig(1, 20)], final_stage_min_passes=0)
+    with_test = _run(clean, cfg)
+    assert any(t.get("at_stage") == 0 for t in with_test.parts_choice.trials)
+    without = _run(clean, _config(stages=[StageConfig(2, 10), StageConfig(1, 20)], final_stage_min_passes=0, parts_pilot=False))
+    assert not any("at_stage" in t for t in without.parts_choice.trials)
+    assert np.array_equal(with_test.delta_n_full(), without.delta_n_full())
+    assert np.array_equal(with_test.sources_um(), without.sources_um())
+
+
+def test_a_second_pass_tries_the_pupil_at_its_coarse_stages_end() -> None:
+    """A hard pupil and 1.2 rad of spherical aberration, neither stated: the aberrations are kept at the first pass's
+    coarse stage's end; in the second pass (coarse stages multi-slice with them) the pupil is tried at the coarse
+    stage's end, and is then either on from the finest stage's start (not tried again there) or tried again at the
+    finest stage's end; the trials say which pass and where."""
+    from napari_fdt import Optics, simulate, source_grid
+    from napari_fdt.recon.report import describe_parts, model_parts_summary
+    from napari_fdt.sim.phantoms import text_phantom
+
+    o = Optics(wavelength_um=0.635, n_background=1.33, na=0.8, pixel_size_um=0.33, n_slices=3,
+               slice_spacing_um=2.0, image_plane_um=0.0)
+    acq = simulate(text_phantom((32, 32), 3, text="UC", delta_n=0.04), o, source_grid(5, 8.0, 15.0), seed=3, device="cpu",
+                   photons=5000.0, pupil_edge=0.0, aberrations={"spherical": 1.2}).acquisition
+    acq.extra.pop("pupil_edge")
+    rec = Reconstructor(acq, _config(), device="cpu")
+    run = list(rec.run())
+    choice = rec.parts_choice
+    assert choice.parts["aberrations"] and choice.rerun == "stages", choice.trials
+    where = [(t["part"], t["pass"], t.get("at_stage")) for t in choice.trials]
+    assert where[0] == ("pupil", 0, None)  # the pilot at Δn = 0 (it misses this pupil)
+    assert ("aberrations", 1, 0) in where and ("pupil", 2, 0) in where
+    at_coarse = next(t for t in choice.trials if t["part"] == "pupil" and t.get("at_stage") == 0)
+    at_finest = [t for t in choice.trials if t["part"] == "pupil" and t["pass"] == 2 and "at_stage" not in t]
+    finest = [s_ for s_ in run if s_.stage == 1 and s_.phase == "rerun"]
+    assert finest
+    if at_coarse["on"]:  # the plan prices the finest stage with it
+        assert rec.plan.phases[-1].parts == ("pupil", "aberrations")
+        assert not at_finest and all("pupil" in s_.rerun_with for s_ in finest) and choice.parts["pupil"]
+    else:
+        assert len(at_finest) == 1 and all("pupil" not in s_.rerun_with for s_ in finest)
+    assert "pupil (again, all stages rerun" in describe_parts(model_parts_summary(rec))
 
 
 def test_parts_rerun_finest_runs_only_the_finest_stage_again(scenes) -> None:
@@ -199,6 +264,13 @@ def test_describe_parts_names_the_second_pass() -> None:
     line = describe_parts({"needed": ["pupil", "aberrations"], "chosen": chosen})
     # improvements relative to the first reference: 0.02 / 0.2 = 10 %, 0.004 / 0.2 = 2 %
     assert "aberrations on (-10.0 %)" in line and "pupil (again, all stages rerun) on (-2.0 %)" in line
+    # a part found at a coarse stage's end (recon/parts_coarse_end.py), each trial against its own reference
+    chosen = {"reference_error": 0.2, "stage": 1, "seconds": 3.0, "trials": [
+        {"part": "aberrations", "on": True, "improvement": 0.01, "pass": 1, "at_stage": 1, "reference_error": 0.25},
+        {"part": "obliquity", "on": False, "improvement": -0.002, "pass": 2, "after": "stages"}]}
+    line = describe_parts({"needed": ["aberrations"], "chosen": chosen})
+    assert "in stage 2" in line and "aberrations (at stage 2's end) on (-4.0 %)" in line
+    assert "obliquity (again, all stages rerun) off (+1.0 %)" in line
 
 
 def test_parts_test_images_adds_the_training_images_not_fitted(scenes) -> None:

@@ -5,7 +5,10 @@
     goes on from the winner, or every stage runs again with it where it changes what the stages before did.
 :class:`ChooseModelParts`
     Before the first stage, the pupil parts from a pilot at Δn = 0 (:mod:`napari_fdt.recon.parts_pilot`: a part kept
-    there is on from the first stage). At the end of the first multi-slice stage (``"auto"`` model parts): the paired test of
+    there is on from the first stage). At the last coarse stage's end, the aberrations through its volume
+    (:mod:`napari_fdt.recon.parts_coarse_end`: kept there, every stage runs again before the finest stage has run once;
+    in that second pass the pupil parts still to choose are tested there too, a part kept then on from the finest
+    stage's start). At the end of the first multi-slice stage (``"auto"`` model parts): the paired test of
     :mod:`napari_fdt.recon.parts_search`; where a part is kept, every stage runs again with it (``parts_rerun``
     ``"stages"``) or the stage again from its start (``"finest"``). Where the kept parts change only the finest stage's
     model (:data:`~napari_fdt.recon.model_parts.FINEST_ONLY_PARTS`), the finest stage runs again from its start with
@@ -21,6 +24,7 @@ from typing import TYPE_CHECKING, Callable, Generator
 
 from napari_fdt.recon.calibration import PUPIL_PARAMETERS
 from napari_fdt.recon.model_parts import FINEST_ONLY_PARTS, PARTS, PartsChoice, parts_stage
+from napari_fdt.recon.parts_coarse_end import choose_fitted_parts_at_coarse_end, coarse_end_test_due
 from napari_fdt.recon.parts_pilot import choose_pupil_parts_first, pilot_due, start_with_parts
 from napari_fdt.recon.parts_search import choose_parts
 from napari_fdt.recon.parts_switch import finest_again_with_parts, restart_with_parts
@@ -85,6 +89,11 @@ class ChooseModelParts:
 
     def at_end(self, rec: Reconstructor, work: StageWork, should_stop: Callable[[], bool] | None) -> Generator[Snapshot, None, Verdict]:
         start = work.choosing.pop("parts_from", None)
+        if start is None and coarse_end_test_due(rec, work):  # the pupil parts through the coarse volume
+            kept = choose_fitted_parts_at_coarse_end(rec, work, should_stop)
+            if kept is None:
+                return Verdict.STOPPED
+            return Verdict.FROM_FIRST_STAGE if kept else Verdict.GO_ON
         if start is None:
             return Verdict.GO_ON
         t0 = time.perf_counter()

@@ -291,10 +291,13 @@ class SolverConfig:
         "the finest stage again (cheaper; the coarse volume keeps what it absorbed of the parts; docs/solver.md, \"Model parts\")",
         fix="use \"stages\" or \"finest\"", tier="experimental")
     parts_pilot: bool = setting(
-        True, description="also choose the \"auto\" pupil parts (`calibrate_pupil`, `calibrate_aberrations`) before the stages, from a "
-        "pilot at Δn = 0 (the sources' positions and gains fitted through the finest stage's model, then the paired test): a part "
-        "kept there is on from the first stage, so no stage runs twice for it; a part not kept is tried again at the finest "
-        "stage's end (docs/solver.md, \"Model parts\")")
+        True, description="also choose the \"auto\" pupil parts (`calibrate_pupil`, `calibrate_aberrations`) before the finest stage: "
+        "the pupil before the stages, from a pilot at Δn = 0 (the sources' positions and gains fitted through the finest stage's "
+        "model, then the paired test; a part kept there is on from the first stage, so no stage runs twice for it), and the "
+        "aberrations at the last coarse stage's end, through its volume (kept there, every stage runs again before the "
+        "finest stage has run once, and that pass tests the pupil at the same stage's end: kept then, on from the finest "
+        "stage's start); a part not kept is tried again at the finest stage's end "
+        "(docs/solver.md, \"Model parts\")")
     parts_test_images: PartsTestImages = setting(
         "held_out+training", strict=False, description="images the paired test of the \"auto\" model parts runs on: `\"held_out\"` "
         "(the validation split) or `\"held_out+training\"` (also the training images a part's parameters are not fitted to: "

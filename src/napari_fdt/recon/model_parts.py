@@ -73,6 +73,13 @@ def standard_errors(n_images: int) -> float:
 #: Smallest mean improvement that counts, relative to the reference's validation error: below it a part's gain is
 #: not worth its cost whatever its significance.
 MIN_IMPROVEMENT = 0.01
+#: The same floor for the aberrations tested at the last coarse stage's end
+#: (:mod:`napari_fdt.recon.parts_coarse_end`). Through a coarse volume a Zernike fit also absorbs misfit the volume
+#: still has: on the sample (no aberration) the fit improved the test images by 0.72, 0.83 and 1.06 % at seeds 0-2
+#: (z 3.1-4.7), on the tests' 32² scene after 10 coarse iterations by 2.25 %; where the images have 0.5 rad of spherical
+#: aberration by 4.3-5.2 % (beads_real, letters_real, seeds 0 and 1; z 9.2-10.1). A part this test misses is tried again
+#: at the finest stage's end.
+COARSE_END_MIN_IMPROVEMENT = 0.03
 #: Parts that change only the finest stage's model (not the coarse stages'): where the choice keeps only these, the finest
 #: stage runs again from its start with them (the stages before it would run as they did), whatever ``parts_rerun`` says.
 FINEST_ONLY_PARTS: tuple[str, ...] = ("sub_slices", "field_grid")
@@ -120,6 +127,13 @@ def parts_stage(config: SolverConfig) -> int:
     """The stage at whose start the auto parts are chosen: the last stage with iterations (the finest)."""
     with_iterations = [i for i, s in enumerate(config.stages) if s.iterations > 0]
     return with_iterations[-1] if with_iterations else len(config.stages) - 1
+
+
+def next_pass(trials: list[dict[str, Any]]) -> int:
+    """The number of the pass whose trials come next: one more than the last pass's, where the trials at a coarse
+    stage's end of a pass run again (``at_stage``, pass > 1) share the number of the pass whose finest stage follows
+    them (the pilot's trials are pass 0, a first pass's 1)."""
+    return 1 + max((t.get("pass", 1) for t in trials if not ("at_stage" in t and t.get("pass", 1) > 1)), default=1)
 
 
 def decide(reference: list[float] | np.ndarray, candidate: list[float] | np.ndarray, *,

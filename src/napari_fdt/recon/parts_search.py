@@ -16,7 +16,7 @@ import torch
 from napari_fdt.model.gain import least_squares_gain
 from napari_fdt.model.render import iter_batches
 from napari_fdt.physics.aberrations import ZERNIKE_MODES
-from napari_fdt.recon.model_parts import BINARY_PARTS, FIT_IMAGES, FIT_ITERATIONS, FIT_RATES, FITTED_PARTS, PARTS, PartsChoice, decide
+from napari_fdt.recon.model_parts import BINARY_PARTS, FIT_IMAGES, FIT_ITERATIONS, FIT_RATES, FITTED_PARTS, MIN_IMPROVEMENT, PARTS, PartsChoice, decide, next_pass
 from napari_fdt.recon.parts_switch import set_parts
 from napari_fdt.recon.run_validation import validation
 from napari_fdt.recon.stages import Stage
@@ -25,7 +25,8 @@ from napari_fdt.recon.validation import per_image_errors
 if TYPE_CHECKING:
     from napari_fdt.recon.solver import Reconstructor
 
-__all__ = ["choose_parts", "choice_errors", "trial_positions", "GRID_TRIAL_TRAINING_IMAGES", "fit_images", "pupil_values", "exit_cache", "fit_pupil_parts", "ExitCache"]
+__all__ = ["choose_parts", "try_fitted_parts", "choice_errors", "trial_positions", "GRID_TRIAL_TRAINING_IMAGES", "fit_images",
+           "pupil_values", "exit_cache", "fit_pupil_parts", "ExitCache"]
 
 
 @dataclass
@@ -74,42 +75,12 @@ def choose_parts(rec: Reconstructor, stage: Stage, mask: torch.Tensor | None, sh
             set_parts(rec, {**rec.parts, part: False})
     fitted_auto = [p for p in FITTED_PARTS if p in rec._auto_parts]
     if fitted_auto:
-        t1 = time.perf_counter()
-        cache = exit_cache(rec, stage)
-        cache_s = time.perf_counter() - t1
-        kept: list[str] = []
-        for part in fitted_auto:
-            t1 = time.perf_counter()
-            before = cal.copy_values()
-            if not fit_pupil_parts(rec, stage, cache, [part], should_stop):
-                cancel()
-                return None
-            set_parts(rec, {**rec.parts, part: True})
-            err, each = choice_errors(rec, stage, mask)
-            verdict = decide(ref_each, each)
-            trials.append({"part": part, "validation_error": err, "image_errors": each, **verdict,
-                           "fitted": pupil_values(rec, [part]), "seconds": time.perf_counter() - t1 + cache_s})
-            cache_s = 0.0
-            if verdict["on"]:
-                kept.append(part)
-                ref_each = each
-            else:
-                set_parts(rec, {**rec.parts, part: False})
-                cal.restore_values(before)
-        if len(kept) > 1:  # refit together from the separate fits; kept if the held-out images agree
-            t1 = time.perf_counter()
-            before = cal.copy_values()
-            if not fit_pupil_parts(rec, stage, cache, kept, should_stop):
-                cancel()
-                return None
-            err, each = choice_errors(rec, stage, mask)
-            joint = float(np.mean(each)) <= float(np.mean(ref_each))
-            trials.append({"part": "+".join(kept), "validation_error": err, "image_errors": each, "on": joint,
-                           "fitted": pupil_values(rec, kept), "seconds": time.perf_counter() - t1})
-            if joint:
-                ref_each = each
-            else:
-                cal.restore_values(before)
+        tested = try_fitted_parts(rec, stage, mask, ref_each, fitted_auto, should_stop)
+        if tested is None:
+            cancel()
+            return None
+        trials += tested[0]
+        ref_each = tested[1]
     chosen_by = {p: ("validation" if p in rec._auto_parts else rec._parts_chosen_by[p]) for p in PARTS}
     choice = PartsChoice(dict(rec.parts), chosen_by, stage=stage.index, reference_error=reference[0],
                          reference_image_errors=reference[1], trials=trials,
@@ -124,15 +95,63 @@ def choose_parts(rec: Reconstructor, stage: Stage, mask: torch.Tensor | None, sh
         # a later pass's choice (after every stage, or the finest stage, ran again with the kept parts; or after the
         # pilot kept parts before the stages): every pass's trials, each with its pass and what ran again before it,
         # and the first pass's reference (the pilot's, at Δn = 0, is not this choice's)
-        n = 1 + max((t.get("pass", 1) for t in first.trials), default=1)
+        n = next_pass(first.trials)
         choice.trials = first.trials + [{**t, "pass": n, "after": first.rerun} for t in trials]
-        if first.rerun != "before":
+        if first.rerun != "before":  # the first choice's reference, where it was made (the finest or a coarse stage's end)
             choice.reference_error, choice.reference_image_errors = first.reference_error, first.reference_image_errors
+            choice.stage = first.stage
         choice.seconds += first.seconds
         choice.rerun = first.rerun
         rec._choose_again = []
     rec.apply_parts_choice(choice)
     return stage
+
+
+def try_fitted_parts(rec: Reconstructor, stage: Stage, mask: torch.Tensor | None, ref_each: list[float], parts: list[str],
+                     should_stop: Callable[[], bool] | None, min_improvement: float = MIN_IMPROVEMENT,
+                     ) -> tuple[list[dict[str, Any]], list[float]] | None:
+    """The paired test of the parts with parameters (``parts``: "pupil", "aberrations") through ``stage``'s model and the
+    current volume: each fitted to :func:`fit_images` (:func:`fit_pupil_parts`) on top of the parts on, tested against
+    the per-image errors ``ref_each`` (:func:`choice_errors`' images) and switched on (:func:`set_parts`) where kept, its
+    fitted values kept in the calibration (set back where not); two kept parts are refitted together. Returns (the
+    trials, the per-image errors with the kept parts), None when stopped (the caller sets the parts back).
+    ``min_improvement``: :func:`~napari_fdt.recon.model_parts.decide`'s floor."""
+    cal, trials = rec.calibration, []
+    t1 = time.perf_counter()
+    cache = exit_cache(rec, stage)
+    cache_s = time.perf_counter() - t1
+    kept: list[str] = []
+    for part in parts:
+        t1 = time.perf_counter()
+        before = cal.copy_values()
+        if not fit_pupil_parts(rec, stage, cache, [part], should_stop):
+            return None
+        set_parts(rec, {**rec.parts, part: True})
+        err, each = choice_errors(rec, stage, mask)
+        verdict = decide(ref_each, each, min_improvement=min_improvement)
+        trials.append({"part": part, "validation_error": err, "image_errors": each, **verdict,
+                       "fitted": pupil_values(rec, [part]), "seconds": time.perf_counter() - t1 + cache_s})
+        cache_s = 0.0
+        if verdict["on"]:
+            kept.append(part)
+            ref_each = each
+        else:
+            set_parts(rec, {**rec.parts, part: False})
+            cal.restore_values(before)
+    if len(kept) > 1:  # refit together from the separate fits; kept if the held-out images agree
+        t1 = time.perf_counter()
+        before = cal.copy_values()
+        if not fit_pupil_parts(rec, stage, cache, kept, should_stop):
+            return None
+        err, each = choice_errors(rec, stage, mask)
+        joint = float(np.mean(each)) <= float(np.mean(ref_each))
+        trials.append({"part": "+".join(kept), "validation_error": err, "image_errors": each, "on": joint,
+                       "fitted": pupil_values(rec, kept), "seconds": time.perf_counter() - t1})
+        if joint:
+            ref_each = each
+        else:
+            cal.restore_values(before)
+    return trials, ref_each
 
 
 #: Training images the 2x field grid's trial predicts at most, besides the held-out ones (evenly spread): its model

@@ -198,6 +198,11 @@ class Plan:
             phases.append(p)
         return replace(self, phases=tuple(phases))
 
+    def without(self, index: int) -> "Plan":
+        """The plan without phase ``index`` (a phase that will not run: the first pass's finest stage when a part is
+        kept at the last coarse stage's end)."""
+        return replace(self, phases=self.phases[:index] + self.phases[index + 1:])
+
     def with_rerun(self, reruns: Sequence[Phase], choice_to_come: bool = False) -> "Plan":
         """The plan with the phases of the stages run again appended (their ``pass_name`` set to "rerun"); without
         ``choice_to_come`` no choice of parts is to come (and nothing more to price for one)."""

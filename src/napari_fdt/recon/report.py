@@ -158,9 +158,16 @@ def describe_parts(summary: dict[str, Any]) -> str:
     needed = ", ".join(summary.get("needed") or []) or "none"
     if not chosen:
         return f"model parts on: {needed}"
-    again = {"stages": " (again, all stages rerun)", "finest": " (again, finest stage rerun)", "before": ""}
-    when = {0: " (before the stages, at Δn = 0)"}
-    tried = ", ".join(f"{t['part']}{again[t.get('after', 'stages')] if t.get('pass', 1) > 1 else when.get(t.get('pass', 1), '')} "
+    again = {"stages": "again, all stages rerun", "finest": "again, finest stage rerun", "before": ""}
+
+    def when(t: dict[str, Any]) -> str:
+        said = [again[t.get("after", "stages")]] if t.get("pass", 1) > 1 else []
+        said += [f"at stage {t['at_stage'] + 1}'s end"] if "at_stage" in t else []
+        said += ["before the stages, at Δn = 0"] if t.get("pass", 1) == 0 else []
+        said = [w for w in said if w]
+        return f" ({', '.join(said)})" if said else ""
+
+    tried = ", ".join(f"{t['part']}{when(t)} "
                       f"{'on' if t['on'] else 'off'} "
                       f"({-100 * t.get('improvement', 0.0) / max(t.get('reference_error') or chosen['reference_error'] or 1e-30, 1e-30):+.1f} %)"
                       for t in chosen["trials"] if "improvement" in t)

@@ -1,0 +1,147 @@
+"""The pupil parts tested at the last coarse stage's end, before the finest stage runs.
+
+A part kept at the finest stage's end makes every stage run again with it (the coarse stages must model it:
+docs/decisions/model-parts.md), so a run that needs the aberrations paid its finest stage twice. The aberrations are
+not seen at Δn = 0 (the pupil's pilot, :mod:`napari_fdt.recon.parts_pilot`), but they are seen through the volume of
+the last coarse stage: at its end the volume is carried (as a copy) to the finest stage's grid and the aberrations,
+where still ``"auto"``, are fitted and tested there through the finest stage's model, as at the finest stage's end
+(:func:`~napari_fdt.recon.parts_search.try_fitted_parts`), with a larger floor on the improvement
+(:data:`~napari_fdt.recon.model_parts.COARSE_END_MIN_IMPROVEMENT`: a fit through a coarse volume also absorbs what
+the volume still lacks). Kept, every stage runs again from the first with them (``rerun`` ``"stages"``, as a keep at
+the finest stage's end does) and the first pass's finest stage never runs. In that second pass (and in any pass that
+runs every stage again with kept parts) the pupil parts still to choose are tested at the same stage's end, through a
+volume now trained with the kept parts on the multi-slice model; kept there, they are on from the finest stage's
+start. Whatever is not kept is tried again at the finest stage's end.
+
+Measured (docs/decisions/model-parts.md, "The aberrations at the last coarse stage's end"): the aberrations kept at
+the ×2 stage's end on beads_real and letters_real (4.5-5.2 % of the test images' error, z 9.2-10.1, seeds 0 and 1);
+on the scenes without aberrations at most 1.06 % (the sample). The pupil shows nowhere in the first pass (at most
+0.53 %, on letters_real), but in the second pass it was kept on beads_real and letters_real, whose pupil is hard:
+their default runs took 0.76-0.81x the time and beads_real's Δn error fell from 0.385 to 0.210 (seed 1), where the
+finest stage's end had never kept that pupil.
+"""
+from __future__ import annotations
+
+import copy
+import dataclasses
+import time
+from typing import TYPE_CHECKING, Callable
+
+from napari_fdt.recon.model_parts import COARSE_END_MIN_IMPROVEMENT, FITTED_PARTS, PARTS, PartsChoice, next_pass, parts_stage
+from napari_fdt.recon.parts_pilot import PilotOutcome
+from napari_fdt.recon.parts_search import choice_errors, pupil_values, try_fitted_parts
+from napari_fdt.recon.parts_switch import restart_with_parts, set_parts
+from napari_fdt.recon.phases import RERUN, RUN
+from napari_fdt.recon.snapshot import rerun_parts
+
+if TYPE_CHECKING:
+    from napari_fdt.recon.solver import Reconstructor
+    from napari_fdt.recon.stage_loop import StageWork
+
+__all__ = ["COARSE_END_PARTS", "coarse_end_parts", "coarse_end_test_due", "coarse_test_stage", "choose_fitted_parts_at_coarse_end"]
+
+#: The parts tested at the last coarse stage's end.
+COARSE_END_PARTS = ("aberrations",)
+
+
+def coarse_test_stage(rec: Reconstructor) -> int | None:
+    """The stage at whose end the aberrations are tested: the last stage with iterations before the finest one and
+    coarser than it (None where there is none)."""
+    cfg = rec.config
+    last = parts_stage(cfg)
+    before = [i for i in range(last) if cfg.stages[i].iterations > 0 and cfg.stages[i].factor > cfg.stages[last].factor]
+    return before[-1] if before else None
+
+
+def coarse_end_parts(rec: Reconstructor) -> list[str]:
+    """The parts the test at the last coarse stage's end tries: in the first pass (nothing chosen yet) the ``"auto"``
+    aberrations; in a pass that runs every stage again with parts kept (``rerun`` ``"stages"``: its coarse stages
+    multi-slice with them), the parts with parameters still to choose; else none."""
+    choice = rec.parts_choice
+    if choice is None:
+        return [p for p in COARSE_END_PARTS if p in rec._auto_parts]
+    if choice.rerun == "stages":
+        return [p for p in FITTED_PARTS if p in rec._choose_again]
+    return []
+
+
+def coarse_end_test_due(rec: Reconstructor, work: StageWork) -> bool:
+    """Whether the test runs at the end of ``work``'s stage: ``parts_pilot`` on, ``parts_rerun`` ``"stages"``, a part
+    to try (:func:`coarse_end_parts`), at least two images held out (the test's noise estimate), not a distributed run
+    (its ranks hold parts of the images), and this the stage of :func:`coarse_test_stage`."""
+    return (bool(rec.config.parts_pilot) and rec.config.parts_rerun == "stages" and rec.group is None
+            and len(rec.validation_indices) >= 2 and work.stage.index == coarse_test_stage(rec) and bool(coarse_end_parts(rec)))
+
+
+def choose_fitted_parts_at_coarse_end(rec: Reconstructor, work: StageWork, should_stop: Callable[[], bool] | None) -> bool | None:
+    """Test :func:`coarse_end_parts` at the end of ``work``'s stage (see the module). True when the first pass kept a
+    part (the run is then set back to its first stage, the kept parts on from their fitted values, the plan without the
+    first pass's finest stage and with every stage again); False otherwise (the run goes on: with nothing kept, its
+    state as it was; a part kept in a pass run again is on from the finest stage's start). The trials are kept for
+    RI.json. None when stopped."""
+    t0 = time.perf_counter()
+    cal = rec.calibration
+    start_values, provisional = cal.copy_values(), dict(rec.parts)
+    volume, factor = rec.volume, rec.volume_factor
+    parts = coarse_end_parts(rec)
+    rec.volume = copy.deepcopy(volume)  # the run's volume (its tensor is the stage optimiser's) stays on its grid
+    try:
+        finest = rec._build_stage(parts_stage(rec.config))
+        rec._carry_volume_to(finest)
+        mask = rec._loss_mask(finest)
+        ref_err, ref_each = choice_errors(rec, finest, mask)
+        tested = try_fitted_parts(rec, finest, mask, list(ref_each), parts, should_stop, COARSE_END_MIN_IMPROVEMENT)
+    finally:
+        rec.volume, rec.volume_factor = volume, factor
+    if tested is None:
+        cal.restore_values(start_values)
+        set_parts(rec, provisional)
+        return None
+    at, kept = work.stage.index, [p for p in parts if rec.parts[p]]
+    if rec.parts_choice is not None:  # a pass run again: what it keeps is on from the finest stage's start
+        _keep_for_the_finest_stage(rec, tested[0], kept, at, ref_err, time.perf_counter() - t0)
+        work.record.choice_s += time.perf_counter() - t0
+        return False
+    seconds = time.perf_counter() - t0
+    trials = [{**t, "pass": 1, "at_stage": at, "reference_error": ref_err} for t in tested[0]]
+    pilot = rec._pilot_record
+    if pilot is not None:  # the pupil's pilot kept nothing: its trials first
+        trials, seconds = pilot.trials + trials, seconds + pilot.seconds
+    work.record.choice_s += time.perf_counter() - t0
+    if not kept:  # as it was; the finest stage's end tries them again (its choice lists these trials first)
+        rec._pilot_record = PilotOutcome([], {}, trials, seconds=seconds)
+        return False
+    chosen_by = {p: ("validation" if p in rec._auto_parts else rec._parts_chosen_by[p]) for p in PARTS}
+    rec.apply_parts_choice(PartsChoice(dict(rec.parts), chosen_by, stage=at, iteration=work.done, reference_error=ref_err,
+                                       reference_image_errors=list(ref_each), trials=trials,
+                                       fitted=pupil_values(rec, kept), seconds=seconds))
+    finest_run = rec.plan.index(RUN, parts_stage(rec.config))
+    rec._revise_plan(rec.plan.without(finest_run))  # the first pass's finest stage never runs
+    restart_with_parts(rec)  # every stage again from the first with the kept parts (the plan appends them)
+    return True
+
+
+def _keep_for_the_finest_stage(rec: Reconstructor, trials: list[dict], kept: list[str], at: int, ref_err: float,
+                               seconds: float) -> None:
+    """In a pass run again: the trials added to the choice (this pass's number, ``after`` "stages"); the kept parts
+    (on, their fitted values in the calibration) leave the parts the finest stage's end chooses, and the plan prices
+    that stage with them."""
+    choice = rec.parts_choice
+    n = next_pass(choice.trials)
+    choice.trials = choice.trials + [{**t, "pass": n, "after": "stages", "at_stage": at, "reference_error": ref_err}
+                                     for t in trials]
+    choice.seconds += seconds
+    if not kept:
+        return
+    choice.parts = dict(rec.parts)
+    choice.fitted = pupil_values(rec, [p for p in FITTED_PARTS if rec.parts[p]])
+    rec._choose_again = [p for p in rec._choose_again if p not in kept]
+    rec._auto_parts = [p for p in rec._auto_parts if p not in kept]
+    choice.pending = list(rec._choose_again)
+    finest = parts_stage(rec.config)
+    index = rec.plan.index(RERUN, finest)
+    q = rec._stage_phase(finest, RERUN, rerun_parts(rec))
+    phases = list(rec.plan.phases)
+    phases[index] = dataclasses.replace(phases[index], model=q.model, fft_shape=q.fft_shape, parts=q.parts,
+                                        seconds_per_iteration=q.seconds_per_iteration)
+    rec._revise_plan(dataclasses.replace(rec.plan, phases=tuple(phases)))
