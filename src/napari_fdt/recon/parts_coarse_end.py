@@ -97,17 +97,15 @@ def choose_fitted_parts_at_coarse_end(rec: Reconstructor, work: StageWork, shoul
         cal.restore_values(start_values)
         set_parts(rec, provisional)
         return None
-    at, kept = work.stage.index, [p for p in parts if rec.parts[p]]
+    at, kept, seconds = work.stage.index, [p for p in parts if rec.parts[p]], time.perf_counter() - t0
+    work.record.choice_s += seconds  # not the stage's own iterations
     if rec.parts_choice is not None:  # a pass run again: what it keeps is on from the finest stage's start
-        _keep_for_the_finest_stage(rec, tested[0], kept, at, ref_err, time.perf_counter() - t0)
-        work.record.choice_s += time.perf_counter() - t0
+        _keep_for_the_finest_stage(rec, tested[0], kept, at, ref_err, seconds)
         return False
-    seconds = time.perf_counter() - t0
     trials = [{**t, "pass": 1, "at_stage": at, "reference_error": ref_err} for t in tested[0]]
     pilot = rec._pilot_record
     if pilot is not None:  # the pupil's pilot kept nothing: its trials first
         trials, seconds = pilot.trials + trials, seconds + pilot.seconds
-    work.record.choice_s += time.perf_counter() - t0
     if not kept:  # as it was; the finest stage's end tries them again (its choice lists these trials first)
         rec._pilot_record = PilotOutcome([], {}, trials, seconds=seconds)
         return False
