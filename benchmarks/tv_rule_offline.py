@@ -6,6 +6,7 @@ Usage (repository root)::
     python -m benchmarks run tv_rule_offline --since 2026-11-25 --markdown
     python -m benchmarks run tv_rule_offline --since 2026-11-26 --whole-path   # the tolerance rule on whole runs
     python -m benchmarks run tv_rule_offline --since 2026-11-26 --coarse-paths # ... on the finest stage's first iterations
+    python -m benchmarks run tv_rule_offline --since 2026-11-26 --two-candidates   # auto's weight against the next larger
 
 An "auto" run is bit-identical to the run given its chosen weight as a number (``tests/test_regularisation.py``), and
 its row in ``benchmarks/results/regularisation_cpu.jsonl`` keeps every trial of the pilot with its per-image held-out
@@ -139,6 +140,50 @@ def coarse_paths(rows: list[dict], probes: list[dict]) -> str:
     return "\n".join(lines) + "\n\nseeds: " + ", ".join(f"{sc} {sum(1 for k in keys if k[0] == sc)}" for sc in scenes)
 
 
+def two_candidates(rows: list[dict], probes: list[dict]) -> str:
+    """Two candidates only, as one run could afford them: the weight the ``"auto"`` run chose (its row in the sweep) and
+    the next larger weight of :data:`PATH`, each after its own coarse stages and ``it`` finest iterations
+    (``tv_coarse_paths.py``'s rows). Rules: the larger weight when its held-out error is within (1 + δ) of the chosen
+    one's (``tol δ``), or when the paired per-image test of the log errors gives z ≤ k (``z k``: k = 1, the larger
+    weight unless it is worse by a standard error). Outcome: the fixed-weight run's final Δn error; cells, the mean over
+    seeds over the best fixed weight's mean."""
+    final = {k: r["relative_delta_n_error"] for k, r in _fixed_runs(rows).items()}
+    auto = {(r["scene"], _seed(r)): float(r["tv"]["tv_xy_weight"]) for r in rows
+            if r["setting"] == "auto" and set(r.get("config_overrides") or {}) <= {"seed"} and r.get("tv")}
+    seen: dict[tuple[str, int], dict[float, dict[int, tuple[float, np.ndarray]]]] = {}
+    for pr in probes:
+        seen.setdefault((pr["scene"], int(pr["seed"])), {})[float(pr["tau"])] = {
+            t["iteration"]: (t["validation_error"], np.asarray(t["image_errors"])) for t in pr["trace"]}
+    scenes = sorted({k[0] for k in seen if k in auto})
+    marks = sorted({it for by in seen.values() for tr in by.values() for it in tr})
+    lines = ["| finest iteration | rule | " + " | ".join(scenes) + " |", "|---|---|" + "---|" * len(scenes)]
+    for it in marks:
+        for rule in ("tol 0", "tol 0.03", "tol 0.05", "tol 0.08", "z 1"):
+            cells = []
+            for sc in scenes:
+                ks = sorted(k for k in seen if k[0] == sc and k in auto)
+                got = []
+                for k in ks:
+                    tc = auto[k]
+                    pick = tc
+                    if tc in PATH[:-1] and {tc, PATH[PATH.index(tc) + 1]} <= set(seen[k]):
+                        tn = PATH[PATH.index(tc) + 1]
+                        (ec, ic), (en, inn) = seen[k][tc][it], seen[k][tn][it]
+                        if rule.startswith("tol"):
+                            larger = en <= (1 + float(rule.split()[1])) * ec
+                        else:
+                            d = np.log(inn) - np.log(ic)
+                            larger = d.mean() / (d.std(ddof=1) / np.sqrt(len(d))) <= float(rule.split()[1])
+                        pick = tn if larger else tc
+                    got.append(final[(sc, k[1], pick)])
+                taus = {t for (s_, _, t) in final if s_ == sc}
+                best = min(np.mean([final[(sc, k[1], t)] for k in ks]) for t in taus
+                           if all((sc, k[1], t) in final for k in ks))
+                cells.append(f"{np.mean(got) / best:.2f}")
+            lines.append(f"| {it} | {rule} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
 def markdown(records: list[dict]) -> str:
     lines = ["| scene | seeds | sweep mean errors (τ: error) | best | " + " | ".join(RULES) + " |",
              "|---|---|---|---|" + "---|" * len(RULES)]
@@ -161,10 +206,14 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--markdown", action="store_true")
     p.add_argument("--whole-path", action="store_true", help="the tolerance rule on whole fixed-weight runs")
     p.add_argument("--coarse-paths", action="store_true", help="the tolerance rule on tv_coarse_paths.py's rows")
+    p.add_argument("--two-candidates", action="store_true", help="auto's weight against the next larger, on tv_coarse_paths.py's rows")
     args = p.parse_args(argv)
     rows = load_rows([RESULTS / f"regularisation_{args.device}.jsonl"], args.since)
     if args.coarse_paths:
         print(coarse_paths(rows, read_rows(RESULTS / f"tv_coarse_paths_{args.device}.jsonl")))
+        return
+    if args.two_candidates:
+        print(two_candidates(rows, read_rows(RESULTS / f"tv_coarse_paths_{args.device}.jsonl")))
         return
     if args.whole_path:
         print(whole_path(rows))
