@@ -58,7 +58,7 @@ def test_a_pilot_that_keeps_nothing_leaves_the_run_as_it_was(soft_pupil) -> None
     assert rest == [(t["part"], t["on"], t["validation_error"]) for t in without.parts_choice.trials]
     assert choice.seconds > without.parts_choice.seconds  # the pilot's time is the choice's
     # ... and not the first stage's iterations': its seconds per iteration leave the pilot out
-    assert with_pilot.stages[0].choice_s >= with_pilot._pilot_record.seconds > 0 == without.stages[0].choice_s
+    assert with_pilot.stages[0].choice_s >= with_pilot.early_trials.seconds > 0 == without.stages[0].choice_s
     assert "pupil (before the stages, at Δn = 0) off" in describe_parts(model_parts_summary(with_pilot))
     # the pilot is the plan's first phase: its snapshots move the progress along it (no volume of the run in them, no
     # loss history), then the stages go on from there; the count never goes back
@@ -68,6 +68,21 @@ def test_a_pilot_that_keeps_nothing_leaves_the_run_as_it_was(soft_pupil) -> None
     counts = [s.plan_iteration for s in snaps]
     assert counts == sorted(counts) and counts[-1] == with_pilot.plan.iterations
     assert len(with_pilot.history) == len(without.history)
+
+
+def test_a_resumed_run_keeps_the_early_trials(soft_pupil, tmp_path) -> None:
+    """The pilot's trial (it kept nothing) is in the run's state: a run resumed from the first stage's checkpoint lists
+    it first, as the run that went through does, and does not run the pilot again."""
+    cfg = _config()
+    whole = Reconstructor(soft_pupil, cfg, device="cpu")
+    list(whole.run(checkpoint_dir=tmp_path))
+    resumed = Reconstructor.from_checkpoint(tmp_path / "stage_0.pt", soft_pupil, device="cpu")
+    assert resumed.early_trials is not None and resumed.early_trials.trials[0]["part"] == "pupil"
+    snaps = list(resumed.run())
+    assert not any(s.phase == PUPIL_PILOT for s in snaps)
+    first, again = whole.parts_choice.trials[0], resumed.parts_choice.trials[0]
+    assert again["pass"] == 0 and not again["on"]
+    assert (again["part"], again["validation_error"]) == (first["part"], first["validation_error"])
 
 
 def test_a_pupil_kept_before_the_stages_is_on_from_the_first(soft_pupil, monkeypatch) -> None:

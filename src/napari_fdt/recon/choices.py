@@ -18,12 +18,11 @@
 
 from __future__ import annotations
 
-import dataclasses
 import time
 from typing import TYPE_CHECKING, Callable, Generator
 
 from napari_fdt.recon.calibration import PUPIL_PARAMETERS
-from napari_fdt.recon.model_parts import FINEST_ONLY_PARTS, PARTS, PartsChoice, parts_stage
+from napari_fdt.recon.model_parts import FINEST_ONLY_PARTS, PARTS, EarlyTrials, PartsChoice, parts_stage
 from napari_fdt.recon.parts_coarse_end import choose_fitted_parts_at_coarse_end, coarse_end_test_due
 from napari_fdt.recon.parts_pilot import choose_pupil_parts_first, pilot_due, start_with_parts
 from napari_fdt.recon.parts_search import choose_parts
@@ -75,7 +74,7 @@ class ChooseModelParts:
             if outcome.kept:  # on from the first stage: no stage runs twice for them
                 start_with_parts(rec, outcome)
                 return Verdict.FROM_FIRST_STAGE
-            rec._pilot_record = outcome
+            rec.early_trials = EarlyTrials(list(outcome.trials), outcome.seconds)  # listed first by the choice to come
         due = (rec.parts_choice is None or rec._choose_again) and work.stage.index == parts_stage(cfg)
         if again or not due:
             return Verdict.GO_ON
@@ -117,9 +116,7 @@ class ChooseModelParts:
         # the stage again from its start, with the kept parts on from their fitted values (a phase of its own, priced
         # with them)
         phase = rec.plan.phases[rec._phase_index]
-        priced = rec._stage_phase(phase.stage, phase.pass_name, kept)
-        again = dataclasses.replace(phase, parts=kept, seconds_per_iteration=priced.seconds_per_iteration,
-                                    fft_shape=priced.fft_shape)
+        again = phase.priced_as(rec._stage_phase(phase.stage, phase.pass_name, kept), label=True)
         rec._revise_plan(rec.plan.with_rerun([again], choice_to_come=choose_again))
         rec._phase_index = len(rec.plan.phases) - 1
         fitted = rec.calibration.copy_values(PUPIL_PARAMETERS)

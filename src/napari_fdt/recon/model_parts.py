@@ -45,7 +45,7 @@ from napari_fdt.recon.config import AUTO, SolverConfig
 
 __all__ = ["PARTS", "BINARY_PARTS", "FITTED_PARTS", "SETTING_OF", "STANDARD_ERRORS_LEVEL", "standard_errors", "MIN_IMPROVEMENT", "FIT_ITERATIONS",
            "FIT_IMAGES", "FIT_RATES", "PILOT_ITERATIONS", "PILOT_BATCH",
-           "FINEST_ONLY_PARTS", "PartsChoice", "pupil_pilot_wanted", "decide", "switch", "requested_parts", "parts_stage"]
+           "FINEST_ONLY_PARTS", "PartsChoice", "EarlyTrials", "pupil_pilot_wanted", "decide", "switch", "requested_parts", "parts_stage"]
 
 #: Parts without parameters, tried first, in this order (sub-slices first: a spectral model or a pupil fit can absorb
 #: part of a thin screen's error, as the spectral model did on beads simulated with sub-slices, docs/benchmarks.md).
@@ -204,3 +204,20 @@ class PartsChoice:
                    reference_error=d.get("reference_error"), reference_image_errors=list(d.get("reference_image_errors", [])),
                    trials=list(d.get("trials", [])), fitted=dict(d.get("fitted", {})), seconds=float(d.get("seconds", 0.0)),
                    rerun=d.get("rerun"), pending=list(d.get("pending", [])))
+
+
+@dataclass
+class EarlyTrials:
+    """Trials of ``"auto"`` parts made before the finest stage's choice that kept nothing: the pupil's pilot at Δn = 0
+    (``"pass": 0``) and the last coarse stage's end (``"pass": 1``, ``"at_stage"``). The finest stage's choice lists
+    them first (RI.json's ``model_parts.trials``); ``seconds``: what they took. Saved in checkpoints with the run's state."""
+
+    trials: list[dict[str, Any]] = field(default_factory=list)
+    seconds: float = 0.0
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"trials": list(self.trials), "seconds": self.seconds}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> "EarlyTrials":
+        return cls(list(d.get("trials", [])), float(d.get("seconds", 0.0)))

@@ -27,8 +27,7 @@ import dataclasses
 import time
 from typing import TYPE_CHECKING, Callable
 
-from napari_fdt.recon.model_parts import COARSE_END_MIN_IMPROVEMENT, FITTED_PARTS, PARTS, PartsChoice, next_pass, parts_stage
-from napari_fdt.recon.parts_pilot import PilotOutcome
+from napari_fdt.recon.model_parts import COARSE_END_MIN_IMPROVEMENT, FITTED_PARTS, PARTS, EarlyTrials, PartsChoice, next_pass, parts_stage
 from napari_fdt.recon.parts_search import choice_errors, pupil_values, try_fitted_parts
 from napari_fdt.recon.parts_switch import restart_with_parts, set_parts
 from napari_fdt.recon.phases import RERUN, RUN
@@ -103,11 +102,11 @@ def choose_fitted_parts_at_coarse_end(rec: Reconstructor, work: StageWork, shoul
         _keep_for_the_finest_stage(rec, tested[0], kept, at, ref_err, seconds)
         return False
     trials = [{**t, "pass": 1, "at_stage": at, "reference_error": ref_err} for t in tested[0]]
-    pilot = rec._pilot_record
-    if pilot is not None:  # the pupil's pilot kept nothing: its trials first
-        trials, seconds = pilot.trials + trials, seconds + pilot.seconds
+    early = rec.early_trials
+    if early is not None:  # the pupil's pilot kept nothing: its trials first
+        trials, seconds = early.trials + trials, seconds + early.seconds
     if not kept:  # as it was; the finest stage's end tries them again (its choice lists these trials first)
-        rec._pilot_record = PilotOutcome([], {}, trials, seconds=seconds)
+        rec.early_trials = EarlyTrials(trials, seconds)
         return False
     chosen_by = {p: ("validation" if p in rec._auto_parts else rec._parts_chosen_by[p]) for p in PARTS}
     rec.apply_parts_choice(PartsChoice(dict(rec.parts), chosen_by, stage=at, iteration=work.done, reference_error=ref_err,
@@ -140,6 +139,5 @@ def _keep_for_the_finest_stage(rec: Reconstructor, trials: list[dict], kept: lis
     index = rec.plan.index(RERUN, finest)
     q = rec._stage_phase(finest, RERUN, rerun_parts(rec))
     phases = list(rec.plan.phases)
-    phases[index] = dataclasses.replace(phases[index], model=q.model, fft_shape=q.fft_shape, parts=q.parts,
-                                        seconds_per_iteration=q.seconds_per_iteration)
+    phases[index] = phases[index].priced_as(q, label=True)
     rec._revise_plan(dataclasses.replace(rec.plan, phases=tuple(phases)))

@@ -66,7 +66,7 @@ def pilot_due(rec: Reconstructor) -> bool:
     """A pilot runs where ``parts_pilot`` is on, the pupil is ``"auto"``, nothing is chosen yet (once a run) and at least
     two images are held out (the test's noise estimate); not in a distributed run (its ranks hold parts of the images:
     the finest stage's end chooses the pupil there)."""
-    return (rec.parts_choice is None and rec._pilot_record is None and rec.group is None
+    return (rec.parts_choice is None and rec.early_trials is None and rec.group is None
             and pupil_pilot_wanted(rec.config, len(rec.validation_indices), "pupil" in rec._auto_parts))
 
 
@@ -174,5 +174,5 @@ def start_with_parts(rec: Reconstructor, outcome: PilotOutcome) -> None:
             phases.append(p)
             continue
         q = rec._stage_phase(p.stage, p.pass_name, kept)
-        phases.append(replace(p, model=q.model, fft_shape=q.fft_shape, seconds_per_iteration=q.seconds_per_iteration))
+        phases.append(p.priced_as(q))
     rec._revise_plan(replace(rec.plan, phases=tuple(phases)))

@@ -87,10 +87,10 @@ def choose_parts(rec: Reconstructor, stage: Stage, mask: torch.Tensor | None, sh
                          fitted=pupil_values(rec, [p for p in FITTED_PARTS if rec.parts[p]]),
                          seconds=time.perf_counter() - t0)
     first = rec.parts_choice
-    pilot = rec._pilot_record
-    if first is None and pilot is not None:  # the pilot before the stages kept nothing: its trials come first
-        choice.trials = pilot.trials + trials
-        choice.seconds += pilot.seconds
+    early = rec.early_trials
+    if first is None and early is not None:  # the tests before this stage (the pilot, the coarse stage's end) kept nothing: theirs first
+        choice.trials = early.trials + trials
+        choice.seconds += early.seconds
     if first is not None and first.rerun in ("stages", "finest", "before"):
         # a later pass's choice (after every stage, or the finest stage, ran again with the kept parts; or after the
         # pilot kept parts before the stages): every pass's trials, each with its pass and what ran again before it,

@@ -126,6 +126,12 @@ class Phase:
             return f"{where} again with {'+'.join(self.parts)}" if self.parts else f"{where} again"
         return where
 
+    def priced_as(self, other: "Phase", label: bool = False) -> "Phase":
+        """This phase with ``other``'s model, FFT grid and seconds per iteration: a stage priced again for the parts a
+        choice kept (``other`` from :func:`stage_phase` with them); ``label``: its ``parts`` too (its name says them)."""
+        return replace(self, model=other.model, fft_shape=other.fft_shape, seconds_per_iteration=other.seconds_per_iteration,
+                       **({"parts": other.parts} if label else {}))
+
     def to_dict(self) -> dict[str, Any]:
         return {"name": self.name, "phase": self.pass_name, "stage": self.stage, "factor": self.factor, "model": self.model,
                 "iterations": self.iterations, "fft_shape": list(self.fft_shape),

@@ -1,8 +1,8 @@
 """The state of a run in one object: what training changes and what the run has decided so far.
 
 :class:`RunState` holds the RI grid, the calibration (its parameters and their Adam optimiser), the batch order, the
-completed stages and their records, the history, the solver's seconds, the choices made (TV weights, model parts) and
-the last complete stage (what a cancel returns to). A checkpoint is its :meth:`~RunState.state_dict` beside the
+completed stages and their records, the history, the solver's seconds, the choices made (TV weights, model parts, the
+trials of parts made early that kept nothing) and the last complete stage (what a cancel returns to). A checkpoint is its :meth:`~RunState.state_dict` beside the
 configuration and the acquisition's size (:mod:`napari_fdt.recon.checkpoint`); resuming loads it back
 (:meth:`~RunState.load_state_dict`); a choice that sends the run back to its first stage replaces it by a fresh one
 (:meth:`~RunState.fresh`) that keeps the choices. The :class:`~napari_fdt.recon.solver.Reconstructor` reads and writes
@@ -18,7 +18,7 @@ import torch
 
 from napari_fdt.recon.batches import BatchOrder
 from napari_fdt.recon.calibration import Calibration
-from napari_fdt.recon.model_parts import PartsChoice
+from napari_fdt.recon.model_parts import EarlyTrials, PartsChoice
 from napari_fdt.recon.regularisation import TVChoice
 from napari_fdt.recon.snapshot import Snapshot, StageRecord
 from napari_fdt.recon.volume import RIVolume
@@ -44,6 +44,8 @@ class RunState:
     tv_choice: TVChoice | None = None
     #: what the choice of the "auto" model parts tried and chose (None until made)
     parts_choice: PartsChoice | None = None
+    #: trials of parts made before the finest stage's choice that kept nothing (None: none made)
+    early_trials: EarlyTrials | None = None
     #: the snapshot of the last complete stage, and copies of the state it ended with (a cancel returns there)
     last_complete: Snapshot | None = None
     last_complete_state: dict[str, Any] | None = None
@@ -52,6 +54,7 @@ class RunState:
         """The state before any stage ran, with the choices made so far and the seconds spent (and, if asked, the last
         complete stage)."""
         return RunState(calibration, batches, elapsed_s=self.elapsed_s, tv_choice=self.tv_choice, parts_choice=self.parts_choice,
+                        early_trials=self.early_trials,
                         last_complete=self.last_complete if keep_last_complete else None,
                         last_complete_state=self.last_complete_state if keep_last_complete else None)
 
@@ -66,6 +69,7 @@ class RunState:
             "stages": [r.to_dict() for r in self.stages], "history": self.history, "elapsed_s": self.elapsed_s,
             "tv_choice": None if self.tv_choice is None else self.tv_choice.to_dict(),
             "parts_choice": None if self.parts_choice is None else self.parts_choice.to_dict(),
+            "early_trials": None if self.early_trials is None else self.early_trials.to_dict(),
         }
 
     def load_state_dict(self, state: dict[str, Any], device: torch.device, dtype: torch.dtype) -> None:
@@ -82,6 +86,8 @@ class RunState:
         choice = state.get("tv_choice")  # absent in checkpoints written before automatic regularisation
         if choice is not None:
             self.tv_choice = TVChoice(**choice)
+        early = state.get("early_trials")  # absent in checkpoints written before 2026-11-27 (their report lists fewer trials)
+        self.early_trials = None if early is None else EarlyTrials.from_dict(early)
         self.history = list(state["history"])
         self.elapsed_s = float(state["elapsed_s"])
 

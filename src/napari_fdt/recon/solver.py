@@ -102,7 +102,7 @@ class Reconstructor:
     # the run's state (:class:`~napari_fdt.recon.run_state.RunState`), read and written as attributes
     calibration, batches, volume, volume_factor = InState(), InState(), InState(), InState()
     completed_stages, stages, history, elapsed_s, final_losses = InState(), InState(), InState(), InState(), InState()
-    tv_choice, parts_choice, last_complete, last_complete_state = InState(), InState(), InState(), InState()
+    tv_choice, parts_choice, early_trials, last_complete, last_complete_state = InState(), InState(), InState(), InState(), InState()
 
     def __init__(
         self,
@@ -164,8 +164,6 @@ class Reconstructor:
         self.wavelengths, self.weights = None, None
         #: auto parts the finest stage chooses again after every stage ran again with the kept ones (``parts_rerun``)
         self._choose_again: list[str] = []
-        #: the pilot before the stages that kept no part (:mod:`napari_fdt.recon.parts_pilot`), whose trials the choice records
-        self._pilot_record = None
         #: the choices plugged into every stage (:mod:`napari_fdt.recon.choices`)
         self.choices = default_choices()
         init_parts(self)
