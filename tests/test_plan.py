@@ -268,6 +268,18 @@ def test_the_plan_says_what_keeping_a_model_part_would_add(sample) -> None:
     assert plan.if_part_kept_s > plan.phases[-1].predicted_s  # more than the finest stage alone: the coarse ones too
     assert "if the data ask for a model part" in plan.summary()
     assert plan.to_dict()["predicted_extra_s_if_a_part_is_kept"] == plan.if_part_kept_s
+    # the aberrations are tested at the x2 stage's end too: found there, the first pass's finest stage never runs
+    assert plan.early_test_stage == 1
+    assert plan.if_part_kept_early_s == pytest.approx(plan.if_part_kept_s - plan.phases[-1].predicted_s)
+    assert "where stage 2/3's end finds it: the finest stage then runs once" in plan.summary()
+    assert plan.without(len(plan.phases) - 1).if_part_kept_early_s is None  # (what a part kept there leaves of it)
+    from napari_fdt.recon.solver import Reconstructor
+
+    run_plan = Reconstructor(sample, cfg, device="cpu").plan  # the run's own plan says the same
+    assert run_plan.early_test_stage == 1 and run_plan.if_part_kept_early_s == pytest.approx(plan.if_part_kept_early_s)
+    for no_test in (replace(cfg, parts_pilot=False), replace(cfg, calibrate_aberrations=False), replace(cfg, parts_rerun="finest")):
+        other = plan_for(sample, no_test, "cpu")[0]
+        assert other.if_part_kept_early_s is None and "finds it" not in other.summary()
     # the sample's 2 µm slices are 0.84 of the depth of field: sub-slices are to choose, and keeping them alone runs the
     # finest stage again with 2 screens per slice
     finest = plan.phases[-1]

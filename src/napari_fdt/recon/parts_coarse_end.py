@@ -34,19 +34,21 @@ from napari_fdt.recon.phases import RERUN, RUN
 from napari_fdt.recon.snapshot import rerun_parts
 
 if TYPE_CHECKING:
+    from napari_fdt.recon.config import SolverConfig
     from napari_fdt.recon.solver import Reconstructor
     from napari_fdt.recon.stage_loop import StageWork
 
-__all__ = ["COARSE_END_PARTS", "coarse_end_parts", "coarse_end_test_due", "coarse_test_stage", "choose_fitted_parts_at_coarse_end"]
+__all__ = ["COARSE_END_PARTS", "coarse_end_parts", "coarse_end_test_due", "coarse_test_stage", "coarse_end_test_planned",
+           "early_test_stage", "choose_fitted_parts_at_coarse_end"]
 
 #: The parts tested at the last coarse stage's end.
 COARSE_END_PARTS = ("aberrations",)
 
 
-def coarse_test_stage(rec: Reconstructor) -> int | None:
+def coarse_test_stage(config: SolverConfig) -> int | None:
     """The stage at whose end the aberrations are tested: the last stage with iterations before the finest one and
     coarser than it (None where there is none)."""
-    cfg = rec.config
+    cfg = config
     last = parts_stage(cfg)
     before = [i for i in range(last) if cfg.stages[i].iterations > 0 and cfg.stages[i].factor > cfg.stages[last].factor]
     return before[-1] if before else None
@@ -64,12 +66,27 @@ def coarse_end_parts(rec: Reconstructor) -> list[str]:
     return []
 
 
+def coarse_end_test_planned(config: SolverConfig, n_held_out: int, aberrations_auto: bool, distributed: bool = False) -> bool:
+    """Whether a run's first pass will test the aberrations at :func:`coarse_test_stage`'s end (the plan prices what a
+    part kept there adds: :attr:`~napari_fdt.recon.plan.Plan.if_part_kept_early_s`); the conditions of
+    :func:`coarse_end_test_due` known before the run."""
+    return (bool(config.parts_pilot) and config.parts_rerun == "stages" and not distributed and n_held_out >= 2
+            and aberrations_auto and coarse_test_stage(config) is not None)
+
+
+def early_test_stage(rec: Reconstructor) -> int | None:
+    """The stage at whose end ``rec``'s first pass will test the aberrations, for its plan (None: no such test ahead)."""
+    stage = coarse_test_stage(rec.config)
+    planned = coarse_end_test_planned(rec.config, len(rec.validation_indices), "aberrations" in rec._auto_parts, rec.group is not None)
+    return stage if planned and rec.parts_choice is None and rec.completed_stages <= stage else None
+
+
 def coarse_end_test_due(rec: Reconstructor, work: StageWork) -> bool:
     """Whether the test runs at the end of ``work``'s stage: ``parts_pilot`` on, ``parts_rerun`` ``"stages"``, a part
     to try (:func:`coarse_end_parts`), at least two images held out (the test's noise estimate), not a distributed run
     (its ranks hold parts of the images), and this the stage of :func:`coarse_test_stage`."""
     return (bool(rec.config.parts_pilot) and rec.config.parts_rerun == "stages" and rec.group is None
-            and len(rec.validation_indices) >= 2 and work.stage.index == coarse_test_stage(rec) and bool(coarse_end_parts(rec)))
+            and len(rec.validation_indices) >= 2 and work.stage.index == coarse_test_stage(rec.config) and bool(coarse_end_parts(rec)))
 
 
 def choose_fitted_parts_at_coarse_end(rec: Reconstructor, work: StageWork, should_stop: Callable[[], bool] | None) -> bool | None:

@@ -147,6 +147,12 @@ class Plan:
     #: seconds more if the choice of model parts keeps one (every stage then runs again, its coarse stages multi-slice
     #: under ``coarse_model = "auto"``); None where no such choice is to come
     if_part_kept_s: float | None = None
+    #: seconds more where a part is found at the last coarse stage's end (the test of
+    #: :mod:`~napari_fdt.recon.parts_coarse_end`): every stage again, the first pass's finest stage never run; None where
+    #: no such test is planned
+    if_part_kept_early_s: float | None = None
+    #: the stage of that test
+    early_test_stage: int | None = None
     #: seconds more if the choice keeps only parts of the finest stage's model (:data:`finest_parts`: the finest stage
     #: then runs again with them), priced with all of them; None where none is to choose
     if_finest_parts_kept_s: float | None = None
@@ -207,20 +213,22 @@ class Plan:
     def without(self, index: int) -> "Plan":
         """The plan without phase ``index`` (a phase that will not run: the first pass's finest stage when a part is
         kept at the last coarse stage's end)."""
-        return replace(self, phases=self.phases[:index] + self.phases[index + 1:])
+        return replace(self, phases=self.phases[:index] + self.phases[index + 1:], if_part_kept_early_s=None, early_test_stage=None)
 
     def with_rerun(self, reruns: Sequence[Phase], choice_to_come: bool = False) -> "Plan":
         """The plan with the phases of the stages run again appended (their ``pass_name`` set to "rerun"); without
         ``choice_to_come`` no choice of parts is to come (and nothing more to price for one)."""
         phases = self.phases + tuple(replace(p, pass_name=RERUN) for p in reruns)
         if choice_to_come:
-            return replace(self, phases=phases, if_finest_parts_kept_s=None, finest_parts=())
+            return replace(self, phases=phases, if_finest_parts_kept_s=None, finest_parts=(), if_part_kept_early_s=None,
+                           early_test_stage=None)
         return Plan(phases, self.device_type)
 
     def to_dict(self) -> dict[str, Any]:
         return {"device": self.device_type, "phases": [p.to_dict() for p in self.phases],
                 "iterations": self.iterations, "predicted_total_s": self.predicted_s,
                 "predicted_extra_s_if_a_part_is_kept": self.if_part_kept_s,
+                "predicted_extra_s_if_a_part_is_kept_before_the_finest_stage": self.if_part_kept_early_s,
                 "predicted_extra_s_if_finest_parts_are_kept": self.if_finest_parts_kept_s, "finest_parts": list(self.finest_parts),
                 "pupil_pilot": self.pupil_pilot}
 
@@ -228,8 +236,13 @@ class Plan:
         """One line per phase with its iterations and predicted seconds, and the total."""
         lines = [f"  {p.name}: {p.iterations} it, ~{_seconds(p.predicted_s)}" for p in self.phases]
         if self.if_part_kept_s:
+            early = ""
+            if self.if_part_kept_early_s is not None:
+                p = next(q for q in self.phases if q.stage == self.early_test_stage)
+                early = (f" (~{_seconds(self.if_part_kept_early_s)} where stage {p.stage + 1}/{p.n_stages}'s end finds it:"
+                         " the finest stage then runs once)")
             lines.append(f"  if the data ask for a model part (pupil, aberrations, ...): every stage again, "
-                         f"~{_seconds(self.if_part_kept_s)} more")
+                         f"~{_seconds(self.if_part_kept_s)} more{early}")
         if self.if_finest_parts_kept_s:
             what = " or ".join(PART_WORDS.get(p, p) for p in self.finest_parts)
             lines.append(f"  if the data ask for {what} alone: the finest stage again with them, ~{_seconds(self.if_finest_parts_kept_s)} more")
@@ -290,7 +303,7 @@ def stage_phase(config: SolverConfig, optics: Optics, image_shape: tuple[int, in
 def make_plan(config: SolverConfig, optics: Optics, image_shape: tuple[int, int], sources_um: np.ndarray,
               coarse_model: str, device_type: str, choose_tv_at: int | None, pixel_integration: bool = False,
               parts_to_choose: bool = False, pupil_edge: float | None = None, finest_parts: tuple[str, ...] = (),
-              pupil_pilot: bool = False) -> Plan:
+              pupil_pilot: bool = False, early_test_stage: int | None = None) -> Plan:
     """The plan of a run of ``config`` (as run: its stages resolved) on ``device_type`` ("cpu" or "cuda"), with the
     initial ``sources_um`` (N, 3) µm, ``coarse_model`` resolved for the device; ``choose_tv_at``: the stage at whose
     start the ``"auto"`` TV weights are tried (None: no choice), every weight for :func:`probe_iterations` of its
@@ -300,7 +313,8 @@ def make_plan(config: SolverConfig, optics: Optics, image_shape: tuple[int, int]
     ``pixel_integration``, ``pupil_edge``: the camera model's (as the first pass runs it); ``parts_to_choose``: "auto" model parts will
     be chosen from the data (:attr:`Plan.if_part_kept_s` then says what keeping one would add); ``finest_parts``: the
     ``"auto"`` parts of the finest stage's model among them (:attr:`Plan.if_finest_parts_kept_s`); ``pupil_pilot``: the
-    pupil is tried before the stages (:attr:`Plan.pupil_pilot`)."""
+    pupil is tried before the stages (:attr:`Plan.pupil_pilot`); ``early_test_stage``: the stage at whose end the aberrations
+    are tested in the first pass (:func:`~napari_fdt.recon.parts_coarse_end.coarse_end_test_planned`; None: no such test)."""
     src = np.asarray(sources_um, dtype=np.float64)
     stages = [stage_phase(config, optics, image_shape, src, i, coarse_model, device_type, pixel_integration=pixel_integration,
                           pupil_edge=pupil_edge)
@@ -321,6 +335,9 @@ def make_plan(config: SolverConfig, optics: Optics, image_shape: tuple[int, int]
                                 pixel_integration=pixel_integration, pupil_edge=pupil_edge).predicted_s for i in range(len(config.stages)))
     elif parts_to_choose:  # parts_rerun "finest": the finest stage again
         extra = stages[-1].predicted_s
+    early = None
+    if extra is not None and config.parts_rerun == "stages" and early_test_stage is not None:
+        early = extra - stages[-1].predicted_s  # found at the coarse stage's end: the first pass's finest stage never runs
     finest_again, finest_parts = None, tuple(finest_parts) if parts_to_choose else ()
     if finest_parts:
         last = len(config.stages) - 1
@@ -330,7 +347,8 @@ def make_plan(config: SolverConfig, optics: Optics, image_shape: tuple[int, int]
         pilot = stage_phase(config, optics, image_shape, src, len(config.stages) - 1, coarse_model, device_type,
                             pixel_integration=pixel_integration, pupil_edge=pupil_edge, pilot=True)
         phases.insert(0, replace(pilot, pass_name=PUPIL_PILOT, iterations=PILOT_ITERATIONS, first_iteration=0))
-    return Plan(tuple(phases), "cuda" if device_type == "cuda" else "cpu", extra, finest_again, finest_parts)
+    return Plan(tuple(phases), "cuda" if device_type == "cuda" else "cpu", extra, early, early_test_stage if early is not None else None,
+                finest_again, finest_parts)
 
 
 def plan_for(acquisition, config: SolverConfig, device_type: str, sources_um: np.ndarray | None = None) -> tuple[Plan, np.ndarray]:
@@ -358,12 +376,15 @@ def plan_for(acquisition, config: SolverConfig, device_type: str, sources_um: np
 
     # the parts as the run starts them; pixel integration as stated, else the physical rule
     requested, _ = requested_for(cfg, acquisition)
+    from napari_fdt.recon.parts_coarse_end import coarse_end_test_planned, coarse_test_stage
+
+    early = coarse_test_stage(cfg) if coarse_end_test_planned(cfg, n_held, requested["aberrations"] is None) else None
     plan = make_plan(cfg, acquisition.optics, acquisition.image_shape, src, resolve_coarse_model(cfg.coarse_model, device_type),
                      device_type, choose_tv_at, pixel_integration=requested["pixel_integration"],
                      parts_to_choose=split and any(v is None for v in requested.values()),
                      pupil_edge=camera_model_options(cfg, acquisition)["pupil_edge"],
                      finest_parts=tuple(p for p in FINEST_ONLY_PARTS if requested[p] is None),
-                     pupil_pilot=pupil_pilot_wanted(cfg, n_held, requested["pupil"] is None))
+                     pupil_pilot=pupil_pilot_wanted(cfg, n_held, requested["pupil"] is None), early_test_stage=early)
     return plan, src
 
 

@@ -56,6 +56,7 @@ from napari_fdt.recon.choices import default_choices
 from napari_fdt.recon.config import SolverConfig, resolve_coarse_model, resolve_stage_lengths
 from napari_fdt.recon.losses import BatchShare, LossWeights, total_loss
 from napari_fdt.recon.model_parts import FINEST_ONLY_PARTS, PartsChoice
+from napari_fdt.recon.parts_coarse_end import early_test_stage
 from napari_fdt.recon.parts_pilot import pilot_due
 from napari_fdt.recon.parts_search import choice_errors, fit_images
 from napari_fdt.recon.parts_switch import apply_parts_choice, drop_parts_that_do_not_fit, init_parts
@@ -192,7 +193,8 @@ class Reconstructor:
         self.plan = make_plan(self.config, self.acquisition.optics, self.full_shape, self.initial_sources_um, self.coarse_model,
                               self.device.type, choose_tv_at, pixel_integration=self.parts["pixel_integration"],
                               parts_to_choose=self.parts_choice is None, pupil_edge=self._pupil_edge(),
-                              finest_parts=tuple(p for p in FINEST_ONLY_PARTS if p in self._auto_parts), pupil_pilot=self.completed_stages == 0 and pilot_due(self))
+                              finest_parts=tuple(p for p in FINEST_ONLY_PARTS if p in self._auto_parts), pupil_pilot=self.completed_stages == 0 and pilot_due(self),
+                              early_test_stage=early_test_stage(self))
         #: the time-left estimate from the plan and the measured times
         self.pace = Pace(self.plan)
         #: the index in :attr:`plan` of the phase now running
