@@ -22,11 +22,11 @@ import time
 from typing import TYPE_CHECKING, Callable, Generator
 
 from napari_fdt.recon.calibration import PUPIL_PARAMETERS
-from napari_fdt.recon.model_parts import FINEST_ONLY_PARTS, PARTS, EarlyTrials, PartsChoice, parts_stage
+from napari_fdt.recon.model_parts import FINEST_ONLY_PARTS, EarlyTrials, PartsChoice, parts_stage
 from napari_fdt.recon.parts_coarse_end import choose_fitted_parts_at_coarse_end, coarse_end_test_due
 from napari_fdt.recon.parts_pilot import choose_pupil_parts_first, pilot_due, start_with_parts
 from napari_fdt.recon.parts_search import choose_parts
-from napari_fdt.recon.parts_switch import finest_again_with_parts, restart_with_parts
+from napari_fdt.recon.parts_switch import finest_again_with_parts, parts_chosen_by, restart_with_parts
 from napari_fdt.recon.regularisation import selection_stages, tv_is_auto
 from napari_fdt.recon.snapshot import Snapshot
 from napari_fdt.recon.stage_loop import StageWork, Verdict, capture_branch, new_optimiser, restore_branch
@@ -79,8 +79,7 @@ class ChooseModelParts:
         if again or not due:
             return Verdict.GO_ON
         if work.stage.envelope:  # the parts belong to the multi-slice model: nothing to choose on this run's stages
-            rec.apply_parts_choice(PartsChoice(dict(rec.parts), {p: "not chosen: no multi-slice stage" if p in rec._auto_parts
-                                                                else rec._parts_chosen_by[p] for p in PARTS}))
+            rec.apply_parts_choice(PartsChoice(dict(rec.parts), parts_chosen_by(rec, "not chosen: no multi-slice stage")))
         else:  # chosen at the stage's end; the stage may run again from here
             work.choosing["parts_from"] = capture_branch(rec)
         return Verdict.GO_ON

@@ -27,9 +27,9 @@ import dataclasses
 import time
 from typing import TYPE_CHECKING, Callable
 
-from napari_fdt.recon.model_parts import COARSE_END_MIN_IMPROVEMENT, FITTED_PARTS, PARTS, EarlyTrials, PartsChoice, next_pass, parts_stage
+from napari_fdt.recon.model_parts import COARSE_END_MIN_IMPROVEMENT, FITTED_PARTS, EarlyTrials, PartsChoice, next_pass, parts_stage
 from napari_fdt.recon.parts_search import choice_errors, pupil_values, try_fitted_parts
-from napari_fdt.recon.parts_switch import restart_with_parts, set_parts
+from napari_fdt.recon.parts_switch import parts_chosen_by, restart_with_parts, set_parts
 from napari_fdt.recon.phases import RERUN, RUN
 from napari_fdt.recon.snapshot import rerun_parts
 
@@ -125,8 +125,7 @@ def choose_fitted_parts_at_coarse_end(rec: Reconstructor, work: StageWork, shoul
     if not kept:  # as it was; the finest stage's end tries them again (its choice lists these trials first)
         rec.early_trials = EarlyTrials(trials, seconds)
         return False
-    chosen_by = {p: ("validation" if p in rec._auto_parts else rec._parts_chosen_by[p]) for p in PARTS}
-    rec.apply_parts_choice(PartsChoice(dict(rec.parts), chosen_by, stage=at, iteration=work.done, reference_error=ref_err,
+    rec.apply_parts_choice(PartsChoice(dict(rec.parts), parts_chosen_by(rec), stage=at, iteration=work.done, reference_error=ref_err,
                                        reference_image_errors=list(ref_each), trials=trials,
                                        fitted=pupil_values(rec, kept), seconds=seconds))
     finest_run = rec.plan.index(RUN, parts_stage(rec.config))

@@ -28,9 +28,9 @@ import torch
 
 from napari_fdt.recon.calibration import PUPIL_PARAMETERS
 from napari_fdt.recon.losses import total_loss
-from napari_fdt.recon.model_parts import PARTS, PILOT_BATCH, PILOT_ITERATIONS, PartsChoice, decide, pupil_pilot_wanted
+from napari_fdt.recon.model_parts import PILOT_BATCH, PILOT_ITERATIONS, PartsChoice, decide, pupil_pilot_wanted
 from napari_fdt.recon.parts_search import exit_cache, fit_images, fit_pupil_parts, pupil_values
-from napari_fdt.recon.parts_switch import set_parts
+from napari_fdt.recon.parts_switch import parts_chosen_by, set_parts
 from napari_fdt.recon.phases import PUPIL_PILOT
 from napari_fdt.recon.run_validation import validation
 from napari_fdt.recon.snapshot import Snapshot, take_snapshot
@@ -159,9 +159,8 @@ def start_with_parts(rec: Reconstructor, outcome: PilotOutcome) -> None:
     as a rerun with them has); the other auto parts are chosen at the finest stage's end; the plan's phases are priced
     again for that model."""
     parts = {**rec.parts, **{p: True for p in outcome.kept}}
-    chosen_by = {p: ("validation" if p in rec._auto_parts else rec._parts_chosen_by[p]) for p in PARTS}
     fitted = {k: v for t in outcome.trials if t["part"] in outcome.kept for k, v in t["fitted"].items()}
-    choice = PartsChoice(parts, chosen_by, stage=-1, reference_error=outcome.reference_error,
+    choice = PartsChoice(parts, parts_chosen_by(rec), stage=-1, reference_error=outcome.reference_error,
                          reference_image_errors=outcome.reference_image_errors, trials=list(outcome.trials), fitted=fitted,
                          seconds=outcome.seconds, rerun="before", pending=[p for p in rec._auto_parts if not parts[p]])
     rec.apply_parts_choice(choice)

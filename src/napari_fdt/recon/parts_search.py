@@ -16,8 +16,8 @@ import torch
 from napari_fdt.model.gain import least_squares_gain
 from napari_fdt.model.render import iter_batches
 from napari_fdt.physics.aberrations import ZERNIKE_MODES
-from napari_fdt.recon.model_parts import BINARY_PARTS, FIT_IMAGES, FIT_ITERATIONS, FIT_RATES, FITTED_PARTS, MIN_IMPROVEMENT, PARTS, PartsChoice, decide, next_pass
-from napari_fdt.recon.parts_switch import set_parts
+from napari_fdt.recon.model_parts import BINARY_PARTS, FIT_IMAGES, FIT_ITERATIONS, FIT_RATES, FITTED_PARTS, MIN_IMPROVEMENT, PartsChoice, decide, next_pass
+from napari_fdt.recon.parts_switch import parts_chosen_by, set_parts
 from napari_fdt.recon.run_validation import validation
 from napari_fdt.recon.stages import Stage
 from napari_fdt.recon.validation import per_image_errors
@@ -81,8 +81,7 @@ def choose_parts(rec: Reconstructor, stage: Stage, mask: torch.Tensor | None, sh
             return None
         trials += tested[0]
         ref_each = tested[1]
-    chosen_by = {p: ("validation" if p in rec._auto_parts else rec._parts_chosen_by[p]) for p in PARTS}
-    choice = PartsChoice(dict(rec.parts), chosen_by, stage=stage.index, reference_error=reference[0],
+    choice = PartsChoice(dict(rec.parts), parts_chosen_by(rec), stage=stage.index, reference_error=reference[0],
                          reference_image_errors=reference[1], trials=trials,
                          fitted=pupil_values(rec, [p for p in FITTED_PARTS if rec.parts[p]]),
                          seconds=time.perf_counter() - t0)

@@ -17,7 +17,7 @@ from napari_fdt.recon.stages import camera_grid_drops_band, stated_pixel_integra
 if TYPE_CHECKING:
     from napari_fdt.recon.solver import Reconstructor
 
-__all__ = ["init_parts", "drop_parts_that_do_not_fit", "set_parts", "apply_parts_choice", "restart_with_parts", "finest_again_with_parts"]
+__all__ = ["init_parts", "drop_parts_that_do_not_fit", "set_parts", "parts_chosen_by", "apply_parts_choice", "restart_with_parts", "finest_again_with_parts"]
 
 
 def requested_for(cfg, acquisition) -> tuple[dict[str, bool | None], dict[str, str]]:
@@ -96,6 +96,12 @@ def drop_parts_that_do_not_fit(rec: Reconstructor, sources_um) -> None:
             rec._parts_chosen_by[part] = f"memory: {what} would need about {gib:.1f} GiB"
     if not rec._auto_parts:
         rec.apply_parts_choice(PartsChoice(dict(rec.parts), dict(rec._parts_chosen_by)))
+
+
+def parts_chosen_by(rec: Reconstructor, auto: str = "validation") -> dict[str, str]:
+    """Per part what decided its switch, for a :class:`PartsChoice`: ``auto`` for the ``"auto"`` parts (tried by the
+    held-out images), what decided the others (a setting, the acquisition, memory) as :func:`init_parts` recorded it."""
+    return {p: (auto if p in rec._auto_parts else rec._parts_chosen_by[p]) for p in PARTS}
 
 
 def set_parts(rec: Reconstructor, parts: dict[str, bool]) -> None:
