@@ -48,9 +48,8 @@ COARSE_END_PARTS = ("aberrations",)
 def coarse_test_stage(config: SolverConfig) -> int | None:
     """The stage at whose end the aberrations are tested: the last stage with iterations before the finest one and
     coarser than it (None where there is none)."""
-    cfg = config
-    last = parts_stage(cfg)
-    before = [i for i in range(last) if cfg.stages[i].iterations > 0 and cfg.stages[i].factor > cfg.stages[last].factor]
+    last = parts_stage(config)
+    before = [i for i in range(last) if config.stages[i].iterations > 0 and config.stages[i].factor > config.stages[last].factor]
     return before[-1] if before else None
 
 
@@ -66,12 +65,13 @@ def coarse_end_parts(rec: Reconstructor) -> list[str]:
     return []
 
 
-def coarse_end_test_planned(config: SolverConfig, n_held_out: int, aberrations_auto: bool, distributed: bool = False) -> bool:
-    """Whether a run's first pass will test the aberrations at :func:`coarse_test_stage`'s end (the plan prices what a
-    part kept there adds: :attr:`~napari_fdt.recon.plan.Plan.if_part_kept_early_s`); the conditions of
-    :func:`coarse_end_test_due` known before the run."""
+def coarse_end_test_planned(config: SolverConfig, n_held_out: int, parts_to_test: bool, distributed: bool = False) -> bool:
+    """Whether a test at :func:`coarse_test_stage`'s end is to run: ``parts_pilot`` on, ``parts_rerun`` ``"stages"``,
+    ``parts_to_test`` (in a first pass: the aberrations ``"auto"``), at least two images held out (the test's noise
+    estimate), not a distributed run (its ranks hold parts of the images), and such a stage. Known before the run (the
+    plan prices what a part kept there adds: :attr:`~napari_fdt.recon.plan.Plan.if_part_kept_early_s`)."""
     return (bool(config.parts_pilot) and config.parts_rerun == "stages" and not distributed and n_held_out >= 2
-            and aberrations_auto and coarse_test_stage(config) is not None)
+            and parts_to_test and coarse_test_stage(config) is not None)
 
 
 def early_test_stage(rec: Reconstructor) -> int | None:
@@ -82,11 +82,10 @@ def early_test_stage(rec: Reconstructor) -> int | None:
 
 
 def coarse_end_test_due(rec: Reconstructor, work: StageWork) -> bool:
-    """Whether the test runs at the end of ``work``'s stage: ``parts_pilot`` on, ``parts_rerun`` ``"stages"``, a part
-    to try (:func:`coarse_end_parts`), at least two images held out (the test's noise estimate), not a distributed run
-    (its ranks hold parts of the images), and this the stage of :func:`coarse_test_stage`."""
-    return (bool(rec.config.parts_pilot) and rec.config.parts_rerun == "stages" and rec.group is None
-            and len(rec.validation_indices) >= 2 and work.stage.index == coarse_test_stage(rec.config) and bool(coarse_end_parts(rec)))
+    """Whether the test runs at the end of ``work``'s stage: :func:`coarse_end_test_planned` with a part to try
+    (:func:`coarse_end_parts`), and this the stage of :func:`coarse_test_stage`."""
+    return (coarse_end_test_planned(rec.config, len(rec.validation_indices), bool(coarse_end_parts(rec)), rec.group is not None)
+            and work.stage.index == coarse_test_stage(rec.config))
 
 
 def choose_fitted_parts_at_coarse_end(rec: Reconstructor, work: StageWork, should_stop: Callable[[], bool] | None) -> bool | None:
