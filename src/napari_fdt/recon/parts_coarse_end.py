@@ -23,7 +23,6 @@ finest stage's end had never kept that pupil.
 from __future__ import annotations
 
 import copy
-import dataclasses
 import time
 from typing import TYPE_CHECKING, Callable
 
@@ -153,6 +152,4 @@ def _keep_for_the_finest_stage(rec: Reconstructor, trials: list[dict], kept: lis
     finest = parts_stage(rec.config)
     index = rec.plan.index(RERUN, finest)
     q = rec._stage_phase(finest, RERUN, rerun_parts(rec))
-    phases = list(rec.plan.phases)
-    phases[index] = phases[index].priced_as(q, label=True)
-    rec._revise_plan(dataclasses.replace(rec.plan, phases=tuple(phases)))
+    rec._revise_plan(rec.plan.with_phase(index, rec.plan.phases[index].priced_as(q, label=True)))

@@ -186,11 +186,13 @@ class Plan:
         """Iterations of the phases before phase ``index``."""
         return sum(p.iterations for p in self.phases[:index])
 
+    def with_phase(self, index: int, phase: Phase) -> "Plan":
+        """The plan with phase ``index`` replaced by ``phase``."""
+        return replace(self, phases=self.phases[:index] + (phase,) + self.phases[index + 1:])
+
     def with_iterations(self, index: int, iterations: int) -> "Plan":
         """The plan with phase ``index`` cut to ``iterations`` (the TV trials that ended early)."""
-        phases = list(self.phases)
-        phases[index] = replace(phases[index], iterations=int(iterations))
-        return replace(self, phases=tuple(phases))
+        return self.with_phase(index, replace(self.phases[index], iterations=int(iterations)))
 
     def has(self, pass_name: str, stage: int, trials: bool = False) -> bool:
         """Whether the plan holds the phase of ``pass_name`` at ``stage``."""
