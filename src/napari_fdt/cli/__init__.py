@@ -472,8 +472,9 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
 
 
 def _run_and_write(args, config, acq, out: Path, json_out: Path, truth, truth_src, group) -> int:
+    from napari_fdt.cli.resolution import add_resolution_and_write
     from napari_fdt.recon.report import describe_parts, describe_plan, write_result
-    from napari_fdt.recon.session import finish_run, open_run
+    from napari_fdt.recon.session import finish_run, open_run, resolution_due
 
     device = args.device if group is None else group.device
     rec = open_run(acq, config, device=device, resume=args.resume, group=group)
@@ -534,6 +535,8 @@ def _run_and_write(args, config, acq, out: Path, json_out: Path, truth, truth_sr
               f"normalised PSNR {m['paper_normalised']['psnr']:.1f} dB, SSIM {m['paper_normalised']['ssim']:.3f}")
     if "sources" in m:
         print(f"sources: lateral RMS error {m['sources']['lateral_rms_um']:.3f} µm (initial {m['sources_initial']['lateral_rms_um']:.3f} µm)")
+    if resolution_due(rec, cancelled):
+        add_resolution_and_write(rec, report, json_out, args.quiet)
     return 130 if cancelled else 0
 
 

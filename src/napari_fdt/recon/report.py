@@ -18,6 +18,7 @@ import torch
 from napari_fdt.data.io import check_report_free, report_path, write_json_atomic
 from napari_fdt.data.volumes import write_volume
 from napari_fdt.model.render import iter_batches
+from napari_fdt.recon.fsc import TRUTH_THRESHOLD, resolutions
 from napari_fdt.recon.metrics import image_metrics, ri_metrics
 from napari_fdt.recon.solver import Reconstructor
 
@@ -135,6 +136,10 @@ def build_report(
     metrics: dict[str, Any] = {}
     if truth_ri is not None and rec.volume is not None:
         metrics.update(ri_metrics(rec.ri_full(), truth_ri, o.n_background))
+        # the resolution the truth gives (FSC 0.5): what the half-set figure (``resolution``) is checked against
+        found = resolutions(rec.delta_n_full(), np.asarray(truth_ri, dtype=np.float64) - o.n_background, o.pixel_size_um,
+                            o.slice_spacing_um, TRUTH_THRESHOLD)
+        metrics["resolution_against_truth"] = {d: r.to_dict() for d, r in found.items()}
     if truth_sources_um is not None:
         metrics["sources"] = source_errors(src, truth_sources_um)
         metrics["sources_initial"] = source_errors(rec.initial_sources_um, truth_sources_um)

@@ -19,7 +19,7 @@ import torch
 from napari_fdt.errors import FDTWarning
 from napari_fdt.model.gain import least_squares_gain
 
-__all__ = ["holdout_indices", "spread_picks", "relative_image_error", "per_image_errors", "BestIterate", "MIN_VALIDATION_IMAGES"]
+__all__ = ["holdout_indices", "split_halves", "spread_picks", "relative_image_error", "per_image_errors", "BestIterate", "MIN_VALIDATION_IMAGES"]
 
 #: Fewest held-out images a split may have; with fewer, the error of one badly placed source would dominate.
 MIN_VALIDATION_IMAGES = 3
@@ -49,6 +49,27 @@ def holdout_indices(sources_um: np.ndarray, fraction: float) -> np.ndarray:
             FDTWarning, stacklevel=2)
         return np.zeros(0, dtype=np.int64)
     return spread_picks(src[:, :2], k)
+
+
+def split_halves(sources_um: np.ndarray, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Image indices in two halves that each cover the illumination like the whole: the images are paired with their
+    nearest neighbour by source position (x, y), one of each pair to each half at random (``seed``); an odd image out
+    goes to the first half. Both sorted."""
+    src = np.asarray(sources_um, dtype=np.float64)
+    rng = np.random.default_rng(seed)
+    left = list(rng.permutation(len(src)))
+    a: list[int] = []
+    b: list[int] = []
+    while len(left) > 1:
+        i = left.pop(0)
+        d = np.hypot(*(src[left, :2] - src[i, :2]).T)
+        j = left.pop(int(np.argmin(d)))
+        first, second = (a, b) if rng.random() < 0.5 else (b, a)
+        first.append(int(i))
+        second.append(int(j))
+    if left:
+        a.append(int(left[0]))
+    return np.array(sorted(a), dtype=np.int64), np.array(sorted(b), dtype=np.int64)
 
 
 def spread_picks(xy: np.ndarray, k: int, lloyd_steps: int = 30) -> np.ndarray:
