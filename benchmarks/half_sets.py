@@ -35,25 +35,16 @@ from napari_fdt.recon.regularisation import selection_stages
 from napari_fdt.recon.run_validation import validation
 from napari_fdt.recon.solver import Reconstructor
 from napari_fdt.recon.stage_loop import Verdict, capture_branch, new_optimiser, restore_branch
+from napari_fdt.recon.validation import split_halves
 
 OUT = results_file("half_sets", "cpu")
 
 
 def halves(sources_um: np.ndarray, train: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """Split ``train`` (image indices) in two: nearest-neighbour pairs by source (x, y), one of each pair per half."""
-    rng = np.random.default_rng(seed)
-    left = list(rng.permutation(train))
-    a, b = [], []
-    while len(left) > 1:
-        i = left.pop(0)
-        d = [np.hypot(*(sources_um[i, :2] - sources_um[j, :2])) for j in left]
-        j = left.pop(int(np.argmin(d)))
-        first, second = (a, b) if rng.random() < 0.5 else (b, a)
-        first.append(i)
-        second.append(j)
-    if left:
-        a.append(left[0])
-    return np.array(sorted(a)), np.array(sorted(b))
+    """Split ``train`` (image indices) in two: nearest-neighbour pairs by source (x, y), one of each pair per half
+    (:func:`napari_fdt.recon.validation.split_halves` on the training images)."""
+    a, b = split_halves(sources_um[train], seed)
+    return train[a], train[b]
 
 
 class Sweep:

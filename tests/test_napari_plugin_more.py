@@ -319,6 +319,34 @@ def test_error_curve_updates_during_a_run(make_napari_viewer, qtbot, tmp_path) -
     assert w._report["validation"]["n_images"] == 3 and "validation" in w.curve_caption.value
 
 
+def test_the_widget_estimates_the_resolution_when_asked(make_napari_viewer, qtbot, tmp_path) -> None:
+    """"estimate resolution" checked: after the run the halves run in the worker, the status says so, and the result
+    lines and the report hold the half-set resolution (issue 25)."""
+    sim = tiny_scene(grid=4, seed=2)
+    folder = write_acquisition(sim.acquisition, tmp_path / "sixteen")
+    viewer = make_napari_viewer()
+    _open(viewer, folder)
+    w = _docked(viewer, ReconstructionWidget(viewer))
+    _settings(w, "2x6, 1x8")
+    w.half_set_resolution.value = True
+    assert w.config().half_set_resolution is True
+    seen: list[str] = []
+    on_update = w._on_update
+
+    def status_after(update):
+        on_update(update)
+        seen.append(w.status.value)
+
+    w._on_update = status_after
+    w.run_button.clicked.emit()
+    _wait_done(qtbot, w)
+    assert w.feedback.last_error is None
+    res = w._report.get("resolution")
+    assert any(s.startswith("estimating the resolution") for s in seen), seen[-5:]
+    assert res["n_images"] == [8, 8] and res["lateral_um"] > 0 and res["axial_um"] > 0
+    assert "resolution (half-set FSC): lateral" in w.results.value
+
+
 # -- issue 14/15: nothing a user made is lost, the hand-off to the command line, the screen ---------------------------
 
 
@@ -420,7 +448,9 @@ def test_both_widgets_fit_a_1600x1000_window(make_napari_viewer, qtbot) -> None:
     screen = QRect(0, 0, window.width(), window.height())
     r.status.value = "run #1 done: 3 stages in 96.2 s on cpu"  # as long as the lines of a finished run
     r.results.value = ("result: image fit 0.031, validation 0.031 (6 held-out images)\n"
-                       "Δn error against the truth 0.118, TV weight 1 (chosen)")
+                       "Δn error against the truth 0.118, TV weight 1 (chosen)\n"
+                       "resolution (half-set FSC): lateral ≤ 0.66 µm (the grid: the halves agree up to it), axial 6.5 µm "
+                       "(the optics' band limit)")
     qtbot.wait(100)
     for name, widget in [("Reconstruct", r.run_button), ("Cancel", r.cancel_button), ("progress", r.progress),
                          ("status", r.status), ("results", r.results),

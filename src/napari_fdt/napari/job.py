@@ -27,7 +27,8 @@ __all__ = ["Update", "JobResult", "reconstruction_job"]
 
 @dataclass
 class Update:
-    """One step of the job: ``kind`` is ``"started"`` (``rec`` set), ``"snapshot"`` or ``"evaluating"``.
+    """One step of the job: ``kind`` is ``"started"`` (``rec`` set), ``"snapshot"``, ``"evaluating"`` or
+    ``"resolution"`` (the half-set resolution's two runs begin, ``half_set_resolution``).
 
     ``ri`` (n_slices, H, W) absolute RI, or None when this snapshot is throttled away.
     """
@@ -75,7 +76,7 @@ def reconstruction_job(
     cancelled one keeps them, to be resumed.
     """
     from napari_fdt.napari.resume import clear
-    from napari_fdt.recon.session import finish_run, open_run
+    from napari_fdt.recon.session import add_resolution, finish_run, open_run, resolution_due
 
     try:
         folder = None if checkpoint_dir is None else Path(checkpoint_dir)
@@ -104,6 +105,9 @@ def reconstruction_job(
             return JobResult(rec, True, 0)  # nothing to keep
         yield Update("evaluating")
         report = finish_run(rec, cancelled, acquisition_path=acquisition_path)
+        if resolution_due(rec, cancelled):  # a cancel now stops only the halves: the run's result is kept as it is
+            yield Update("resolution")
+            report = add_resolution(rec, report, should_stop=stop.is_set) or report
         sources = rec.sources_um()
         return JobResult(rec, cancelled, rec.completed_stages, ri=rec.ri_full(), sources_um=sources, report=report)
     finally:

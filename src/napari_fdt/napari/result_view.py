@@ -122,7 +122,7 @@ def truth_error(viewer, acq_layer, ri: np.ndarray, n_background: float) -> float
 
 def results_line(report: dict[str, Any] | None, truth_err: float | None = None) -> str:
     """The run's key numbers in two short lines: image fit and validation error (relative, 0 is perfect); the error
-    against a loaded truth and the TV weight chosen."""
+    against a loaded truth and the TV weight chosen; the half-set resolution where the run estimated it."""
     report = report or {}
     first, second = [], []
     fit = report.get("image_fit") or {}
@@ -139,6 +139,11 @@ def results_line(report: dict[str, Any] | None, truth_err: float | None = None) 
     lines = ["result: " + (", ".join(first) if first else "no image fit")]
     if second:
         lines.append(", ".join(second))
+    res = report.get("resolution")
+    if res:
+        from napari_fdt.recon.half_sets import describe_bound
+
+        lines.append(f"resolution (half-set FSC): lateral {describe_bound(res, 'lateral')}, axial {describe_bound(res, 'axial')}")
     return "\n".join(lines)
 
 

@@ -69,7 +69,7 @@ _FIELDS = ("stages", "coarse_model", "batch_size", "l1_l2_total", "ssim_weight",
            "calibrate_sources", "calibrate_gain", "calibrate_source_depth", "calibrate_pixel_size",
            "calibrate_slice_spacing", "calibration_from_stage", "coherence", "mask_threshold", "seed", "snapshot_every",
            "validation_fraction", "early_stopping", "pixel_integration", "obliquity_correction", "calibrate_pupil",
-           "calibrate_aberrations", "sub_slices")  # (no experimental setting: a loaded settings file keeps them)
+           "calibrate_aberrations", "sub_slices", "half_set_resolution")  # (no experimental setting: a loaded settings file keeps them)
 #: Settings the widget numbers from 1 (as the status line does) while the configuration counts from 0.
 _ONE_BASED = ("calibration_from_stage",)
 
@@ -124,6 +124,7 @@ class ReconstructionWidget(ResultActions, Container):
         self.snapshot_every = f("snapshot_every", "progress every (it)")
         self.validation_fraction = f("validation_fraction", "validation share", step=0.05)
         self.early_stopping = f("early_stopping", "early stopping")
+        self.half_set_resolution = f("half_set_resolution", "estimate resolution (2 half runs)")
         self.save_settings_button = PushButton(text="Save settings…")
         self.load_settings_button = PushButton(text="Load settings…")
         self.run_button = PushButton(text="Reconstruct")
@@ -155,7 +156,7 @@ class ReconstructionWidget(ResultActions, Container):
         parts = Container(widgets=[self.sub_slices, self.pixel_integration, self.obliquity_correction, self.calibrate_pupil,
                                    self.calibrate_aberrations, self.parts_info])
         run = Container(widgets=[
-            self.device, self.seed, self.snapshot_every, self.validation_fraction, self.early_stopping,
+            self.device, self.seed, self.snapshot_every, self.validation_fraction, self.early_stopping, self.half_set_resolution,
             Container(widgets=[self.save_settings_button, self.load_settings_button], layout="horizontal", labels=False)])
         self.details = Container(widgets=[self.losses, self.curve_caption])
         results = Container(widgets=[self.compare_index, self.compare_button, self.coverage_button])
@@ -441,8 +442,9 @@ class ReconstructionWidget(ResultActions, Container):
             return
         if update.kind == "started":
             return
-        if update.kind == "evaluating":
-            self.status.value = "evaluating the fit of every image…"
+        if update.kind in ("evaluating", "resolution"):
+            self.status.value = ("evaluating the fit of every image…" if update.kind == "evaluating" else
+                                 "estimating the resolution: each half of the images reconstructed again (Cancel keeps the result)…")
             return
         snap = update.snapshot
         # one bar for the whole plan (the stages, the TV trials, the stages run again with kept parts): it never restarts
