@@ -210,3 +210,22 @@ def test_the_phasor_is_exp_i_phase_with_its_gradient() -> None:
     p = torch.tensor(phase, dtype=torch.float64, requires_grad=True)
     m = torch.tensor(mag, dtype=torch.float64, requires_grad=True)
     assert torch.autograd.gradcheck(phasor, (p, m))
+
+
+def test_an_absurd_focal_plane_or_depth_is_capped_or_refused_at_once() -> None:
+    """A focal plane 4e15 µm away (a corrupted acquisition.json: hypothesis found it) caps the window with a warning,
+    and sources 1e15 µm deep are refused, both without searching 5-smooth sizes near 1e16 px (which hung `fdt info`)."""
+    import warnings
+
+    from napari_fdt.errors import FDTInputError
+    from napari_fdt.physics.grid import MAX_PADDED_SIDE, plan_grid
+
+    o = Optics(wavelength_um=0.635, n_background=1.33, na=0.8, pixel_size_um=0.33, n_slices=4, slice_spacing_um=2.0,
+               image_plane_um=-4.0e15)
+    with warnings.catch_warnings(record=True):
+        warnings.simplefilter("always")
+        plan = plan_grid(o, (16, 16), (1.0, 1.0), 20.0)
+    assert max(plan.padded_shape) == MAX_PADDED_SIDE
+    with pytest.raises(FDTInputError, match="window"):
+        plan_grid(Optics(wavelength_um=0.635, n_background=1.33, na=0.8, pixel_size_um=0.33, n_slices=4, slice_spacing_um=2.0),
+                  (16, 16), (1.0, 1.0), 1.0e15)

@@ -76,6 +76,13 @@ def next_fast_even(n: int) -> int:
         n += 1
 
 
+def _fast_even_up_to(n: int, limit: int) -> int:
+    """:func:`next_fast_even` of ``n`` where ``n ≤ limit``; ``n`` itself above (a window refused or capped by the
+    caller: the search would walk the gaps between 5-smooth numbers near an absurd size, 1e16 px for a focal plane
+    given in metres)."""
+    return next_fast_even(n) if n <= limit else int(n)
+
+
 @dataclass(frozen=True)
 class GridPlan:
     """Where and how the forward model samples the field.
@@ -170,7 +177,7 @@ def plan_grid(
     for n_pix, offset_um in zip((h, w), max_source_offset_um):
         half_image = (n_pix // 2) * dx + dx  # conservative: the far edge of the image
         need_um = max(n_pix * dx + 2 * margin, half_image + margin + abs(float(offset_um)) + reach)
-        n_pad = next_fast_even(max(n_pix + 2, math.ceil(need_um / dx - 1e-9)))
+        n_pad = _fast_even_up_to(max(n_pix + 2, math.ceil(need_um / dx - 1e-9)), MAX_PADDED_SIDE)
         if n_pad > MAX_PADDED_SIDE:
             raise FDTInputError(
                 "sources_um",
@@ -179,7 +186,7 @@ def plan_grid(
                 "check the units (µm) of depth, pixel_size_um and slice_spacing_um, or crop the source range",
             )
         tail_need_um = half_image + abs(float(offset_um)) + pupil_reach
-        n_tail = next_fast_even(max(n_pad, math.ceil(tail_need_um / dx - 1e-9)))
+        n_tail = _fast_even_up_to(max(n_pad, math.ceil(tail_need_um / dx - 1e-9)), MAX_PADDED_SIDE)
         if n_tail > MAX_PADDED_SIDE:
             clearance = MAX_PADDED_SIDE * dx - (half_image + abs(float(offset_um)) + h_cam * tan_lo)
             capped.append((n_tail, max(0.0, clearance)))
