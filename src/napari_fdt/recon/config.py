@@ -203,9 +203,10 @@ class SolverConfig:
         "Held-out images still fit their own position and gain, never the volume",
         fix="0.1 holds out 10 %; 0 turns validation off", tier="basic")
     half_set_resolution: bool = setting(
-        False, description="after the run, reconstruct each half of the images again with the run's choices and compare the two "
-        "volumes (Fourier shell correlation at 1/7): the lateral and axial resolution in RI.json. Two runs on half of the images (1.3-1.6 runs on the suite); what no "
-        "image constrains is filled alike in both halves and not counted against it (docs/guide.md, \"What size of structure can I believe?\")",
+        False, description="after the run, reconstruct each half of the images again with the run's choices and compare the "
+        "two volumes (Fourier shell correlation at 1/7, and the optics' band limit): the lateral and axial resolution in "
+        "RI.json. Two runs on half of the images (1.1-1.7 runs' time on the suite); an error both halves share is not seen, "
+        "so the figure is a best case (docs/guide.md, \"What size of structure can I believe?\")",
         fix="true or false")
     early_stopping: EarlyStopping = setting(
         "best", strict=False, description="`\"best\"`: each stage ends on its iterate of lowest validation error (when the last is worse "

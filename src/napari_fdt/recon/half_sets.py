@@ -110,8 +110,9 @@ def describe_resolution(summary: dict[str, Any]) -> str:
     """One line for people (the CLI) from :meth:`HalfSetResolution.to_dict`."""
     a, b = summary["n_images"]
     return (f"resolution (half-set FSC at 1/7, {a} + {b} images, {summary['seconds']:.0f} s): lateral "
-            f"{describe_bound(summary, 'lateral')}, axial {describe_bound(summary, 'axial')}; an upper bound: what both halves "
-            "get wrong alike (a model error, what no image constrains inside the band) is not counted against it")
+            f"{describe_bound(summary, 'lateral')}, axial {describe_bound(summary, 'axial')}. Finer structure is not "
+            "resolved; coarser structure is at best: an error both halves share (a model error, what no image constrains "
+            "inside the band) is not seen")
 
 
 def half_set_resolution(rec: Reconstructor, *, should_stop: Callable[[], bool] | None = None,
