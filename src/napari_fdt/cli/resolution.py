@@ -16,7 +16,7 @@ __all__ = ["add_resolution_and_write"]
 
 def add_resolution_and_write(rec, report: dict[str, Any], json_out: Path, quiet: bool) -> None:
     """The half-set resolution after the result is written (``half_set_resolution``); an interrupt loses only the figure."""
-    print("resolution: each half of the images is reconstructed again with the run's choices (about two more runs)", file=sys.stderr)
+    print("resolution: each half of the images is reconstructed again with the run's choices (two runs on half the images)", file=sys.stderr)
     try:
         done = add_resolution(rec, report, on_half=None if quiet else lambda i: print(f"  half {i + 1}/2", file=sys.stderr))
     except KeyboardInterrupt:

@@ -141,9 +141,9 @@ def results_line(report: dict[str, Any] | None, truth_err: float | None = None) 
         lines.append(", ".join(second))
     res = report.get("resolution")
     if res:
-        from napari_fdt.recon.half_sets import describe_bound
+        from napari_fdt.recon.half_sets import describe_bounds
 
-        lines.append(f"resolution (half-set FSC): lateral {describe_bound(res, 'lateral')}, axial {describe_bound(res, 'axial')}")
+        lines.append(f"resolution (half-set FSC): {describe_bounds(res)}")
     return "\n".join(lines)
 
 

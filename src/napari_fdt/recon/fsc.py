@@ -52,7 +52,6 @@ class FscCurve:
 
 def _taper(shape: tuple[int, int, int]) -> np.ndarray:
     """(1, Y, X) weights: 1 inside, a cosine edge over the outer eighth of each lateral side."""
-    out = np.ones((1, 1), dtype=np.float64)
     profiles = []
     for n in shape[1:]:
         m = max(1, n // 8)
@@ -60,8 +59,7 @@ def _taper(shape: tuple[int, int, int]) -> np.ndarray:
         prof = np.ones(n)
         prof[:m], prof[n - m:] = edge, edge[::-1]
         profiles.append(prof)
-    out = profiles[0][:, None] * profiles[1][None, :]
-    return out[None]
+    return (profiles[0][:, None] * profiles[1][None, :])[None]
 
 
 def _binned(index: np.ndarray, n_bins: int, cross: np.ndarray, pa: np.ndarray, pb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -38,7 +38,8 @@ from napari_fdt.recon.validation import split_halves
 if TYPE_CHECKING:
     from napari_fdt.recon.solver import Reconstructor
 
-__all__ = ["chosen_settings", "HalfSetResolution", "half_set_resolution", "describe_bound", "describe_resolution"]
+__all__ = ["chosen_settings", "resolution_figure", "HalfSetResolution", "half_set_resolution", "describe_bound", "describe_bounds",
+           "describe_resolution"]
 
 #: A part's setting when the run chose it off, and on (parts with a number or a model name; the others are booleans).
 #: The spectral model on stays "auto": which coherence model goes with it is the half's own choice.
@@ -64,6 +65,16 @@ def chosen_settings(rec: Reconstructor) -> SolverConfig:
     return SolverConfig.from_dict(d)
 
 
+def resolution_figure(half_sets_um: float | None, grid_um: float, band_um: float) -> tuple[float, str]:
+    """The figure reported (µm) from the halves' crossing (None: none up to the grid), the grid's Nyquist period and the
+    band limit's period, and what sets it: ``"band"`` (no image carries finer: the band limit is the coarsest),
+    ``"halves"`` (where their FSC falls below 1/7) or ``"grid"`` (the halves agree up to it and the band reaches beyond)."""
+    halves_um = grid_um if half_sets_um is None else half_sets_um
+    if band_um >= halves_um:
+        return band_um, "band"
+    return halves_um, "grid" if half_sets_um is None else "halves"
+
+
 @dataclass
 class HalfSetResolution:
     """The half-set comparison: each direction's FSC curve and where it falls below 1/7 (``found``), the optics' band
@@ -76,14 +87,9 @@ class HalfSetResolution:
     seconds: float
 
     def figure(self, direction: str) -> tuple[float, str]:
-        """The resolution (µm) in ``direction`` and what sets it: ``"halves"`` (where their FSC falls below 1/7),
-        ``"band"`` (no image carries finer: the optics' band limit is coarser than the halves' figure) or ``"grid"`` (the
-        halves agree up to the grid's Nyquist period and the band reaches beyond it)."""
+        """The resolution (µm) in ``direction`` and what sets it (:func:`resolution_figure`)."""
         found = self.found[direction]
-        band_um = 1.0 / self.band_per_um[direction]
-        if band_um >= found.bound_um:
-            return band_um, "band"
-        return found.bound_um, "grid" if found.resolution_um is None else "halves"
+        return resolution_figure(found.resolution_um, found.grid_limit_um, 1.0 / self.band_per_um[direction])
 
     def to_dict(self) -> dict[str, Any]:
         directions = {}
@@ -106,11 +112,16 @@ def describe_bound(summary: dict[str, Any], direction: str) -> str:
     return f"{'≤ ' if r['limited_by'] == 'grid' else ''}{r['resolution_um']:.2g} µm ({_LIMITS[r['limited_by']]})"
 
 
+def describe_bounds(summary: dict[str, Any]) -> str:
+    """``lateral …, axial …`` (:func:`describe_bound`): the widget's result line and the CLI's."""
+    return f"lateral {describe_bound(summary, 'lateral')}, axial {describe_bound(summary, 'axial')}"
+
+
 def describe_resolution(summary: dict[str, Any]) -> str:
     """One line for people (the CLI) from :meth:`HalfSetResolution.to_dict`."""
     a, b = summary["n_images"]
-    return (f"resolution (half-set FSC at 1/7, {a} + {b} images, {summary['seconds']:.0f} s): lateral "
-            f"{describe_bound(summary, 'lateral')}, axial {describe_bound(summary, 'axial')}. Finer structure is not "
+    return (f"resolution (half-set FSC at 1/7, {a} + {b} images, {summary['seconds']:.0f} s): "
+            f"{describe_bounds(summary)}. Finer structure is not "
             "resolved; coarser structure is at best: an error both halves share (a model error, what no image constrains "
             "inside the band) is not seen")
 
