@@ -133,6 +133,54 @@ def is_ome_zarr(path: PathLike, *, ours: bool = True) -> bool:
     return not ours or attrs.get("napari_fdt", ome.get("napari_fdt")) == _MARK
 
 
+#: Codecs an RI array may be stored with: compressors, checksums and numeric filters. Anything else is refused before
+#: zarr opens the array: the "pickle" codec (numcodecs.Pickle, read by zarr 2) would unpickle each chunk, and so run
+#: code a file carries.
+SAFE_CODECS = frozenset({"blosc", "zstd", "gzip", "zlib", "lz4", "bz2", "lzma", "crc32c", "bytes", "endian", "transpose",
+                         "shuffle", "delta", "fixedscaleoffset", "quantize", "bitround", "packbits", "astype",
+                         "sharding_indexed", "fletcher32", "jenkins_lookup3", "adler32", "crc32"})
+
+
+def _codec_names(meta: Any) -> list[str]:
+    """The codec ids (format 2: ``{"id": ...}``) or names (format 3: ``{"name": ..., "configuration": ...}``, sharding's
+    inner codecs included) in ``meta`` (a codec, a list of them or None), without numcodecs' ``numcodecs.`` prefix."""
+    if isinstance(meta, list):
+        return [n for m in meta for n in _codec_names(m)]
+    if not isinstance(meta, dict):
+        return []
+    ident = meta.get("id", meta.get("name"))
+    names = [ident.removeprefix("numcodecs.")] if isinstance(ident, str) else ["(unnamed)"]
+    conf = meta.get("configuration")
+    if isinstance(conf, dict):
+        names += _codec_names(conf.get("codecs")) + _codec_names(conf.get("index_codecs"))
+    return names
+
+
+def _check_array_metadata(folder: Path, field_name: str) -> None:
+    """Refuse an array whose JSON metadata names a data type other than numbers or a codec not in :data:`SAFE_CODECS`,
+    before zarr reads any of it (FDTInputError naming the field)."""
+    for name, fmt in ((".zarray", 2), ("zarr.json", 3)):
+        f = folder / name
+        if not f.is_file():
+            continue
+        try:
+            meta = json.loads(f.read_text(encoding="utf-8"))
+        except (OSError, ValueError) as exc:
+            raise FDTInputError(field_name, f"its array metadata {f} cannot be read: {exc}", "check the folder is a complete OME-Zarr image") from None
+        dtype = meta.get("dtype") if fmt == 2 else meta.get("data_type")
+        try:
+            kind = np.dtype(dtype).kind if isinstance(dtype, str) else "O"
+        except TypeError:
+            kind = "O"
+        if kind not in "biuf":
+            raise FDTInputError(field_name, f"its array holds {dtype!r} data, not numbers", "give an RI volume of numbers (float32)")
+        unknown = sorted(set(_codec_names([meta.get(k) for k in ("compressor", "filters", "codecs")])) - SAFE_CODECS)
+        if unknown:
+            raise FDTInputError(field_name, f"its array is stored with codec(s) {', '.join(unknown)}, which napari-fdt does not "
+                                "read (a pickle codec would run code from the file)", "write it again with a standard compressor (zstd, blosc)")
+        return
+
+
 _UNITS_UM = {"micrometer": 1.0, "nanometer": 1e-3, "millimeter": 1e3, "meter": 1e6, "angstrom": 1e-4, None: 1.0}
 
 
@@ -164,6 +212,7 @@ def read_volume_zarr(path: PathLike) -> tuple[np.ndarray, tuple[float, float, fl
                 translation = translation * np.asarray(t["scale"], dtype=float)
             elif t.get("type") == "translation":
                 translation = translation + np.asarray(t["translation"], dtype=float)
+    _check_array_metadata(p / dataset["path"], field_name)
     zarr = _zarr()
     try:
         arr = zarr.open_array(str(p / dataset["path"]), mode="r")
