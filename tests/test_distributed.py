@@ -343,3 +343,105 @@ def test_a_rank_failing_mid_run_ends_the_launch_without_output(runs, tmp_path: P
     assert proc.returncode != 0
     assert "injected failure on rank 1" in proc.stderr
     assert not (root / "failed").exists()
+
+
+# --------------------------------------------------------------------------------------------
+# Every configuration a single run accepts (issue 46): ranks 2 and 3, batch 1, 2, 4 and the default, validation on and
+# off, the model parts and the TV weight fixed or chosen by the data, in a pairwise design (every pair of two settings'
+# values is run once: 8 launches)
+# --------------------------------------------------------------------------------------------
+
+#: (ranks, batch_size (None: the default), validation, auto): every pair of values of two settings appears.
+MATRIX = [(2, 1, True, True), (3, 1, False, False), (2, 2, False, True), (3, 2, True, False),
+          (2, 4, True, False), (3, 4, False, True), (2, None, False, False), (3, None, True, True)]
+#: How much more than one float32 ulp of noise in its predictions moves the single process a distributed run may differ by.
+ULP_FACTOR = 3.0
+
+
+def _matrix_config(batch: int | None, validation: bool, auto: bool) -> SolverConfig:
+    """Short stages on the 16-image scene; ``auto``: the defaults (TV weights and model parts chosen by the data: the TV
+    trials, the pupil's pilot, the coarse stage's and the finest stage's tests), else fixed weights and parts."""
+    kw: dict = dict(stages=[StageConfig(2, 4), StageConfig(1, 6)], snapshot_every=2, final_stage_min_passes=0,
+                    validation_fraction=0.2 if validation else 0.0, checkpoint_every_s=0.0)
+    if batch is not None:
+        kw["batch_size"] = batch
+    if not auto:
+        kw.update(tv_xy_weight=1e-3, tv_z_weight=1e-3, calibrate_pupil=False, calibrate_aberrations=False,
+                  obliquity_correction=False, sub_slices=1, coherence="mask", field_oversampling=1, pixel_integration=False)
+    return SolverConfig(**kw)
+
+
+def _single(acq, config: SolverConfig, noise_seed: int | None = None) -> dict:
+    """The single process's result; with ``noise_seed`` its predictions carry relative noise of 2^-24 (one float32 ulp)."""
+    from napari_fdt.recon.solver import Reconstructor
+
+    rec = Reconstructor(acq, config, device="cpu")
+    if noise_seed is not None:
+        g = torch.Generator().manual_seed(noise_seed)
+        predict = rec._predict_normalised
+
+        def perturbed(*args, **kwargs):
+            p = predict(*args, **kwargs)
+            return p * (1 + 2.0 ** -24 * torch.randn(p.shape, generator=g, dtype=p.dtype))
+
+        rec._predict_normalised = perturbed
+    for _ in rec.run():
+        pass
+    return {"dn": rec.delta_n_full(), "sources": rec.sources_um(), "gains": rec.gains(),
+            "tv": None if rec.tv_choice is None else [rec.tv_choice.tv_xy_weight, rec.tv_choice.tv_z_weight],
+            "parts": dict(rec.parts), "trials": None if rec.parts_choice is None else len(rec.parts_choice.trials),
+            "validation": rec.stages[-1].validation_error}
+
+
+def _gaps(a: dict, b: dict) -> np.ndarray:
+    """max |ΔΔn|, max |Δ source| µm, max relative Δ gain."""
+    return np.array([np.abs(a["dn"] - b["dn"]).max(), np.abs(a["sources"] - b["sources"]).max(),
+                     np.abs(a["gains"] / b["gains"] - 1).max()])
+
+
+@pytest.fixture(scope="module")
+def scene16_dir(tmp_path_factory, scene16):
+    return write_acquisition(scene16.acquisition, tmp_path_factory.mktemp("dist16") / "acq")
+
+
+@pytest.mark.parametrize("ranks,batch,validation,auto", MATRIX)
+def test_every_configuration_runs_distributed_and_agrees_with_one_process(scene16_dir: Path, tmp_path: Path, ranks: int,
+                                                                         batch: int | None, validation: bool, auto: bool) -> None:
+    """The launch completes (every rank joins every collective, also with none of a batch's images or only held-out ones,
+    in the TV trials, the parts' tests and the pilot, snapshots and in-stage checkpoints) and ends where one process
+    ends: the same choices, and Δn, sources and gains within the floor of the two-rank test above or within
+    :data:`ULP_FACTOR` times what one float32 ulp of noise moves the single process by (runs whose Adam steps amplify
+    rounding, docs/distributed.md)."""
+    from napari_fdt import read_acquisition
+
+    config = _matrix_config(batch, validation, auto)
+    config.save(tmp_path / "cfg.json")
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join([str(Path(napari_fdt.__file__).resolve().parents[1]), env.get("PYTHONPATH", "")])
+    env.update(OMP_NUM_THREADS="1", FDT_DIST_TIMEOUT_S="60")
+    for name in ("WORLD_SIZE", "RANK", "LOCAL_RANK", "MASTER_ADDR", "MASTER_PORT", "FDT_DIST_BACKEND"):
+        env.pop(name, None)
+    out = tmp_path / "RI.tif"
+    proc = _run_group([sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", str(ranks),
+                       "-m", "napari_fdt", "reconstruct", str(scene16_dir), "--config", str(tmp_path / "cfg.json"),
+                       "--device", "cpu", "--out", str(out), "--checkpoint-dir", str(tmp_path / "ck"), "--quiet"], env, timeout=240)
+    assert proc.returncode == 0, proc.stderr[-4000:]
+    ri, _ = read_volume_tiff(out)
+    report = json.loads((tmp_path / "RI.json").read_text())
+    cal = report["calibration"]
+    dist = {"dn": ri - N_BG, "sources": np.array(cal["sources_um"]), "gains": np.array(cal["gains"])}
+    assert report["distributed"]["world_size"] == ranks
+    acq = read_acquisition(scene16_dir)
+    one = _single(acq, config)
+    # the same choices, made on the same numbers
+    assert (report["regularisation"]["tv_xy_weight"], report["regularisation"]["tv_z_weight"]) == (
+        tuple(one["tv"]) if one["tv"] else (config.tv_xy_weight, config.tv_z_weight))
+    assert report["model_parts"]["parts"] == one["parts"]
+    chosen = report["model_parts"]["chosen"]  # the same tests ran (the pilot, the coarse stage's end, the finest stage's)
+    assert (0 if chosen is None else len(chosen["trials"])) == (one["trials"] or 0)
+    if validation:
+        assert report["validation"]["error"] == pytest.approx(one["validation"], rel=1e-3)
+    ulp = np.max([_gaps(_single(acq, config, noise_seed=s), one) for s in (1, 2)], axis=0)
+    floor = np.array([DN_TOL, SOURCES_TOL_UM, GAIN_RTOL])
+    assert np.all(_gaps(dist, one) <= np.maximum(floor, ULP_FACTOR * ulp)), (_gaps(dist, one), ulp)
+    assert sorted(p.name for p in (tmp_path / "ck").glob("stage_*.pt")) == ["stage_0.pt", "stage_1.pt"]

@@ -100,8 +100,11 @@ def spectral_images(
     model's cached kernels, so one such wavelength with weight 1 gives exactly ``model(...)``.
     Differentiable in ``delta_n``, ``sources_um``, ``gain``, the weights and tensor wavelengths; the
     cost is K forward passes. Further keyword arguments (``pixel_size_um``, ``slice_spacing_um``) go to
-    every model call (self-calibration).
+    every model call (self-calibration). An empty batch (B = 0) gives a (0, h, w) stack without calling the model.
     """
+    if sources_um.shape[0] == 0:  # no image to predict (a batch's share on a rank that owns none of it, or only
+        # held-out ones): no model call, since MKL's FFT refuses a batch of zero ("Inconsistent configuration parameters")
+        return torch.zeros((0, *model.image_shape), device=delta_n.device, dtype=delta_n.dtype)
     if wavelengths_um is None and weights is None:
         return model(delta_n, sources_um, gain, **optics_overrides)
     if wavelengths_um is None or weights is None:

@@ -201,6 +201,9 @@ class Calibration:
         """The per-image tensors, and with ``optimiser_state`` their Adam moments (None where not yet made)."""
         tensors: list[torch.Tensor | None] = list(self.per_source_parameters())
         if optimiser_state and self.optimiser is not None:
+            if self.optimiser.rows is not None:  # (made where no row was visited yet: every rank shares the same tensors)
+                for p in self.optimiser.rows.param_groups[0]["params"]:
+                    self.optimiser.rows.ensure_state(p)
             for p in self.per_source_parameters():
                 state = self.optimiser.state.get(p, {})
                 tensors += [state.get(k) for k in ("exp_avg", "exp_avg_sq", "visits")]
@@ -260,6 +263,20 @@ class RowAdam(torch.optim.Optimizer):
         super().__init__(params, {"lr": lr, "betas": betas, "eps": eps, "moment": moment, "damping": damping, "max_step": max_step,
                                   "cosine_visits": None, "cosine_from": 0.0})
 
+    def ensure_state(self, p: torch.Tensor) -> dict[str, torch.Tensor]:
+        """The state of ``p``, made (zero moments, no visits: what the first visit starts from) where not yet made. A
+        distributed run makes it on every rank before sharing it, so that a rank none of whose rows was visited yet
+        takes part with the same tensors as the others."""
+        st = self.state[p]
+        if not st:
+            rows = p.shape[0]
+            cols = p.reshape(rows, -1).shape[1]
+            matrix = self.param_groups[0]["moment"] == "matrix"
+            st["exp_avg"] = torch.zeros((rows, cols), dtype=p.dtype, device=p.device)
+            st["exp_avg_sq"] = torch.zeros((rows, cols, cols) if matrix else (rows, 1), dtype=p.dtype, device=p.device)
+            st["visits"] = torch.zeros(rows, dtype=p.dtype, device=p.device)
+        return st
+
     @torch.no_grad()
     def step(self, closure=None):  # noqa: D102 (torch's signature)
         for group in self.param_groups:
@@ -273,12 +290,7 @@ class RowAdam(torch.optim.Optimizer):
                 rows = (g != 0).any(dim=1).nonzero().squeeze(1)
                 if rows.numel() == 0:
                     continue
-                st = self.state[p]
-                if not st:
-                    st["exp_avg"] = torch.zeros_like(g)
-                    shape = (g.shape[0], g.shape[1], g.shape[1]) if matrix else (g.shape[0], 1)
-                    st["exp_avg_sq"] = torch.zeros(shape, dtype=g.dtype, device=g.device)
-                    st["visits"] = torch.zeros(g.shape[0], dtype=g.dtype, device=g.device)
+                st = self.ensure_state(p)
                 m, v, t = st["exp_avg"], st["exp_avg_sq"], st["visits"]
                 gr = g[rows]
                 sq = gr[:, :, None] * gr[:, None, :] if matrix else gr.square().mean(dim=1, keepdim=True)

@@ -18,6 +18,9 @@ How the work is shared (the solver calls the methods of :class:`Group`):
   owns are kept up to date there (Adam is elementwise, and the gradient of a row comes only from its
   image). :meth:`Group.share_rows` copies each row from its owner to every rank before anything reads all
   rows (snapshots, stage ends, checkpoints, the output).
+* What assesses the state (held-out errors, the parts' tests, the TV trials' choice, the pupil's pilot) is shared
+  out the same way: each rank predicts the images it owns and the per-image sums are added
+  (:func:`napari_fdt.recon.run_validation.image_errors`), so every rank decides on the same numbers.
 * Rank 0 alone writes outputs and checkpoints and prints progress.
 
 Backends: NCCL when the rank's device is a CUDA device and each rank has a GPU of its own; gloo otherwise
@@ -148,6 +151,10 @@ class Group:
             return host.to(flat.device)
         dist.all_reduce(flat, op=op)
         return flat
+
+    def sum(self, values: torch.Tensor) -> torch.Tensor:
+        """``values`` summed over ranks (every rank must call this with the same shape; the same result on all)."""
+        return self._all_reduce(values.clone())
 
     def any(self, flag: bool) -> bool:
         """Whether ``flag`` is true on any rank (every rank must call this)."""

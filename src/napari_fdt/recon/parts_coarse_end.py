@@ -64,26 +64,26 @@ def coarse_end_parts(rec: Reconstructor) -> list[str]:
     return []
 
 
-def coarse_end_test_planned(config: SolverConfig, n_held_out: int, parts_to_test: bool, distributed: bool = False) -> bool:
+def coarse_end_test_planned(config: SolverConfig, n_held_out: int, parts_to_test: bool) -> bool:
     """Whether a test at :func:`coarse_test_stage`'s end is to run: ``parts_pilot`` on, ``parts_rerun`` ``"stages"``,
     ``parts_to_test`` (in a first pass: the aberrations ``"auto"``), at least two images held out (the test's noise
-    estimate), not a distributed run (its ranks hold parts of the images), and such a stage. Known before the run (the
-    plan prices what a part kept there adds: :attr:`~napari_fdt.recon.plan.Plan.if_part_kept_early_s`)."""
-    return (bool(config.parts_pilot) and config.parts_rerun == "stages" and not distributed and n_held_out >= 2
+    estimate), and such a stage (in a distributed run too: each rank predicts and fits on its own images). Known before
+    the run (the plan prices what a part kept there adds: :attr:`~napari_fdt.recon.plan.Plan.if_part_kept_early_s`)."""
+    return (bool(config.parts_pilot) and config.parts_rerun == "stages" and n_held_out >= 2
             and parts_to_test and coarse_test_stage(config) is not None)
 
 
 def early_test_stage(rec: Reconstructor) -> int | None:
     """The stage at whose end ``rec``'s first pass will test the aberrations, for its plan (None: no such test ahead)."""
     stage = coarse_test_stage(rec.config)
-    planned = coarse_end_test_planned(rec.config, len(rec.validation_indices), "aberrations" in rec._auto_parts, rec.group is not None)
+    planned = coarse_end_test_planned(rec.config, len(rec.validation_indices), "aberrations" in rec._auto_parts)
     return stage if planned and rec.parts_choice is None and rec.completed_stages <= stage else None
 
 
 def coarse_end_test_due(rec: Reconstructor, work: StageWork) -> bool:
     """Whether the test runs at the end of ``work``'s stage: :func:`coarse_end_test_planned` with a part to try
     (:func:`coarse_end_parts`), and this the stage of :func:`coarse_test_stage`."""
-    return (coarse_end_test_planned(rec.config, len(rec.validation_indices), bool(coarse_end_parts(rec)), rec.group is not None)
+    return (coarse_end_test_planned(rec.config, len(rec.validation_indices), bool(coarse_end_parts(rec)))
             and work.stage.index == coarse_test_stage(rec.config))
 
 

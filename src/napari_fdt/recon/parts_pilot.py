@@ -27,7 +27,7 @@ import numpy as np
 import torch
 
 from napari_fdt.recon.calibration import PUPIL_PARAMETERS
-from napari_fdt.recon.losses import total_loss
+from napari_fdt.recon.losses import BatchShare, total_loss
 from napari_fdt.recon.model_parts import PILOT_BATCH, PILOT_ITERATIONS, PartsChoice, decide, pupil_pilot_wanted
 from napari_fdt.recon.parts_search import exit_cache, fit_images, fit_pupil_parts, pupil_values
 from napari_fdt.recon.parts_switch import parts_chosen_by, set_parts
@@ -64,9 +64,9 @@ class PilotOutcome:
 
 def pilot_due(rec: Reconstructor) -> bool:
     """A pilot runs where ``parts_pilot`` is on, the pupil is ``"auto"``, nothing is chosen yet (once a run) and at least
-    two images are held out (the test's noise estimate); not in a distributed run (its ranks hold parts of the images:
-    the finest stage's end chooses the pupil there)."""
-    return (rec.parts_choice is None and rec.early_trials is None and rec.group is None
+    two images are held out (the test's noise estimate). In a distributed run every rank runs it, each on its own images
+    (their gradients summed, their errors added: :func:`~napari_fdt.recon.run_validation.image_errors`)."""
+    return (rec.parts_choice is None and rec.early_trials is None
             and pupil_pilot_wanted(rec.config, len(rec.validation_indices), "pupil" in rec._auto_parts))
 
 
@@ -111,11 +111,20 @@ def choose_pupil_parts_first(rec: Reconstructor, work: StageWork,
                 f = fit[torch.as_tensor(rng.permutation(len(fit))[:PILOT_BATCH], device=rec.device)]
                 h = held[torch.as_tensor(rng.permutation(len(held))[:PILOT_BATCH], device=rec.device)]
                 idx = torch.cat([f, h])
+                share = None
+                if rec.group is not None:  # as a training step: each rank its own images, normalised by the whole batch
+                    share = BatchShare.of_batch(None if mask is None else mask[idx], (len(idx), *stage.images.shape[1:]),
+                                                regularisers=rec.group.is_writer)
+                    f, h = rec.group.local(f), rec.group.local(h)
+                    idx = torch.cat([f, h])
                 pred = torch.cat([rec._predict_normalised(stage, zero, f), rec._predict_normalised(stage, zero, h, held_out=True)])
                 loss, terms = total_loss(pred, stage.images[idx], zero, rec.loss_weights, 0.0,
-                                         mask=None if mask is None else mask[idx], data_range=data_range)
+                                         mask=None if mask is None else mask[idx], data_range=data_range, share=share)
                 cal.optimiser.zero_grad(set_to_none=True)
-                loss.backward()
+                if loss.requires_grad:  # (a rank with none of the batch: no graph, zeros in the sum below)
+                    loss.backward()
+                if rec.group is not None:
+                    rec.group.reduce_gradients(list(cal.shared_parameters()), cal.per_source_parameters())
                 cal.optimiser.step()
                 if step % SNAPSHOT_EVERY == 0:
                     yield from work.hand_over(take_snapshot(rec, stage, step, work.base_iteration, terms, work.t0, False,

@@ -18,9 +18,8 @@ from napari_fdt.model.render import iter_batches
 from napari_fdt.physics.aberrations import ZERNIKE_MODES
 from napari_fdt.recon.model_parts import BINARY_PARTS, FIT_IMAGES, FIT_ITERATIONS, FIT_RATES, FITTED_PARTS, MIN_IMPROVEMENT, PartsChoice, decide, next_pass
 from napari_fdt.recon.parts_switch import parts_chosen_by, set_parts
-from napari_fdt.recon.run_validation import validation
+from napari_fdt.recon.run_validation import image_errors, validation
 from napari_fdt.recon.stages import Stage
-from napari_fdt.recon.validation import per_image_errors
 
 if TYPE_CHECKING:
     from napari_fdt.recon.solver import Reconstructor
@@ -189,12 +188,7 @@ def choice_errors(rec: Reconstructor, stage: Stage, mask: torch.Tensor | None,
         return err, each
     train = _test_training_images(rec)
     train = train[_subset(len(train), max_training)]
-    with torch.no_grad():
-        dn = rec.volume.delta_n()
-        preds = [rec._predict_normalised(stage, dn, torch.as_tensor(train[sl], device=rec.device))
-                 for sl in iter_batches(len(train), rec.config.batch_size)]
-    idx = torch.as_tensor(train, device=rec.device)
-    more = per_image_errors(torch.cat(preds), stage.images[idx], None if mask is None else mask[idx], fit_gain=True)
+    more = image_errors(rec, stage, train, mask)[1]
     return err, list(each) + list(more)
 
 
@@ -226,7 +220,7 @@ def exit_cache(rec: Reconstructor, stage: Stage) -> ExitCache:
     out = []
     with torch.no_grad():
         dn = stage.to_field_grid(rec.volume.delta_n())
-        idx_all = fit_images(rec)
+        idx_all = fit_images(rec) if rec.group is None else rec.group.local(fit_images(rec))  # (a rank's own: their rows)
         for sl in iter_batches(len(idx_all), rec.config.batch_size):
             idx = idx_all[sl]
             src = stage.stage_sources(cal.calibrated_sources()[idx])
@@ -241,7 +235,8 @@ def exit_cache(rec: Reconstructor, stage: Stage) -> ExitCache:
 def fit_pupil_parts(rec: Reconstructor, stage: Stage, cache: ExitCache, parts: list[str], should_stop: Callable[[], bool] | None) -> bool:
     """Fit the parameters of ``parts`` ("pupil", "aberrations") to the fit images with the volume and sources fixed:
     :data:`FIT_ITERATIONS` Adam steps on the sum of the images' squared relative errors (gains in closed form),
-    from the calibration's current values, which are set to the result. False when stopped."""
+    from the calibration's current values, which are set to the result. False when stopped. In a distributed run each
+    rank's ``cache`` holds its own fit images and the gradients are summed over ranks (every rank steps alike)."""
     cal, model, base = rec.calibration, stage.model, cache.base
     na = cal.na_scale.detach().clone().requires_grad_("pupil" in parts)
     edge = cal.pupil_edge.detach().clone().requires_grad_("pupil" in parts)
@@ -274,6 +269,8 @@ def fit_pupil_parts(rec: Reconstructor, stage: Stage, cache: ExitCache, parts: l
             resid = (g.reshape(-1, 1, 1) * pred - measured).square().sum(dim=(-2, -1))
             loss = (resid / measured.square().sum(dim=(-2, -1)).clamp_min(1e-30)).sum()
             loss.backward()
+        if rec.group is not None:  # the ranks' chunks add up to every fit image's (a rank with none adds zeros)
+            rec.group.reduce_gradients([na, edge, zern], [])
         opt.step()
     with torch.no_grad():
         cal.na_scale.copy_(na)

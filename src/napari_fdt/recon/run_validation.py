@@ -7,17 +7,18 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
+import numpy as np
 import torch
 
 from napari_fdt.model.render import iter_batches
 from napari_fdt.recon.stages import Stage
-from napari_fdt.recon.validation import BestIterate, per_image_errors, relative_image_error
+from napari_fdt.recon.validation import BestIterate, errors_from_sums, image_error_sums, per_image_errors, relative_image_error
 
 if TYPE_CHECKING:
     from napari_fdt.recon.snapshot import StageRecord
     from napari_fdt.recon.solver import Reconstructor
 
-__all__ = ["validation_error", "validation", "track_validation", "end_on_best"]
+__all__ = ["validation_error", "validation", "image_errors", "track_validation", "end_on_best"]
 
 
 def validation_error(rec: Reconstructor, stage: Stage, mask: torch.Tensor | None = None) -> float | None:
@@ -36,14 +37,46 @@ def validation(rec: Reconstructor, stage: Stage, mask: torch.Tensor | None, per_
     held = rec.validation_indices
     if not len(held):
         return None
-    with torch.no_grad():  # the gains they carry are refitted: the fit is invariant to a scale per image
+    return image_errors(rec, stage, held, mask, per_image)
+
+
+def image_errors(rec: Reconstructor, stage: Stage, indices: np.ndarray, mask: torch.Tensor | None,
+                 per_image: bool = True) -> tuple[float, list[float]]:
+    """(relative error of the images ``indices`` predicted through the current state, each one's (empty unless
+    ``per_image``)), their gains refitted in closed form (the fit is invariant to a scale per image).
+
+    In a distributed run every rank must call this at the same point (collectives): the rows are shared first (a capture
+    of the state then holds every image's), each rank predicts the images it owns (whose rows it trains), and the
+    per-image sums are added over ranks, so every rank gets the same numbers (and its decisions the same outcome)."""
+    group = rec.group
+    if group is not None:
+        rec._share_per_source_rows()
+        own = indices % group.world_size == group.rank
+        sums = torch.zeros(len(indices), 2, dtype=torch.float64, device=rec.device)
+        if own.any():
+            sums[torch.as_tensor(own, device=rec.device)] = _predicted_error_sums(rec, stage, indices[own], mask)
+        err, each = errors_from_sums(group.sum(sums))
+        return err, each if per_image else []
+    with torch.no_grad():
         dn = rec.volume.delta_n()
-        preds = [rec._predict_normalised(stage, dn, torch.as_tensor(held[sl], device=rec.device))
-                 for sl in iter_batches(len(held), rec.config.batch_size)]
-    idx = torch.as_tensor(held, device=rec.device)
+        preds = [rec._predict_normalised(stage, dn, torch.as_tensor(indices[sl], device=rec.device))
+                 for sl in iter_batches(len(indices), rec.config.batch_size)]
+    idx = torch.as_tensor(indices, device=rec.device)
     pred, measured, m = torch.cat(preds), stage.images[idx], None if mask is None else mask[idx]
     each = per_image_errors(pred, measured, m, fit_gain=True) if per_image else []
     return relative_image_error(pred, measured, m, fit_gain=True), each
+
+
+def _predicted_error_sums(rec: Reconstructor, stage: Stage, indices: np.ndarray, mask: torch.Tensor | None) -> torch.Tensor:
+    """:func:`~napari_fdt.recon.validation.image_error_sums` (B, 2) of the images ``indices`` (gains refitted)."""
+    with torch.no_grad():
+        dn = rec.volume.delta_n()
+        out = []
+        for sl in iter_batches(len(indices), rec.config.batch_size):
+            idx = torch.as_tensor(indices[sl], device=rec.device)
+            out.append(image_error_sums(rec._predict_normalised(stage, dn, idx), stage.images[idx],
+                                        None if mask is None else mask[idx], fit_gain=True))
+    return torch.cat(out)
 
 
 def track_validation(rec: Reconstructor, stage: Stage, mask: torch.Tensor | None, best: BestIterate, it: int) -> float | None:

@@ -321,12 +321,18 @@ class Reconstructor:
     def _checkpoint_in_stage(self, work: StageWork) -> None:
         """A checkpoint inside the stage (``stage_<i>_it<k>.pt``, the older ones deleted) when a checkpoint folder is
         given and ``checkpoint_every_s`` of computation (not of the consumer's pauses) has passed since the last one."""
-        directory, now = self._checkpoint_folder(), time.perf_counter()
-        if directory is None or self.elapsed_s + (now - work.t0) - self._checkpointed_s < self.config.checkpoint_every_s:
+        if getattr(self, "_checkpoint_dir", None) is None:  # (the same on every rank: no collective needed)
             return
-        path = write_checkpoint({**self.state_dict(), "in_stage": in_stage_state(work, now)},
-                                in_stage_path(directory, work.stage.index, work.done))
-        prune_in_stage(directory, keep=path)
+        directory, now = self._checkpoint_folder(), time.perf_counter()
+        due = directory is not None and self.elapsed_s + (now - work.t0) - self._checkpointed_s >= self.config.checkpoint_every_s
+        if self.group is not None and self.group.any(due):  # rank 0's clock decides; every row and its moments from its owner
+            self._share_per_source_rows(optimiser_state=True)
+        elif not due:
+            return
+        if directory is not None:
+            path = write_checkpoint({**self.state_dict(), "in_stage": in_stage_state(work, now)},
+                                    in_stage_path(directory, work.stage.index, work.done))
+            prune_in_stage(directory, keep=path)
         self._checkpointed_s = self.elapsed_s + (time.perf_counter() - work.t0)
 
     def _end_stage(self, work: StageWork) -> Snapshot:
@@ -342,7 +348,8 @@ class Reconstructor:
 
     # -- per-stage set-up -----------------------------------------------------------------------
     def _build_stage(self, stage_index: int) -> Stage:
-        """Stage ``stage_index``'s model and images, with its window planned for the current sources."""
+        """Stage ``stage_index``'s model and images, its window planned for the current sources (every rank's alike)."""
+        self._share_per_source_rows()
         sc = self.config.stages[stage_index]
         return build_stage(stage_index, sc.factor, sc.iterations, self.acquisition.optics, self.images,
                            self.calibration.sources_um(), device=self.device, coarse_model=self.coarse_model,
@@ -433,6 +440,8 @@ class Reconstructor:
                                         regularisers=self.group.is_writer)
             idx_host = self.group.local(idx_host)
         held = self._held_out[idx_host] if len(self.validation_indices) else None
+        # Either part may be empty (a batch of held-out images only, or a rank that owns none of the batch): an empty part
+        # predicts nothing (spectral_images gives (0, h, w)), and the rank still joins the gradient sum below.
         if held is not None and bool(held.any()):  # held-out images last, through a constant volume and shared calibration
             n_train = int((~held).sum())
             idx = self.batches.to_device(np.concatenate([idx_host[~held], idx_host[held]]))
@@ -441,8 +450,7 @@ class Reconstructor:
         else:
             idx = self.batches.to_device(idx_host)
             n_train = len(idx)
-            # A rank with no image in this batch predicts none (and still joins the gradient sum).
-            pred = self._predict_normalised(stage, dn, idx) if len(idx) else stage.images[idx]
+            pred = self._predict_normalised(stage, dn, idx)
         m = None if mask is None else mask[idx]
         loss, terms = total_loss(pred, stage.images[idx], dn, self.loss_weights, progress, mask=m,
                                  data_range=data_range, share=share)

@@ -19,7 +19,8 @@ import torch
 from napari_fdt.errors import FDTWarning
 from napari_fdt.model.gain import least_squares_gain
 
-__all__ = ["holdout_indices", "split_halves", "spread_picks", "relative_image_error", "per_image_errors", "BestIterate", "MIN_VALIDATION_IMAGES"]
+__all__ = ["holdout_indices", "split_halves", "spread_picks", "relative_image_error", "per_image_errors", "image_error_sums",
+           "errors_from_sums", "BestIterate", "MIN_VALIDATION_IMAGES"]
 
 #: Fewest held-out images a split may have; with fewer, the error of one badly placed source would dominate.
 MIN_VALIDATION_IMAGES = 3
@@ -129,6 +130,25 @@ def per_image_errors(pred: torch.Tensor, measured: torch.Tensor, mask: torch.Ten
         return []
     return torch.stack([_relative_error(pred[i:i + 1], measured[i:i + 1], None if mask is None else mask[i:i + 1], fit_gain)
                         for i in range(measured.shape[0])]).tolist()
+
+
+def image_error_sums(pred: torch.Tensor, measured: torch.Tensor, mask: torch.Tensor | None = None, *,
+                     fit_gain: bool = False) -> torch.Tensor:
+    """Each image's ``(Σ m·(g·p − y)², Σ m·y²)`` (B, 2) float64: the parts of :func:`relative_image_error` that add
+    over images, so that the images can be shared out (a distributed run) and the errors made from the sums
+    (:func:`errors_from_sums`)."""
+    m = torch.ones_like(measured) if mask is None else mask
+    if fit_gain:
+        pred = pred * least_squares_gain(pred, measured, mask).clamp_min(0.0)[:, None, None]
+    err = ((pred - measured) ** 2 * m).sum(dim=(-2, -1))
+    ref = (measured * measured * m).sum(dim=(-2, -1))
+    return torch.stack([err, ref], dim=-1).to(torch.float64)
+
+
+def errors_from_sums(sums: torch.Tensor) -> tuple[float, list[float]]:
+    """(the stack's relative error, each image's) from :func:`image_error_sums` (B, 2)."""
+    total = torch.sqrt(sums[:, 0].sum() / sums[:, 1].sum().clamp_min(1e-30))
+    return float(total), torch.sqrt(sums[:, 0] / sums[:, 1].clamp_min(1e-30)).tolist()
 
 
 @dataclass
