@@ -138,7 +138,7 @@ def test_settings_come_in_tiers_and_the_help_lists_them_in_order() -> None:
     fields = schema_fields(SolverConfig)
     by_tier = {t: [n for n, info in fields.items() if tier(info) == t] for t in TIERS}
     assert by_tier["basic"] == ["stages", "batch_size", "tv_xy_weight", "tv_z_weight", "calibrate_sources", "seed",
-                                "validation_fraction"]
+                                "validation_fraction", "tv_family"]
     assert set(by_tier["experimental"]) == {"source_step", "calibrate_sources_in_envelope_stages",
                                             "calibrate_source_depth_in_envelope_stages", "restart_source_moments",
                                             "multislice_source_step_scale", "source_step_schedule", "lr_ri_final_ratio",

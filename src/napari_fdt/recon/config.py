@@ -208,6 +208,13 @@ class SolverConfig:
         "RI.json. Two runs on half of the images (1.1-1.7 runs' time on the suite); an error both halves share is not seen, "
         "so the figure is a best case (docs/guide.md, \"What size of structure can I believe?\")",
         fix="true or false")
+    tv_family: bool = setting(
+        False, description="reconstruct a family of volumes, one whole run per TV weight (τ_xy 1, 3 and 10, τ_z half of it), "
+        "instead of choosing the weight by trials: each member's held-out error against the best member's (paired, with its "
+        "standard error), and the pick (the largest weight within 5 % of the best held-out error). `fdt reconstruct --tv-family` "
+        "writes the pick to --out and the other members beside it. About three runs' time (docs/solver.md, \"A family of "
+        "volumes across TV weights\")",
+        fix="true or false", tier="basic")
     early_stopping: EarlyStopping = setting(
         "best", strict=False, description="`\"best\"`: each stage ends on its iterate of lowest validation error (when the last is worse "
         "by more than `early_stopping_tolerance`); `\"stop\"`: also ends a stage once the error has stayed above its best for "

@@ -114,15 +114,15 @@ class Reconstructor:
         initial_sources_um: np.ndarray | None = None,
         group: Group | None = None,
     ) -> None:
-        self.acquisition = acquisition
-        self.group = group
+        self.acquisition, self.group = acquisition, group
         #: the configuration as given (what RI.json and checkpoints store: resolving it again gives the same run)
         self.requested_config = config or SolverConfig()
+        if self.requested_config.tv_family:  # several whole runs (recon/family.py), never one solver's
+            raise FDTInputError("tv_family", "asks for a family of runs, not one run", "use fdt reconstruct --tv-family or napari_fdt.recon.family.run_family")
         #: the configuration as run: the finest stage lengthened to ``final_stage_min_passes`` passes over the images
         #: (:func:`napari_fdt.recon.config.resolve_stage_lengths`)
         self.config = resolve_stage_lengths(self.requested_config, acquisition.n_images)
-        self.device = resolve_device(device)
-        self.dtype = torch.float32
+        self.device, self.dtype = resolve_device(device), torch.float32
         cfg = self.config
         #: the coarse stages' model after resolving "auto" for this device
         self.coarse_model = resolve_coarse_model(cfg.coarse_model, self.device.type)

@@ -1,0 +1,164 @@
+"""``fdt reconstruct --tv-family``: a family of volumes across TV weights (:mod:`napari_fdt.recon.family`), written as
+each member completes (``RI_tv3.tif`` beside ``--out``), then the pick to ``--out`` with the family's verdict in its
+report (``regularisation.family``)."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+from typing import Any
+
+from napari_fdt.errors import FDTInputError
+from napari_fdt.recon.config import AUTO, SolverConfig
+
+__all__ = ["member_path", "check_family_request", "run_family_and_write", "planned_config", "family_summary", "family_json"]
+
+_SUFFIXES = (".ome.tiff", ".ome.tif", ".ome.zarr", ".tiff", ".tif", ".zarr")
+
+
+def member_path(out: Path, tau: float) -> Path:
+    """Where member ``tau`` goes beside ``out``: ``RI.tif`` → ``RI_tv3.tif`` (``RI.ome.zarr`` → ``RI_tv3.ome.zarr``)."""
+    name = out.name
+    suffix = next((s for s in _SUFFIXES if name.lower().endswith(s)), out.suffix)
+    return out.with_name(f"{name[: len(name) - len(suffix)]}_tv{tau:g}{suffix}")
+
+
+def planned_config(config: SolverConfig) -> SolverConfig:
+    """The configuration one run of ``config`` plans: with ``tv_family``, a member's (every member plans alike: the TV
+    weights are numbers and no trials run)."""
+    from napari_fdt.recon.family import FAMILY_TAUS, member_config
+
+    return member_config(config, FAMILY_TAUS[0]) if config.tv_family else config
+
+
+def family_summary(config: SolverConfig, plan) -> str:
+    """``fdt plan``'s text: the plan, or with ``tv_family`` the family's price and one member's plan."""
+    from napari_fdt.recon.family import FAMILY_TAUS
+
+    if not config.tv_family:
+        return plan.summary()
+    return (f"a family of {len(FAMILY_TAUS)} volumes, one whole run per TV weight (τ_xy {', '.join(f'{t:g}' for t in FAMILY_TAUS)}): "
+            f"about {len(FAMILY_TAUS) * plan.predicted_s:.0f} s in all; each member's plan:\n{plan.summary()}")
+
+
+def family_json(config: SolverConfig, plan) -> dict[str, Any]:
+    """``fdt plan --json``'s ``tv_family`` entry (empty without a family)."""
+    from napari_fdt.recon.family import FAMILY_TAUS
+
+    if not config.tv_family:
+        return {}
+    return {"tv_family": {"taus": list(FAMILY_TAUS), "predicted_member_s": plan.predicted_s,
+                          "predicted_total_s": len(FAMILY_TAUS) * plan.predicted_s}}
+
+
+def check_family_request(config: SolverConfig, args: Any, out: Path, distributed_launch: bool) -> list[Path]:
+    """Refuse what a family cannot do, before any run (FDTInputError naming the field); return the members' paths
+    (each checked free unless ``--overwrite``)."""
+    from napari_fdt.data.io import report_path
+    from napari_fdt.recon.family import FAMILY_TAUS
+
+    if config.tv_xy_weight != AUTO or config.tv_z_weight != AUTO:
+        raise FDTInputError("tv_family", "sets the TV weights of its members itself, but tv_xy_weight or tv_z_weight is a number",
+                            'leave both "auto" with --tv-family, or give the weights without it')
+    if args.resume is not None:
+        raise FDTInputError("tv_family", "a family cannot be resumed from one member's checkpoint",
+                            "resume without --tv-family (the member's own settings), or start the family again")
+    if distributed_launch:
+        raise FDTInputError("tv_family", "is not run under torchrun yet", "run the family in one process, or one weight per launch")
+    if config.half_set_resolution:
+        raise FDTInputError("tv_family", "and half_set_resolution together would run six more half runs",
+                            "run the family, then the picked member's report with --config RI.json --half-set-resolution")
+    paths = [member_path(out, tau) for tau in FAMILY_TAUS]
+    for p in paths:
+        for q in (p, report_path(p)):
+            if q.exists() and not args.overwrite:
+                raise FDTInputError("out", f"{q} (a member of the family) exists", "choose another --out or pass --overwrite")
+    return paths
+
+
+def run_family_and_write(args, config: SolverConfig, acq, out: Path, truth, truth_src) -> int:
+    """Run the family, each member written as it completes, then the pick to ``out``; prints the verdict."""
+    from napari_fdt.cli.progress import _progress_bar, _show_progress
+    from napari_fdt.data.io import report_path
+    from napari_fdt.recon.family import FAMILY_TAUS, Member, member_config, run_family
+    from napari_fdt.recon.report import write_result
+    from napari_fdt.recon.session import finish_run
+    from napari_fdt.recon.solver import Reconstructor
+
+    paths = check_family_request(config, args, out, distributed_launch=False)
+    first = Reconstructor(acq, member_config(config, FAMILY_TAUS[0]), device=args.device)
+    print(family_summary(config, first.plan), file=sys.stderr)
+    reports: dict[float, dict[str, Any]] = {}
+
+    def keep(member: Member) -> None:
+        report = finish_run(member.rec, False, output=str(paths[FAMILY_TAUS.index(member.tau)]),
+                            acquisition_path=str(args.acquisition), truth_ri=truth, truth_sources_um=truth_src)
+        reports[member.tau] = report
+        write_result(member.rec, paths[FAMILY_TAUS.index(member.tau)], report, overwrite=args.overwrite)
+        err = f"held-out error {member.validation_error:.4f}" if member.validation_error is not None else "no held-out images"
+        print(f"member τ_xy {member.tau:g} done ({member.seconds:.0f} s, {err}): wrote {paths[FAMILY_TAUS.index(member.tau)]}",
+              file=sys.stderr)
+
+    bar, current = None, -1
+    runs = run_family(acq, config, device=args.device, initial_sources_um=first.initial_sources_um, keep=keep)
+    try:
+        while True:
+            try:
+                k, snap = next(runs)
+            except StopIteration as stop:
+                family = stop.value
+                break
+            if k != current:
+                if bar is not None:
+                    bar.close()
+                bar, current = _progress_bar(snap.plan_iterations, disable=args.quiet), k
+                print(f"member {k + 1}/{len(FAMILY_TAUS)}: τ_xy {FAMILY_TAUS[k]:g}", file=sys.stderr)
+            _show_progress(bar, snap)
+    except KeyboardInterrupt:
+        runs.close()
+        print(f"interrupted: {len(reports)} member(s) complete and written; no pick", file=sys.stderr)
+        return 130
+    finally:
+        if bar is not None:
+            bar.close()
+    chosen = family.chosen
+    entries = []
+    for m, p in zip(family.members, paths):
+        entry = {**m.to_dict(), "path": str(out if m.picked else p)}
+        metrics = reports[m.tau].get("metrics") or {}
+        if "relative_delta_n_error" in metrics:
+            entry["relative_delta_n_error"] = metrics["relative_delta_n_error"]
+        entries.append(entry)
+    report = reports[chosen.tau]
+    report["output"] = str(out)
+    report["regularisation"] = {**report["regularisation"], "family": entries, "family_pick": {"tau": chosen.tau, "reason": family.reason}}
+    write_result(chosen.rec, out, report, overwrite=args.overwrite)
+    picked = paths[family.pick]
+    for q in (picked, report_path(picked)):  # the pick lives at --out now
+        if q.is_dir():
+            import shutil
+
+            shutil.rmtree(q)
+        elif q.exists():
+            q.unlink()
+    print(describe_family(entries, family.reason))
+    print(f"wrote {out} and {report_path(out)} (the pick, τ_xy {chosen.tau:g}); the other members beside it")
+    return 0
+
+
+def describe_family(entries: list[dict[str, Any]], reason: str) -> str:
+    """The verdict in words: one line per member (smoother / sharper, held-out error, its difference to the best with
+    its standard error, whether the images tell it apart)."""
+    lines = ["TV family (held-out error; mean paired difference to the best member ± its standard error):"]
+    for e in entries:
+        if e["validation_error"] is None:
+            lines.append(f"  τ_xy {e['tau']:g}: no held-out images")
+            continue
+        diff = e["mean_difference_to_best"]
+        se = e["standard_error"]
+        tell = "the images cannot tell it from the best" if e["indistinguishable_from_best"] else "worse than the best"
+        dn = f", Δn error {e['relative_delta_n_error']:.3f}" if "relative_delta_n_error" in e else ""
+        lines.append(f"  τ_xy {e['tau']:g}{' (picked)' if e['picked'] else ''}: {e['validation_error']:.4f}, "
+                     f"{diff:+.4f}" + (f" ± {se:.4f}" if se is not None else "") + f" ({tell}){dn}")
+    lines.append(f"  pick: {reason}; larger weights are smoother, smaller ones sharper")
+    return "\n".join(lines)

@@ -1,0 +1,98 @@
+"""A family of volumes across TV weights (issue 47, first part): each member is the whole run at its weight, the verdict
+compares the members' held-out images pair by pair, and ``fdt reconstruct --tv-family`` writes every member and the pick."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from napari_fdt.cli import main
+from napari_fdt.cli.family import member_path
+from napari_fdt.data.io import read_volume_tiff, write_acquisition
+from napari_fdt.recon.config import SolverConfig, StageConfig
+from napari_fdt.recon.family import FAMILY_TAUS, Member, member_config, verdict
+
+
+def _member(tau: float, errors: list[float]) -> Member:
+    m = Member(tau, tau, tau / 2)
+    m.image_errors = list(errors)
+    m.validation_error = float(np.sqrt(np.mean(np.square(errors))))  # any number ordered like the errors serves here
+    return m
+
+
+def test_the_verdict_is_paired_and_the_pick_the_largest_weight_within_the_tolerance() -> None:
+    best = [0.10, 0.20, 0.30, 0.40]
+    close = [0.102, 0.203, 0.301, 0.404]     # +1 % everywhere: within 5 %, and told apart (a consistent rise)
+    noisy = [0.09, 0.22, 0.29, 0.43]         # the same mean rise, but scattered: the images cannot tell it apart
+    far = [0.12, 0.24, 0.36, 0.48]           # +20 %
+    members = [_member(1.0, best), _member(3.0, close), _member(10.0, far)]
+    pick, reason = verdict(members)
+    assert pick == 1 and "5%" in reason
+    d = np.array(close) - np.array(best)
+    assert members[1].mean_difference == pytest.approx(d.mean())
+    assert members[1].standard_error == pytest.approx(d.std(ddof=1) / 2)
+    assert members[0].indistinguishable and not members[1].indistinguishable and not members[2].indistinguishable
+    members = [_member(1.0, best), _member(3.0, noisy)]
+    verdict(members)
+    assert members[1].indistinguishable
+    lone = [Member(1.0, 1.0, 0.5), Member(3.0, 3.0, 1.5)]  # no held-out images: the smallest weight, no verdict
+    assert verdict(lone)[0] == 0 and lone[1].mean_difference is None
+
+
+def test_member_configs_and_paths() -> None:
+    cfg = member_config(SolverConfig(tv_family=True), 3.0)
+    assert (cfg.tv_xy_weight, cfg.tv_z_weight, cfg.tv_family) == (3.0, 1.5, False)
+    assert member_path(Path("/x/RI.tif"), 3.0) == Path("/x/RI_tv3.tif")
+    assert member_path(Path("/x/RI.ome.tif"), 10.0) == Path("/x/RI_tv10.ome.tif")
+    assert member_path(Path("/x/RI.ome.zarr"), 1.0) == Path("/x/RI_tv1.ome.zarr")
+
+
+@pytest.mark.parametrize("extra,field", [(["--tv-xy-weight", "3"], "tv_family"), (["--half-set-resolution"], "tv_family")])
+def test_what_a_family_cannot_do_is_refused_before_the_run(tmp_path: Path, tiny_sim, capsys, extra, field) -> None:
+    acq = write_acquisition(tiny_sim.acquisition, tmp_path / "acq")
+    code = main(["reconstruct", str(acq), "--out", str(tmp_path / "RI.tif"), "--tv-family", "--device", "cpu", *extra])
+    assert code == 2 and f"error: {field}:" in capsys.readouterr().err
+    assert not list(tmp_path.glob("RI*"))
+
+
+def _short() -> SolverConfig:
+    return SolverConfig(stages=[StageConfig(2, 6), StageConfig(1, 8)], batch_size=4, final_stage_min_passes=0)
+
+
+def test_a_family_writes_each_member_as_the_run_at_its_weight_and_the_pick(tmp_path: Path, scene16, capsys) -> None:
+    acq = write_acquisition(scene16.acquisition, tmp_path / "acq")
+    _short().save(tmp_path / "cfg.json")
+    out = tmp_path / "RI.tif"
+    assert main(["reconstruct", str(acq), "--config", str(tmp_path / "cfg.json"), "--out", str(out), "--tv-family",
+                 "--device", "cpu", "--quiet"]) == 0
+    text = capsys.readouterr().out
+    assert "TV family" in text and "(picked)" in text
+    report = json.loads((tmp_path / "RI.json").read_text())
+    family = report["regularisation"]["family"]
+    assert [m["tau"] for m in family] == list(FAMILY_TAUS)
+    picked = [m for m in family if m["picked"]]
+    assert len(picked) == 1 and picked[0]["path"] == str(out)
+    assert report["regularisation"]["tv_xy_weight"] == picked[0]["tv_xy_weight"]
+    best = min(m["validation_error"] for m in family)
+    assert picked[0]["validation_error"] <= 1.05 * best
+    assert all(m["tau"] <= picked[0]["tau"] or m["validation_error"] > 1.05 * best for m in family)
+    for m in family:
+        assert Path(m["path"]).is_file()
+        if not m["picked"]:
+            assert Path(m["path"]) == member_path(out, m["tau"])
+    assert not member_path(out, picked[0]["tau"]).exists()  # the pick lives at --out only
+    # a member is the cold run at its weight, bit for bit (the family shares nothing that changes it)
+    other = next(m for m in family if not m["picked"])
+    cold = tmp_path / "cold.tif"
+    assert main(["reconstruct", str(acq), "--config", str(tmp_path / "cfg.json"), "--out", str(cold), "--device", "cpu", "--quiet",
+                 "--tv-xy-weight", f"{other['tv_xy_weight']:g}", "--tv-z-weight", f"{other['tv_z_weight']:g}"]) == 0
+    assert np.array_equal(read_volume_tiff(cold)[0], read_volume_tiff(other["path"])[0])
+    # --config RI.json reruns the pick alone (its weights as numbers, no family)
+    assert report["config"]["tv_family"] is False
+    again = tmp_path / "again.tif"
+    assert main(["reconstruct", "--config", str(tmp_path / "RI.json"), "--out", str(again), "--device", "cpu", "--quiet"]) == 0
+    assert np.array_equal(read_volume_tiff(again)[0], read_volume_tiff(out)[0])
+    assert "family" not in json.loads((tmp_path / "again.json").read_text())["regularisation"]
