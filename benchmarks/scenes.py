@@ -52,6 +52,9 @@ SCENES: dict[str, tuple[Path, str | None]] = {
     # the same with every accuracy part of the simulator: 4 sub-slices and the field on a 2x grid (issue 27)
     "beads_fine": (SCENE_DIR / "beads_fine", "beads --shape 64 64 --n-slices 8 --sources 7 --depth-um 30 --forward-accuracy high"),
     "cells_fine": (SCENE_DIR / "cells_fine", "cells --shape 64 64 --n-slices 8 --sources 7 --depth-um 30 --forward-accuracy high"),
+    # a thick slab of elongated objects (issue 47): 3 µm slices, the focus inside the volume, the accurate forward model
+    "fibres_thick": (SCENE_DIR / "fibres_thick", "fibres --shape 64 64 --n-slices 8 --slice-spacing-um 3 --image-plane-um 12 "
+                                                 "--sources 7 --depth-um 30 --forward-accuracy high"),
 }
 
 #: the model-parts scenes (benchmarks/model_parts.py): the sample's geometry and 64² beads, clean and with the

@@ -80,7 +80,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command")
 
     sim = sub.add_parser("simulate", help="simulate an acquisition folder with its ground truth")
-    sim.add_argument("scene", choices=("letters", "beads", "cells"), help="test scene")
+    sim.add_argument("scene", choices=("letters", "beads", "cells", "fibres"), help="test scene")
     sim.add_argument("out_dir", type=Path, help="acquisition folder to create")
     _add_optics_args(sim)
     s = sim.add_argument_group("sources")

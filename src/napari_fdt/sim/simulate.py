@@ -27,7 +27,7 @@ from napari_fdt.physics.aberrations import ZERNIKE_MODES
 from napari_fdt.physics.camera import resolve_pixel_integration
 from napari_fdt.physics.grid import GridPlan, plan_for_sources
 from napari_fdt.physics.optics import Optics
-from napari_fdt.sim.phantoms import bead_phantom, cell_phantom, text_phantom
+from napari_fdt.sim.phantoms import bead_phantom, cell_phantom, fibre_phantom, text_phantom
 
 __all__ = ["source_grid", "simulate_measurement", "make_scene", "Simulation", "simulate"]
 
@@ -90,7 +90,7 @@ def make_scene(
     letter_height_px: int | None = None,
     rng: np.random.Generator | int | None = 0,
 ) -> np.ndarray:
-    """Contrast volume Δn (n_slices, H, W) of a named scene: ``letters``, ``beads`` or ``cells``."""
+    """Contrast volume Δn (n_slices, H, W) of a named scene: ``letters``, ``beads``, ``cells`` or ``fibres``."""
     n, dx, dz = optics.n_slices, optics.pixel_size_um, optics.slice_spacing_um
     if name == "letters":
         return text_phantom(shape, n, text=text, delta_n=0.05 if delta_n is None else delta_n, letter_height_px=letter_height_px)
@@ -99,7 +99,9 @@ def make_scene(
     if name == "cells":
         kw = {} if delta_n is None else {"delta_n_cytoplasm": delta_n}
         return cell_phantom(shape, n, dx, dz, rng=rng, **kw)
-    raise FDTInputError("scene", f"unknown scene {name!r}", "choose letters, beads or cells")
+    if name == "fibres":
+        return fibre_phantom(shape, n, dx, dz, delta_n=0.03 if delta_n is None else delta_n, rng=rng)
+    raise FDTInputError("scene", f"unknown scene {name!r}", "choose letters, beads, cells or fibres")
 
 
 @dataclass
