@@ -79,5 +79,5 @@ def _warn_about_a_long_cpu_run(plan, device_type: str) -> None:
     """Warn (FDTWarning) when a CPU run's plan predicts more than :data:`LONG_CPU_RUN_S`."""
     if device_type == "cpu" and plan.predicted_s > LONG_CPU_RUN_S:
         warnings.warn(f"device: this CPU run is predicted to take about {plan.predicted_s / 3600:.1f} h (the plan above); "
-                      "on a machine with an NVIDIA GPU, --device cuda runs it far faster (README, \"Installing on your "
-                      "machine\": the CUDA build of torch), or give fewer or shorter stages", FDTWarning, stacklevel=2)
+                      "on a machine with an NVIDIA GPU, --device cuda runs it far faster (docs/install.md: the CUDA build "
+                      "of torch), or give fewer or shorter stages", FDTWarning, stacklevel=2)
