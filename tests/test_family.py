@@ -96,3 +96,17 @@ def test_a_family_writes_each_member_as_the_run_at_its_weight_and_the_pick(tmp_p
     assert main(["reconstruct", "--config", str(tmp_path / "RI.json"), "--out", str(again), "--device", "cpu", "--quiet"]) == 0
     assert np.array_equal(read_volume_tiff(again)[0], read_volume_tiff(out)[0])
     assert "family" not in json.loads((tmp_path / "again.json").read_text())["regularisation"]
+
+
+def test_fdt_plan_prices_the_family_as_its_members(tmp_path: Path, tiny_sim, capsys) -> None:
+    acq = write_acquisition(tiny_sim.acquisition, tmp_path / "acq")
+    assert main(["plan", str(acq), "--json"]) == 0
+    one = json.loads(capsys.readouterr().out)
+    assert main(["plan", str(acq), "--json", "--tv-family"]) == 0
+    family = json.loads(capsys.readouterr().out)
+    assert family["tv_family"]["taus"] == list(FAMILY_TAUS)
+    member = family["tv_family"]["predicted_member_s"]
+    assert family["tv_family"]["predicted_total_s"] == pytest.approx(len(FAMILY_TAUS) * member)
+    assert member <= one["predicted_total_s"] * 1.001  # a member runs no TV trials: at most the run's own price
+    assert main(["plan", str(acq), "--tv-family"]) == 0
+    assert "a family of 3 volumes" in capsys.readouterr().out
