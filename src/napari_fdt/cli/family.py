@@ -80,7 +80,7 @@ def run_family_and_write(args, config: SolverConfig, acq, out: Path, truth, trut
     """Run the family, each member written as it completes, then the pick to ``out``; prints the verdict."""
     from napari_fdt.cli.progress import _progress_bar, _show_progress
     from napari_fdt.data.io import report_path
-    from napari_fdt.recon.family import FAMILY_TAUS, Member, member_config, run_family
+    from napari_fdt.recon.family import FAMILY_TAUS, Member, family_entries, member_config, run_family, with_family
     from napari_fdt.recon.report import write_result
     from napari_fdt.recon.session import finish_run
     from napari_fdt.recon.solver import Reconstructor
@@ -122,16 +122,8 @@ def run_family_and_write(args, config: SolverConfig, acq, out: Path, truth, trut
         if bar is not None:
             bar.close()
     chosen = family.chosen
-    entries = []
-    for m, p in zip(family.members, paths):
-        entry = {**m.to_dict(), "path": str(out if m.picked else p)}
-        metrics = reports[m.tau].get("metrics") or {}
-        if "relative_delta_n_error" in metrics:
-            entry["relative_delta_n_error"] = metrics["relative_delta_n_error"]
-        entries.append(entry)
-    report = reports[chosen.tau]
-    report["output"] = str(out)
-    report["regularisation"] = {**report["regularisation"], "family": entries, "family_pick": {"tau": chosen.tau, "reason": family.reason}}
+    entries = family_entries(family, reports, [str(out if m.picked else p) for m, p in zip(family.members, paths)])
+    report = with_family({**reports[chosen.tau], "output": str(out)}, entries, family)
     write_result(chosen.rec, out, report, overwrite=args.overwrite)
     picked = paths[family.pick]
     for q in (picked, report_path(picked)):  # the pick lives at --out now

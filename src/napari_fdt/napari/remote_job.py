@@ -253,11 +253,12 @@ def remote_reconstruction(
             elif kind == "returned":
                 fields = msg[1]
                 if fields.get("ri") is None:
-                    return JobResult(None, bool(fields.get("cancelled")), int(fields.get("completed_stages", 0)))
+                    return JobResult(None, bool(fields.get("cancelled")), int(fields.get("completed_stages", 0)),
+                                     extra=fields.get("extra") or {})
                 result = RunResult(acquisition, config, child, fields)
                 kept = True
                 return JobResult(result, result.cancelled, result.completed_stages, ri=result.ri_full(),
-                                 sources_um=result.sources_um(), report=result.report)
+                                 sources_um=result.sources_um(), report=result.report, extra=fields.get("extra") or {})
     finally:
         if child is not None and not kept:
             child.close(kill=True)

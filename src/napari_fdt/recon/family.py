@@ -40,7 +40,7 @@ if TYPE_CHECKING:
     from napari_fdt.recon.solver import Reconstructor
 
 __all__ = ["FAMILY_TAUS", "PICK_TOLERANCE", "INDISTINGUISHABLE_SE", "Member", "Family", "member_config", "verdict",
-           "run_family"]
+           "run_family", "family_entries", "with_family"]
 
 #: The members' lateral TV weights τ_xy (τ_z = τ_xy · TV_Z_RATIO): they bracket the best fixed weights measured (τ 1 on
 #: the sample and thick slabs, 3 on a cells-like scene, 10 on cells and sparse beads: docs/decisions/tv-half-sets.md).
@@ -166,3 +166,29 @@ def run_family(acquisition: Acquisition, config: SolverConfig, *, device: Any = 
                       FDTWarning, stacklevel=2)
     members[pick].picked = True
     return Family(members, pick, reason)
+
+
+def family_entries(family: Family, reports: dict[float, dict[str, Any]], paths: list[str | None] | None = None) -> list[dict[str, Any]]:
+    """RI.json's ``regularisation.family``: each member's :meth:`Member.to_dict`, its ``path`` (``paths[k]``, None where
+    it is not written) and, where its report has a truth, its ``relative_delta_n_error``."""
+    out = []
+    for k, m in enumerate(family.members):
+        entry = {**m.to_dict(), "path": None if paths is None else paths[k]}
+        metrics = (reports.get(m.tau) or {}).get("metrics") or {}
+        if "relative_delta_n_error" in metrics:
+            entry["relative_delta_n_error"] = metrics["relative_delta_n_error"]
+        out.append(entry)
+    return out
+
+
+def with_family(report: dict[str, Any], entries: list[dict[str, Any]], family: Family, shown: int | None = None,
+                why: str | None = None) -> dict[str, Any]:
+    """A member's report with the family's verdict (``regularisation.family``, ``family_pick``) and, for a member
+    saved by its user, ``regularisation.family_member``: which member this volume is and why it was kept."""
+    reg = {**report.get("regularisation", {}), "family": entries,
+           "family_pick": {"tau": family.chosen.tau, "reason": family.reason}}
+    if shown is not None:
+        m = family.members[shown]
+        reg["family_member"] = {"tau": m.tau, "tv_xy_weight": m.tv_xy_weight, "tv_z_weight": m.tv_z_weight,
+                                "picked": m.picked, "why": why or ("the pick: " + family.reason)}
+    return {**report, "regularisation": reg}
