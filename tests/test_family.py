@@ -50,7 +50,8 @@ def test_member_configs_and_paths() -> None:
     assert member_path(Path("/x/RI.ome.zarr"), 1.0) == Path("/x/RI_tv1.ome.zarr")
 
 
-@pytest.mark.parametrize("extra,field", [(["--tv-xy-weight", "3"], "tv_family"), (["--half-set-resolution"], "tv_family")])
+@pytest.mark.parametrize("extra,field", [(["--tv-xy-weight", "3"], "tv_family"), (["--half-set-resolution"], "tv_family"),
+                                         (["--checkpoint-dir", "ck"], "tv_family")])
 def test_what_a_family_cannot_do_is_refused_before_the_run(tmp_path: Path, tiny_sim, capsys, extra, field) -> None:
     acq = write_acquisition(tiny_sim.acquisition, tmp_path / "acq")
     code = main(["reconstruct", str(acq), "--out", str(tmp_path / "RI.tif"), "--tv-family", "--device", "cpu", *extra])

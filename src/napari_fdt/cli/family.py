@@ -63,6 +63,8 @@ def check_family_request(config: SolverConfig, args: Any, out: Path, distributed
     if args.resume is not None:
         raise FDTInputError("tv_family", "a family cannot be resumed from one member's checkpoint",
                             "resume without --tv-family (the member's own settings), or start the family again")
+    if getattr(args, "checkpoint_dir", None) is not None:
+        raise FDTInputError("tv_family", "members do not write checkpoints yet", "run the family without --checkpoint-dir")
     if distributed_launch:
         raise FDTInputError("tv_family", "is not run under torchrun yet", "run the family in one process, or one weight per launch")
     if config.half_set_resolution:
