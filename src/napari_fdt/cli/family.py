@@ -93,13 +93,13 @@ def run_family_and_write(args, config: SolverConfig, acq, out: Path, truth, trut
     reports: dict[float, dict[str, Any]] = {}
 
     def keep(member: Member) -> None:
-        report = finish_run(member.rec, False, output=str(paths[FAMILY_TAUS.index(member.tau)]),
-                            acquisition_path=str(args.acquisition), truth_ri=truth, truth_sources_um=truth_src)
+        path = paths[FAMILY_TAUS.index(member.tau)]
+        report = finish_run(member.rec, False, output=str(path), acquisition_path=str(args.acquisition), truth_ri=truth,
+                            truth_sources_um=truth_src)
         reports[member.tau] = report
-        write_result(member.rec, paths[FAMILY_TAUS.index(member.tau)], report, overwrite=args.overwrite)
+        write_result(member.rec, path, report, overwrite=args.overwrite)
         err = f"held-out error {member.validation_error:.4f}" if member.validation_error is not None else "no held-out images"
-        print(f"member τ_xy {member.tau:g} done ({member.seconds:.0f} s, {err}): wrote {paths[FAMILY_TAUS.index(member.tau)]}",
-              file=sys.stderr)
+        print(f"member τ_xy {member.tau:g} done ({member.seconds:.0f} s, {err}): wrote {path}", file=sys.stderr)
 
     bar, current = None, -1
     runs = run_family(acq, config, device=args.device, initial_sources_um=first.initial_sources_um, keep=keep)
@@ -125,7 +125,7 @@ def run_family_and_write(args, config: SolverConfig, acq, out: Path, truth, trut
             bar.close()
     chosen = family.chosen
     entries = family_entries(family, reports, [str(out if m.picked else p) for m, p in zip(family.members, paths)])
-    report = with_family({**reports[chosen.tau], "output": str(out)}, entries, family)
+    report = with_family({**reports[chosen.tau], "output": str(out)}, entries, chosen.tau, family.reason)
     write_result(chosen.rec, out, report, overwrite=args.overwrite)
     picked = paths[family.pick]
     for q in (picked, report_path(picked)):  # the pick lives at --out now

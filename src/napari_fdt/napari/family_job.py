@@ -10,7 +10,6 @@ verdict; ``extra`` holds ``family`` (RI.json's ``regularisation.family``), ``pic
 
 from __future__ import annotations
 
-import dataclasses
 import threading
 from typing import Any, Iterator
 
@@ -19,6 +18,7 @@ import numpy as np
 from napari_fdt.data.acquisition import Acquisition
 from napari_fdt.napari.job import JobResult, Update
 from napari_fdt.recon.config import SolverConfig
+from napari_fdt.recon.family import FAMILY_TAUS, family_entries, run_family, with_family
 
 __all__ = ["family_job"]
 
@@ -27,7 +27,6 @@ def family_job(acquisition: Acquisition, config: SolverConfig, *, device: str = 
                initial_sources_um: np.ndarray | None = None, stop: threading.Event, done: threading.Event | None = None,
                closing: threading.Event | None = None, acquisition_path: str | None = None, **_ignored: Any) -> Iterator[Update]:
     """Generator: yields :class:`Update` s, returns a :class:`JobResult` (see the module)."""
-    from napari_fdt.recon.family import family_entries, run_family, with_family
     from napari_fdt.recon.session import finish_run
 
     try:
@@ -39,7 +38,7 @@ def family_job(acquisition: Acquisition, config: SolverConfig, *, device: str = 
                              "report": report, "ri": member.rec.ri_full()})
 
         sent, current = 0, -1
-        runs = run_family(acquisition, dataclasses.replace(config, tv_family=True), device=device,
+        runs = run_family(acquisition, config, device=device,
                           initial_sources_um=initial_sources_um, should_stop=stop.is_set, keep=keep)
         family = None
         while True:
@@ -53,7 +52,7 @@ def family_job(acquisition: Acquisition, config: SolverConfig, *, device: str = 
                 sent += 1
             if k != current:
                 current = k
-                yield Update("member_started", snapshot={"index": k, "tau": float(config_tau(k)), "n_members": n_members()})
+                yield Update("member_started", snapshot={"index": k, "tau": FAMILY_TAUS[k], "n_members": len(FAMILY_TAUS)})
             yield Update("snapshot", snapshot=snap)
         while sent < len(finished):
             yield _member_update(finished[sent])
@@ -63,7 +62,7 @@ def family_job(acquisition: Acquisition, config: SolverConfig, *, device: str = 
         reports = {m["tau"]: m["report"] for m in finished}
         entries = family_entries(family, reports)
         chosen = family.chosen
-        report = with_family(reports[chosen.tau], entries, family, shown=family.pick)
+        report = with_family(reports[chosen.tau], entries, chosen.tau, family.reason, member_tau=chosen.tau)
         return JobResult(chosen.rec, False, chosen.rec.completed_stages, ri=finished[family.pick]["ri"],
                          sources_um=chosen.rec.sources_um(), report=report,
                          extra={"family": entries, "pick": family.pick, "reason": family.reason,
@@ -71,19 +70,6 @@ def family_job(acquisition: Acquisition, config: SolverConfig, *, device: str = 
     finally:
         if done is not None:
             done.set()
-
-
-def config_tau(index: int) -> float:
-    """The lateral TV weight of member ``index``."""
-    from napari_fdt.recon.family import FAMILY_TAUS
-
-    return FAMILY_TAUS[index]
-
-
-def n_members() -> int:
-    from napari_fdt.recon.family import FAMILY_TAUS
-
-    return len(FAMILY_TAUS)
 
 
 def _member_update(member: dict[str, Any]) -> Update:

@@ -71,6 +71,7 @@ class FamilyWidget(Container):
         self.family: dict[str, Any] | None = None  # the verdict: entries, pick, reason
         self._ri_layer = self._range_layer = None
         self._acq = None
+        self._member: dict[str, Any] | None = None  # the member being computed (index, tau, n_members)
         self._stop, self._done, self._closing = threading.Event(), threading.Event(), threading.Event()
         self._done.set()
         self._close_watcher = None
@@ -96,7 +97,7 @@ class FamilyWidget(Container):
             sources = sources_for(self._viewer, layer, acq, required=False)
             config = self.config or SolverConfig()
             self._acq, self._acq_layer = acq, layer
-            self.members, self.family = [], None
+            self.members, self.family, self._member = [], None, None
             self._ri_layer = self._range_layer = None
             self._stop, self._done, self._closing = threading.Event(), threading.Event(), threading.Event()
             worker = self.tasks.stream(
@@ -143,7 +144,7 @@ class FamilyWidget(Container):
             snap = update.snapshot
             self.progress.max = max(1, snap.plan_iterations)
             self.progress.value = min(snap.plan_iteration, self.progress.max)
-            info = getattr(self, "_member", None)
+            info = self._member
             if info is not None:
                 self.status.value = (f"member {info['index'] + 1}/{info['n_members']}: τ_xy {info['tau']:g}, "
                                      f"{snap.phase_name} ({snap.phase_iteration}/{snap.phase_iterations} it)")
@@ -218,19 +219,16 @@ class FamilyWidget(Container):
 
     def member_report(self, index: int) -> dict[str, Any]:
         """Member ``index``'s report with the family's verdict and why this member was kept."""
-        report = dict(self.members[index]["report"])
-        if self.family is not None:
-            pick = self.family["pick"]
-            why = ("the pick: " + self.family["reason"]) if index == pick else \
-                f"chosen by the user in napari (the pick was τ_xy {self.members[pick]['tau']:g})"
-            reg = {**report.get("regularisation", {}), "family": self.family["entries"],
-                   "family_pick": {"tau": self.members[pick]["tau"], "reason": self.family["reason"]},
-                   "family_member": {"tau": self.members[index]["tau"], "picked": index == pick, "why": why}}
-            report["regularisation"] = reg
-        else:
-            report["regularisation"] = {**report.get("regularisation", {}), "family_member": {
-                "tau": self.members[index]["tau"], "picked": False, "why": "a member of an unfinished family, chosen by the user"}}
-        return report
+        from napari_fdt.recon.family import with_family
+
+        m = self.members[index]
+        if self.family is None:  # a member of a cancelled family: no verdict
+            reg = {**m["report"].get("regularisation", {}), "family_member": {
+                "tau": m["tau"], "picked": False, "why": "a member of an unfinished family, chosen by the user"}}
+            return {**m["report"], "regularisation": reg}
+        pick = self.members[self.family["pick"]]["tau"]
+        why = None if m["tau"] == pick else f"chosen by the user in napari (the pick was τ_xy {pick:g})"
+        return with_family(m["report"], self.family["entries"], pick, self.family["reason"], member_tau=m["tau"], why=why)
 
     def save_shown(self, path: str | Path) -> tuple[Path, Path]:
         """Write the member shown (OME-TIFF, absolute RI) and its report beside it."""

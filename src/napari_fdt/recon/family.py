@@ -181,14 +181,12 @@ def family_entries(family: Family, reports: dict[float, dict[str, Any]], paths: 
     return out
 
 
-def with_family(report: dict[str, Any], entries: list[dict[str, Any]], family: Family, shown: int | None = None,
-                why: str | None = None) -> dict[str, Any]:
-    """A member's report with the family's verdict (``regularisation.family``, ``family_pick``) and, for a member
-    saved by its user, ``regularisation.family_member``: which member this volume is and why it was kept."""
-    reg = {**report.get("regularisation", {}), "family": entries,
-           "family_pick": {"tau": family.chosen.tau, "reason": family.reason}}
-    if shown is not None:
-        m = family.members[shown]
-        reg["family_member"] = {"tau": m.tau, "tv_xy_weight": m.tv_xy_weight, "tv_z_weight": m.tv_z_weight,
-                                "picked": m.picked, "why": why or ("the pick: " + family.reason)}
+def with_family(report: dict[str, Any], entries: list[dict[str, Any]], pick_tau: float, reason: str,
+                member_tau: float | None = None, why: str | None = None) -> dict[str, Any]:
+    """A member's report with the family's verdict (``regularisation.family``: ``entries``; ``family_pick``: the pick's
+    weight and ``reason``) and, for a member kept as the result, ``regularisation.family_member``: which member this
+    volume is (``member_tau``) and ``why`` it was kept (default: it is the pick)."""
+    reg = {**report.get("regularisation", {}), "family": entries, "family_pick": {"tau": pick_tau, "reason": reason}}
+    if member_tau is not None:
+        reg["family_member"] = {"tau": member_tau, "picked": member_tau == pick_tau, "why": why or "the pick: " + reason}
     return {**report, "regularisation": reg}
