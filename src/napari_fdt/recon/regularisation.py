@@ -100,8 +100,8 @@ def tried_enough(trials: list[dict[str, Any]], standard_errors: float | None = N
     :func:`~napari_fdt.recon.model_parts.standard_errors`). The held-out error rises with the weight past its minimum,
     so a larger weight would not be picked either. A rise the images' own spread could make does not stop the path:
     with one standard error (the rule until 2026-11-27) a 0.2 % rise stopped an unseen sparse scene at τ 1 where going
-    on picked τ 10 and an 18 % better volume; on the suite (6 scenes × 3 seeds, ``benchmarks/tv_stop_rule.py``) the
-    stricter stop picks the same weight every time, trying one weight more on 13 of 18
+    on picked τ 10 and an 18 % better volume; on 7 scenes × 3 seeds (the suite and a thick slab, ``benchmarks/tv_stop_rule.py``) the
+    stricter stop picks the same weight every time, trying one weight more on 17 of 21
     (docs/decisions/tv-weight-choice.md). Without a noise
     estimate (fewer than 2 images) the path is never cut."""
     from napari_fdt.recon.model_parts import standard_errors as t_quantile
