@@ -14,15 +14,21 @@
     model (:data:`~napari_fdt.recon.model_parts.FINEST_ONLY_PARTS`), the finest stage runs again from its start with
     them and, under ``"stages"``, the parts not kept are tried again at its end (a part kept then makes every stage run
     again, with all the kept parts).
+:class:`ConfirmModelParts`
+    At the finest stage's end, once nothing is left to choose: each kept part tested for removal through the final
+    state (:mod:`napari_fdt.recon.parts_backward`); one that no longer helps is dropped and the stage runs again
+    without it.
 """
 
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 from typing import TYPE_CHECKING, Callable, Generator
 
 from napari_fdt.recon.calibration import PUPIL_PARAMETERS
 from napari_fdt.recon.model_parts import FINEST_ONLY_PARTS, EarlyTrials, PartsChoice, parts_stage
+from napari_fdt.recon.parts_backward import backward_due, drop_parts, keep_or_return, kept_auto_parts, marginal_effects
 from napari_fdt.recon.parts_coarse_end import choose_fitted_parts_at_coarse_end, coarse_end_test_due
 from napari_fdt.recon.parts_pilot import choose_pupil_parts_first, pilot_due, start_with_parts
 from napari_fdt.recon.parts_search import choose_parts
@@ -36,7 +42,7 @@ from napari_fdt.recon.validation import BestIterate
 if TYPE_CHECKING:
     from napari_fdt.recon.solver import Reconstructor
 
-__all__ = ["ChooseTVWeights", "ChooseModelParts", "default_choices"]
+__all__ = ["ChooseTVWeights", "ChooseModelParts", "ConfirmModelParts", "default_choices"]
 
 
 class ChooseTVWeights:
@@ -130,7 +136,54 @@ class ChooseModelParts:
         yield  # (a generator)
 
 
-def default_choices() -> tuple[ChooseModelParts, ChooseTVWeights]:
+class ConfirmModelParts:
+    """The backward step of the ``"auto"`` model parts at the finest stage's end, once nothing is left to choose
+    (:mod:`napari_fdt.recon.parts_backward`): a kept part that no longer helps is dropped and the stage runs again
+    from its start without it; at that rerun's end the better of the two (by the held-out images) is kept."""
+
+    def at_start(self, rec: Reconstructor, work: StageWork, again: int,
+                 should_stop: Callable[[], bool] | None) -> Generator[Snapshot, None, Verdict]:
+        if backward_due(rec, work.stage.index):  # the stage's start, shared with the parts' choice where it took one
+            work.choosing["backward_from"] = work.choosing.get("parts_from") or capture_branch(rec)
+        return Verdict.GO_ON
+        yield  # (a generator)
+
+    def at_end(self, rec: Reconstructor, work: StageWork, should_stop: Callable[[], bool] | None) -> Generator[Snapshot, None, Verdict]:
+        start, before = work.choosing.pop("backward_from", None), work.choosing.pop("backward_before", None)
+        if before is not None:  # the stage ran again without the dropped parts: keep that rerun, or go back
+            if not keep_or_return(rec, work, before):
+                _rebuild(rec, work)
+            return Verdict.GO_ON
+        if start is None or rec._choose_again or not kept_auto_parts(rec):
+            return Verdict.GO_ON
+        t0 = time.perf_counter()
+        result = marginal_effects(rec, work.stage, work.mask)
+        work.record.choice_s += time.perf_counter() - t0
+        rec.parts_choice.backward = {**result, "rerun": None}
+        if not result["dropped"]:
+            return Verdict.GO_ON
+        work.choosing["backward_before"] = drop_parts(rec, result)
+        phase = rec.plan.phases[rec._phase_index]  # the stage again from its start without them, priced so
+        again = phase.priced_as(rec._stage_phase(phase.stage, phase.pass_name, tuple(kept_auto_parts(rec))), label=True)
+        rec._revise_plan(replace(rec.plan.with_rerun([again]), if_part_dropped_s=None))
+        rec._phase_index = len(rec.plan.phases) - 1
+        restore_branch(rec, start)
+        _rebuild(rec, work)
+        work.done, work.optimiser = 0, new_optimiser(rec)
+        work.best = BestIterate(tolerance=rec.config.early_stopping_tolerance)
+        work.record.stopped_at = None
+        return Verdict.STAGE_AGAIN
+        yield  # (a generator)
+
+
+def _rebuild(rec: Reconstructor, work: StageWork) -> None:
+    """The stage's model for the parts now on."""
+    work.stage = rec._build_stage(work.stage.index)
+    work.mask, work.data_range = rec._loss_mask(work.stage), float(work.stage.images.max())
+    rec.calibration.set_trainable(work.stage.index)
+
+
+def default_choices() -> tuple[ChooseModelParts, ChooseTVWeights, ConfirmModelParts]:
     """The choices of every run, in the order they are called (the parts' start state is taken before the TV trials
-    of a stage that holds both)."""
-    return ChooseModelParts(), ChooseTVWeights()
+    of a stage that holds both; the backward step after the parts' choice has nothing left to choose)."""
+    return ChooseModelParts(), ChooseTVWeights(), ConfirmModelParts()

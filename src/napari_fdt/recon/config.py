@@ -303,6 +303,11 @@ class SolverConfig:
         "model holds none of the parts) and chooses the other auto parts again in the finest stage; `\"finest\"` runs only "
         "the finest stage again (cheaper; the coarse volume keeps what it absorbed of the parts; docs/solver.md, \"Model parts\")",
         fix="use \"stages\" or \"finest\"", tier="experimental")
+    parts_backward: bool = setting(
+        True, description="once the final set of \"auto\" model parts is trained, test each kept part for removal on the held-out "
+        "images (the admission's paired test); a part that no longer helps is dropped and the finest stage runs again without "
+        "it, kept where the held-out images are not worse by more than noise (docs/solver.md, \"Model parts\")",
+        fix="use true or false", tier="experimental")
     parts_pilot: bool = setting(
         True, description="also choose the \"auto\" pupil parts (`calibrate_pupil`, `calibrate_aberrations`) before the finest stage: "
         "the pupil before the stages, from a pilot at Δn = 0 (the sources' positions and gains fitted through the finest stage's "

@@ -184,6 +184,9 @@ class PartsChoice:
     rerun: str | None = None
     #: the auto parts the finest stage of that second pass chooses again (empty once chosen)
     pending: list[str] = field(default_factory=list)
+    #: the backward step at the end (:mod:`napari_fdt.recon.parts_backward`): each kept part's effect in the final
+    #: state, the parts dropped, and the finest stage's rerun without them; None before (or without kept parts)
+    backward: dict[str, Any] | None = None
 
     @property
     def needed(self) -> list[str]:
@@ -193,7 +196,8 @@ class PartsChoice:
     def to_dict(self) -> dict[str, Any]:
         return {"parts": dict(self.parts), "chosen_by": dict(self.chosen_by), "stage": self.stage, "iteration": self.iteration, "reference_error": self.reference_error,
                 "reference_image_errors": list(self.reference_image_errors), "trials": list(self.trials), "fitted": dict(self.fitted),
-                "seconds": self.seconds, "needed": self.needed, "rerun": self.rerun, "pending": list(self.pending)}
+                "seconds": self.seconds, "needed": self.needed, "rerun": self.rerun, "pending": list(self.pending),
+                "backward": self.backward}
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "PartsChoice":
@@ -203,7 +207,7 @@ class PartsChoice:
         return cls(parts=parts, chosen_by=chosen_by, stage=int(d.get("stage", -1)), iteration=int(d.get("iteration", 0)),
                    reference_error=d.get("reference_error"), reference_image_errors=list(d.get("reference_image_errors", [])),
                    trials=list(d.get("trials", [])), fitted=dict(d.get("fitted", {})), seconds=float(d.get("seconds", 0.0)),
-                   rerun=d.get("rerun"), pending=list(d.get("pending", [])))
+                   rerun=d.get("rerun"), pending=list(d.get("pending", [])), backward=d.get("backward"))
 
 
 @dataclass

@@ -158,6 +158,9 @@ class Plan:
     if_finest_parts_kept_s: float | None = None
     #: the "auto" parts of the finest stage's model to choose (sub-slices, the 2x field grid)
     finest_parts: tuple[str, ...] = ()
+    #: seconds more if a kept part no longer earns its place at the end (``parts_backward``,
+    #: :mod:`~napari_fdt.recon.parts_backward`: the finest stage again without it); None where no part is to choose
+    if_part_dropped_s: float | None = None
     #: seconds of the half-set resolution after the run (``half_set_resolution``: each half of the images run again, no
     #: trials); None where it is not asked for
     half_sets_s: float | None = None
@@ -227,7 +230,7 @@ class Plan:
         if choice_to_come:
             return replace(self, phases=phases, if_finest_parts_kept_s=None, finest_parts=(), if_part_kept_early_s=None,
                            early_test_stage=None)
-        return Plan(phases, self.device_type, half_sets_s=self.half_sets_s)
+        return Plan(phases, self.device_type, half_sets_s=self.half_sets_s, if_part_dropped_s=self.if_part_dropped_s)
 
     def to_dict(self) -> dict[str, Any]:
         return {"device": self.device_type, "phases": [p.to_dict() for p in self.phases],
@@ -235,7 +238,8 @@ class Plan:
                 "predicted_extra_s_if_a_part_is_kept": self.if_part_kept_s,
                 "predicted_extra_s_if_a_part_is_kept_before_the_finest_stage": self.if_part_kept_early_s,
                 "predicted_extra_s_if_finest_parts_are_kept": self.if_finest_parts_kept_s, "finest_parts": list(self.finest_parts),
-                "pupil_pilot": self.pupil_pilot, "predicted_extra_s_half_set_resolution": self.half_sets_s}
+                "pupil_pilot": self.pupil_pilot, "predicted_extra_s_if_a_part_is_dropped_at_the_end": self.if_part_dropped_s,
+                "predicted_extra_s_half_set_resolution": self.half_sets_s}
 
     def summary(self) -> str:
         """One line per phase with its iterations and predicted seconds, and the total."""
@@ -251,6 +255,8 @@ class Plan:
         if self.if_finest_parts_kept_s:
             what = " or ".join(PART_WORDS.get(p, p) for p in self.finest_parts)
             lines.append(f"  if the data ask for {what} alone: the finest stage again with them, ~{_seconds(self.if_finest_parts_kept_s)} more")
+        if self.if_part_dropped_s:
+            lines.append(f"  if a kept part no longer helps at the end: the finest stage again without it, ~{_seconds(self.if_part_dropped_s)} more")
         if self.half_sets_s is not None:
             lines.append(f"  then the half-set resolution: each half of the images run again with the run's choices, "
                          f"~{_seconds(self.half_sets_s)} more")
@@ -362,8 +368,9 @@ def make_plan(config: SolverConfig, optics: Optics, image_shape: tuple[int, int]
         halves = sum(stage_phase(config, optics, image_shape, src[idx], i, coarse_model, device_type, pixel_integration=pixel_integration,
                                  pupil_edge=pupil_edge).predicted_s
                      for idx in split_halves(src, config.seed) for i in range(len(config.stages)))
+    dropped = stages[-1].predicted_s if parts_to_choose and config.parts_backward else None
     return Plan(tuple(phases), "cuda" if device_type == "cuda" else "cpu", extra, early, early_test_stage if early is not None else None,
-                finest_again, finest_parts, halves)
+                finest_again, finest_parts, dropped, halves)
 
 
 def plan_for(acquisition, config: SolverConfig, device_type: str, sources_um: np.ndarray | None = None) -> tuple[Plan, np.ndarray]:

@@ -178,7 +178,25 @@ def describe_parts(summary: dict[str, Any]) -> str:
                       for t in chosen["trials"] if "improvement" in t)
     where = f"in stage {chosen['stage'] + 1}" if chosen["stage"] >= 0 else "before the stages"
     return (f"model parts on: {needed} (chosen by the validation error {chosen['reference_error']:.4f} {where}, "
-            f"{chosen['seconds']:.1f} s; change of the held-out error with each part: {tried})")
+            f"{chosen['seconds']:.1f} s; change of the held-out error with each part: {tried})" + _describe_backward(chosen.get("backward")))
+
+
+def _describe_backward(backward: dict[str, Any] | None) -> str:
+    """The backward step's words (:mod:`napari_fdt.recon.parts_backward`): each kept part's effect in the final state."""
+    if not backward or not backward.get("effects"):
+        return ""
+
+    def effect(e: dict[str, Any]) -> str:
+        z = e["improvement"] / e["standard_error"] if e.get("standard_error") else float("nan")
+        return (f"{e['part']} {'kept' if e['earns'] else 'dropped'} (held-out error {100 * e['improvement'] / backward['reference_error']:+.1f} % "
+                f"without it, {z:.1f} SE)")
+
+    said = "; at the end, in the final state: " + ", ".join(effect(e) for e in backward["effects"])
+    rerun = backward.get("rerun")
+    if rerun is not None:
+        said += (", the finest stage ran again without the dropped parts and was kept" if rerun["keep_rerun"] else
+                 ", the finest stage ran again without them, was worse by more than noise, and the run went back to them")
+    return said
 
 
 def write_result(rec: Reconstructor, out: str | Path, report: dict[str, Any], *, overwrite: bool = False) -> tuple[Path, Path]:
