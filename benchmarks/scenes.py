@@ -55,6 +55,10 @@ SCENES: dict[str, tuple[Path, str | None]] = {
     # a thick slab of elongated objects (issue 47): 3 µm slices, the focus inside the volume, the accurate forward model
     "fibres_thick": (SCENE_DIR / "fibres_thick", "fibres --shape 64 64 --n-slices 8 --slice-spacing-um 3 --image-plane-um 12 "
                                                  "--sources 7 --depth-um 30 --forward-accuracy high"),
+    # data that do carry an emission band (40 nm FWHM, 9 wavelengths; issue 49): the spectral model belongs to them
+    "beads_spectral": (SCENE_DIR / "beads_spectral", "beads --shape 64 64 --n-slices 8 --sources 7 --depth-um 30 --bandwidth-um 0.04"),
+    "cells_spectral": (SCENE_DIR / "cells_spectral", "cells --shape 64 64 --n-slices 8 --sources 7 --depth-um 30 --bandwidth-um 0.04 "
+                                                     "--forward-accuracy high"),
 }
 
 #: the model-parts scenes (benchmarks/model_parts.py): the sample's geometry and 64² beads, clean and with the

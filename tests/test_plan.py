@@ -297,3 +297,29 @@ def test_the_plan_says_what_keeping_a_model_part_would_add(sample) -> None:
     plan, _ = plan_for(sample, fixed, "cpu")
     assert plan.if_part_kept_s is None and "model part" not in plan.summary()
     assert plan.if_finest_parts_kept_s is None and "sub-slices" not in plan.summary()
+
+
+def test_kept_parts_are_priced_by_what_they_run(sample) -> None:
+    """A stage run again with kept parts is priced by the model it builds: the spectral model one forward and backward
+    pass per wavelength (``n_wavelengths`` times the units), obliquity on the full window (the split field has no
+    per-source screens: the grid the solver then builds). Before, the spectral rerun of a thick slab was priced as a
+    plain one (fibres_thick, 2026-11-27: 16.9 s planned for a finest stage that took 704 s beside other runs)."""
+    from napari_fdt.recon.plan import stage_phase
+    from napari_fdt.recon.solver import Reconstructor
+
+    cfg = resolve_stage_lengths(SolverConfig(), sample.n_images)
+    src, last = _sources(sample), len(cfg.stages) - 1
+
+    def phase(*parts):
+        return stage_phase(cfg, sample.optics, sample.image_shape, src, last, "envelope", "cpu", "rerun", parts)
+
+    plain, spectral, oblique = phase(), phase("spectral"), phase("obliquity")
+    assert spectral.fft_shape == plain.fft_shape
+    assert spectral.seconds_per_iteration == pytest.approx(cfg.n_wavelengths * plain.seconds_per_iteration)
+    rec = Reconstructor(sample, cfg, device="cpu")
+    assert plain.fft_shape == tuple(rec._build_stage(last).window)  # the split field's window on the CPU
+    rec.parts = {**rec.parts, "obliquity": True}
+    full = tuple(rec._build_stage(last).window)
+    assert oblique.fft_shape == full and full[0] * full[1] > plain.fft_shape[0] * plain.fft_shape[1]
+    assert oblique.seconds_per_iteration > plain.seconds_per_iteration
+    assert phase("obliquity", "spectral").seconds_per_iteration == pytest.approx(cfg.n_wavelengths * oblique.seconds_per_iteration)

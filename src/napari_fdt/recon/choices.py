@@ -121,7 +121,8 @@ class ChooseModelParts:
         # the stage again from its start, with the kept parts on from their fitted values (a phase of its own, priced
         # with them)
         phase = rec.plan.phases[rec._phase_index]
-        again = phase.priced_as(rec._stage_phase(phase.stage, phase.pass_name, kept), label=True)
+        # (priced with every part the run keeps, those kept in a pass before included)
+        again = phase.priced_as(rec._stage_phase(phase.stage, phase.pass_name, tuple(kept_auto_parts(rec))), label=True)
         rec._revise_plan(rec.plan.with_rerun([again], choice_to_come=choose_again))
         rec._phase_index = len(rec.plan.phases) - 1
         fitted = rec.calibration.copy_values(PUPIL_PARAMETERS)

@@ -276,7 +276,9 @@ def stage_phase(config: SolverConfig, optics: Optics, image_shape: tuple[int, in
                 coarse_model: str, device_type: str, pass_name: str = RUN, parts: tuple[str, ...] = (),
                 pixel_integration: bool = False, pupil_edge: float | None = None, pilot: bool = False) -> Phase:
     """The phase of stage ``stage`` (its model, FFT grid and predicted seconds per iteration; ``pixel_integration``: the
-    multi-slice model's camera integrates over its pixels; ``pupil_edge`` its pupil's edge, None the default).
+    multi-slice model's camera integrates over its pixels; ``pupil_edge`` its pupil's edge, None the default; ``parts``
+    the kept model parts it runs with: sub-slices and the 2x field grid in the finest stage, obliquity on the full
+    window, the spectral model one pass per wavelength).
 
     ``pilot``: a step of the pupil's pilot on this stage's model instead (:mod:`napari_fdt.recon.parts_pilot`):
     ``2·PILOT_BATCH`` images at Δn = 0, where the split-field model skips its slice loop (its camera's source field and
@@ -291,7 +293,8 @@ def stage_phase(config: SolverConfig, optics: Optics, image_shape: tuple[int, in
         shape = envelope_padded_shape(optics, image_shape, sc.factor)
     else:
         _, opt, _, window = multislice_plan(optics, sc.factor, image_shape, sources_um)
-        split = config_uses_split_field(config, device_type, sc.factor, window, opt, pupil_edge, field_grid="field_grid" in parts)
+        split = config_uses_split_field(config, device_type, sc.factor, window, opt, pupil_edge, field_grid="field_grid" in parts,
+                                        obliquity="obliquity" in parts)
         shape = model_window(window, opt, split)
     model = "envelope" if envelope else "multislice"
     dev = "cuda" if device_type == "cuda" else "cpu"
@@ -310,6 +313,8 @@ def stage_phase(config: SolverConfig, optics: Optics, image_shape: tuple[int, in
         source_pixels = h * w
         camera_points = (2 * h + 2 * FINE_MARGIN) * (2 * w + 2 * FINE_MARGIN) if pixel_integration else h * w
     units = iteration_units(batch, screens, shape, pixel_integration and not envelope, source_pixels, camera_points)
+    if not envelope and ("spectral" in parts or config.coherence in ("spectral", "mask+spectral")):
+        units *= config.n_wavelengths  # the spectral model: one forward and backward pass per wavelength
     per_it = OVERHEAD_S[dev] + SECONDS_PER_UNIT[(dev, model)] * units + (PILOT_STEP_OVERHEAD_S if pilot and dev == "cpu" else 0.0)
     return Phase(pass_name, stage, len(config.stages), sc.factor, model, sc.iterations, shape, per_it, parts=parts)
 

@@ -216,12 +216,12 @@ def model_window(plan: GridPlan, optics: Optics, split: bool) -> tuple[int, int]
 
 
 def config_uses_split_field(config, device_type: str, factor: int, plan: GridPlan, optics: Optics,
-                            pupil_edge: float | None, field_grid: bool = False) -> bool:
+                            pupil_edge: float | None, field_grid: bool = False, obliquity: bool = False) -> bool:
     """:func:`uses_split_field` for a solver configuration's stage of ``factor`` (its full window ``plan`` and stage
-    ``optics``), as the plan and the memory check price it before the run (obliquity as configured: the parts' choice
-    comes later; ``field_grid``: the ``"auto"`` 2x field grid on)."""
+    ``optics``), as the plan and the memory check price it before the run (obliquity as configured, or ``obliquity``:
+    kept by the parts' choice; ``field_grid``: the ``"auto"`` 2x field grid on)."""
     return uses_split_field(config.field_window, device_type, factor, split_window_fraction(plan, optics),
-                            obliquity="per_source" if config.obliquity_correction == "true" else "none",
+                            obliquity="per_source" if config.obliquity_correction == "true" or obliquity else "none",
                             field_oversampling=stage_field_oversampling(config.field_oversampling, field_grid),
                             pupil_edge=pupil_edge)
 
