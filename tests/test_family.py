@@ -28,9 +28,13 @@ def test_the_verdict_is_paired_and_the_pick_the_largest_weight_within_the_tolera
     close = [0.102, 0.203, 0.301, 0.404]     # +1 % everywhere: within 5 %, and told apart (a consistent rise)
     noisy = [0.09, 0.22, 0.29, 0.43]         # the same mean rise, but scattered: the images cannot tell it apart
     far = [0.12, 0.24, 0.36, 0.48]           # +20 %
+    members = [_member(1.0, best), _member(3.0, noisy), _member(10.0, far)]
+    pick, reason = verdict(members)
+    assert pick == 1 and "5%" in reason  # within 5 % and not told apart: the larger weight
     members = [_member(1.0, best), _member(3.0, close), _member(10.0, far)]
     pick, reason = verdict(members)
-    assert pick == 1 and "5%" in reason
+    # within 5 %, but the images tell it apart (every image worse): the data speak, the best member is the pick
+    assert pick == 0 and "cannot tell" in reason
     d = np.array(close) - np.array(best)
     assert members[1].mean_difference == pytest.approx(d.mean())
     assert members[1].standard_error == pytest.approx(d.std(ddof=1) / 2)

@@ -211,7 +211,7 @@ class SolverConfig:
     tv_family: bool = setting(
         False, description="reconstruct a family of volumes, one whole run per TV weight (τ_xy 1, 3 and 10, τ_z half of it), "
         "instead of choosing the weight by trials: each member's held-out error against the best member's (paired, with its "
-        "standard error), and the pick (the largest weight within 5 % of the best held-out error). `fdt reconstruct --tv-family` "
+        "standard error), and the pick (the largest weight within 5 % of the best held-out error that the images cannot tell from it). `fdt reconstruct --tv-family` "
         "writes the pick to --out and the other members beside it. About three runs' time (docs/solver.md, \"A family of "
         "volumes across TV weights\")",
         fix="true or false", tier="basic")

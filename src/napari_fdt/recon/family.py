@@ -12,7 +12,10 @@ every other choice, the model parts included, made by that run), and compares th
   cannot tell apart;
 * the pick: the largest weight whose held-out error is within :data:`PICK_TOLERANCE` of the best member's (section 4:
   over 15 scene/seed pairs of whole runs at τ 1, 3, 10, 30, any tolerance from 3.4 % to 8.3 % ended within 10 % of the
-  best fixed weight's Δn error on every pair; 5 % is in the middle).
+  best fixed weight's Δn error on every pair; 5 % is in the middle) *and* that the images cannot tell from the best:
+  where they do (a consistent rise, beyond :data:`INDISTINGUISHABLE_SE` standard errors), the data speak and are
+  followed (cells_fine seed 1: τ 10 at +2.4 %, told apart, 1.41× the best member's Δn error; τ 3 the best;
+  docs/decisions/tv-family.md).
 
 The members share the acquisition and the initial source positions (a member's run would compute the same ones). The
 family replaces the TV weights' trials: its members' weights are numbers. Without held-out images there is no verdict
@@ -101,7 +104,8 @@ def verdict(members: list[Member], tolerance: float = PICK_TOLERANCE,
     """Fill each member's verdict against the best member's held-out errors; return (the pick's index, the reason).
 
     The best member has the lowest held-out error; each member's paired difference to it (same images) has a mean and
-    a standard error; the pick is the largest weight within ``tolerance`` (relative) of the best error."""
+    a standard error; the pick is the largest weight within ``tolerance`` (relative) of the best error that the images
+    cannot tell from the best (within ``indistinguishable_se`` standard errors)."""
     scored = [k for k, m in enumerate(members) if m.validation_error is not None and math.isfinite(m.validation_error)]
     if not scored:
         return 0, "no held-out images: the smallest weight"
@@ -114,9 +118,10 @@ def verdict(members: list[Member], tolerance: float = PICK_TOLERANCE,
         se = members[k].standard_error
         members[k].indistinguishable = k == best or (se is not None and abs(members[k].mean_difference) <= indistinguishable_se * se)
     limit = members[best].validation_error * (1.0 + tolerance)
-    pick = max((k for k in scored if members[k].validation_error <= limit), key=lambda k: members[k].tau)
+    pick = max((k for k in scored if members[k].validation_error <= limit and members[k].indistinguishable),
+               key=lambda k: members[k].tau)
     reason = (f"the largest weight whose held-out error is within {tolerance:.0%} of the best member's "
-              f"(τ_xy {members[best].tau:g}: {members[best].validation_error:.4f})")
+              f"(τ_xy {members[best].tau:g}: {members[best].validation_error:.4f}) and that the images cannot tell from it")
     return pick, reason
 
 
