@@ -89,8 +89,12 @@ def test_a_family_writes_each_member_as_the_run_at_its_weight_and_the_pick(tmp_p
         if not m["picked"]:
             assert Path(m["path"]) == member_path(out, m["tau"])
     assert not member_path(out, picked[0]["tau"]).exists()  # the pick lives at --out only
-    # a member is the cold run at its weight, bit for bit (the family shares nothing that changes it)
-    other = next(m for m in family if not m["picked"])
+    # the first member's choice of model parts kept none: the later members ran with the parts off (no tests) ...
+    first = json.loads(Path(family[0]["path"]).with_suffix(".json").read_text())
+    assert first["model_parts"]["needed"] == [] and "validation" in first["model_parts"]["chosen_by"].values()
+    assert [m["parts_shared_from"] for m in family] == [None, FAMILY_TAUS[0], FAMILY_TAUS[0]]
+    # ... and a member is the cold run at its weight, bit for bit, its own tests included (they keep nothing either)
+    other = next(m for m in family if not m["picked"] and m["parts_shared_from"] is not None)
     cold = tmp_path / "cold.tif"
     assert main(["reconstruct", str(acq), "--config", str(tmp_path / "cfg.json"), "--out", str(cold), "--device", "cpu", "--quiet",
                  "--tv-xy-weight", f"{other['tv_xy_weight']:g}", "--tv-z-weight", f"{other['tv_z_weight']:g}"]) == 0

@@ -17,8 +17,12 @@ every other choice, the model parts included, made by that run), and compares th
   followed (cells_fine seed 1: τ 10 at +2.4 %, told apart, 1.41× the best member's Δn error; τ 3 the best;
   docs/decisions/tv-family.md).
 
-The members share the acquisition and the initial source positions (a member's run would compute the same ones). The
-family replaces the TV weights' trials: its members' weights are numbers. Without held-out images there is no verdict
+The members share the acquisition and the initial source positions (a member's run would compute the same ones), and,
+where the first member's choice of model parts kept none, that choice: the later members run with the ``"auto"`` parts
+off (:func:`parts_off`), no tests, which is bit for bit their own run wherever their own tests would keep nothing too
+(a test that keeps nothing leaves the run as it was; on 28 of 28 members measured whose first member kept nothing,
+they kept nothing: docs/decisions/tv-family.md). The family replaces the TV weights' trials: its members' weights are
+numbers. Without held-out images there is no verdict
 and the pick is the smallest weight (a warning says so).
 """
 
@@ -42,7 +46,7 @@ if TYPE_CHECKING:
     from napari_fdt.recon.snapshot import Snapshot
     from napari_fdt.recon.solver import Reconstructor
 
-__all__ = ["FAMILY_TAUS", "PICK_TOLERANCE", "INDISTINGUISHABLE_SE", "Member", "Family", "member_config", "verdict",
+__all__ = ["FAMILY_TAUS", "PICK_TOLERANCE", "INDISTINGUISHABLE_SE", "Member", "Family", "member_config", "parts_off", "verdict",
            "run_family", "family_entries", "with_family"]
 
 #: The members' lateral TV weights τ_xy (τ_z = τ_xy · TV_Z_RATIO): they bracket the best fixed weights measured (τ 1 on
@@ -71,13 +75,15 @@ class Member:
     standard_error: float | None = None
     indistinguishable: bool | None = None
     picked: bool = False
+    #: the weight of the member whose choice of model parts (it kept none) this member ran with; None: its own choice
+    parts_shared_from: float | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """RI.json's ``regularisation.family`` entry (without ``path``, which the writer adds)."""
         return {"tau": self.tau, "tv_xy_weight": self.tv_xy_weight, "tv_z_weight": self.tv_z_weight,
                 "validation_error": self.validation_error, "mean_difference_to_best": self.mean_difference,
                 "standard_error": self.standard_error, "indistinguishable_from_best": self.indistinguishable,
-                "picked": self.picked, "seconds": self.seconds}
+                "picked": self.picked, "seconds": self.seconds, "parts_shared_from": self.parts_shared_from}
 
 
 @dataclass
@@ -97,6 +103,13 @@ def member_config(config: SolverConfig, tau: float) -> SolverConfig:
     """``config`` as member ``tau``'s run: the TV weights the member's numbers, no family (``--config`` of its report
     reruns that member alone)."""
     return dataclasses.replace(config, tv_xy_weight=float(tau), tv_z_weight=float(TV_Z_RATIO * tau), tv_family=False)
+
+
+def parts_off(config: SolverConfig) -> SolverConfig:
+    """``config`` with every ``"auto"`` model part off (a choice that kept none, taken as settings: no tests)."""
+    off = {"sub_slices": 1, "field_oversampling": 1, "obliquity_correction": "false", "coherence": "none",
+           "calibrate_pupil": "false", "calibrate_aberrations": "false"}
+    return dataclasses.replace(config, **{k: v for k, v in off.items() if getattr(config, k) == "auto"})
 
 
 def verdict(members: list[Member], tolerance: float = PICK_TOLERANCE,
@@ -145,12 +158,13 @@ def run_family(acquisition: Acquisition, config: SolverConfig, *, device: Any = 
 
     ``keep(member)`` is called as each member completes (a front end writes or shows it then; members stream as they
     finish); the member's solver stays in ``member.rec``."""
+    from napari_fdt.recon.parts_backward import kept_auto_parts
     from napari_fdt.recon.solver import Reconstructor
 
     members: list[Member] = []
-    sources = initial_sources_um
+    sources, shared_from = initial_sources_um, None
     for k, tau in enumerate(taus):
-        cfg = member_config(config, tau)
+        cfg = member_config(config, tau) if shared_from is None else parts_off(member_config(config, tau))
         t0 = time.perf_counter()
         rec = Reconstructor(acquisition, cfg, device=device, initial_sources_um=sources)
         sources = rec.initial_sources_um  # the first member's start (fitted once where the acquisition gives none)
@@ -158,7 +172,9 @@ def run_family(acquisition: Acquisition, config: SolverConfig, *, device: Any = 
             yield k, snap
         if rec.completed_stages < len(cfg.stages):
             return None
-        member = Member(float(tau), float(cfg.tv_xy_weight), float(cfg.tv_z_weight), rec)
+        member = Member(float(tau), float(cfg.tv_xy_weight), float(cfg.tv_z_weight), rec, parts_shared_from=shared_from)
+        if k == 0 and rec.parts_choice is not None and "validation" in rec.parts_choice.chosen_by.values() and not kept_auto_parts(rec):
+            shared_from = float(tau)  # its tests kept nothing: the later members run with the parts off
         member.validation_error, member.image_errors = _held_out_errors(rec)
         member.seconds = time.perf_counter() - t0
         members.append(member)
