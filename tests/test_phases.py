@@ -141,7 +141,7 @@ def test_fixed_weights_have_no_trials_and_the_stages_run_again_are_a_rerun(scene
     rec = Reconstructor(acq, _config(tv_xy_weight=0.0, tv_z_weight=0.0, stages=[StageConfig(2, 4), StageConfig(1, 4)]), device="cpu")
     assert {s.phase for s in rec.run()} == {"run"}
     # the stages run again with a kept part (as resumed from a checkpoint of the second pass): phase "rerun"
-    rec = Reconstructor(acq, _config(tv_xy_weight=0.0, tv_z_weight=0.0, stages=[StageConfig(2, 4), StageConfig(1, 4)],
+    rec = Reconstructor(acq, _config(tv_xy_weight=0.0, tv_z_weight=0.0, stages=[StageConfig(2, 4), StageConfig(1, 4)], parts_backward=False,
                                      calibrate_aberrations="auto", calibrate_pupil="false"), device="cpu")
     parts = {p: p == "aberrations" for p in PARTS}
     chosen_by = {p: ("validation" if p == "aberrations" else "setting") for p in PARTS}

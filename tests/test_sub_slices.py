@@ -244,7 +244,7 @@ def test_a_part_kept_after_the_finest_stage_ran_again_makes_every_stage_run_agai
     from napari_fdt.recon.solver import Reconstructor
 
     _forced(monkeypatch, {1, 3})  # calls: sub-slices (1), obliquity (2), obliquity again (3)
-    rec = Reconstructor(_letters_acquisition(4), _auto_config(obliquity_correction="auto"), device="cpu")
+    rec = Reconstructor(_letters_acquisition(4), _auto_config(obliquity_correction="auto", parts_backward=False), device="cpu")
     snaps = list(rec.run())
     choice = rec.parts_choice
     assert choice.parts["sub_slices"] and choice.parts["obliquity"] and choice.rerun == "stages"
