@@ -40,6 +40,7 @@ from napari_fdt.recon.tv_search import choose_tv
 from napari_fdt.recon.validation import BestIterate
 
 if TYPE_CHECKING:
+    from napari_fdt.recon.plan import Phase
     from napari_fdt.recon.solver import Reconstructor
 
 __all__ = ["ChooseTVWeights", "ChooseModelParts", "ConfirmModelParts", "default_choices"]
@@ -120,10 +121,7 @@ class ChooseModelParts:
             work.choosing["parts_from"] = start
         # the stage again from its start, with the kept parts on from their fitted values (a phase of its own, priced
         # with them)
-        phase = rec.plan.phases[rec._phase_index]
-        # (priced with every part the run keeps, those kept in a pass before included)
-        again = phase.priced_as(rec._stage_phase(phase.stage, phase.pass_name, tuple(kept_auto_parts(rec))), label=True)
-        rec._revise_plan(rec.plan.with_rerun([again], choice_to_come=choose_again))
+        rec._revise_plan(rec.plan.with_rerun([_stage_again_phase(rec)], choice_to_come=choose_again))
         rec._phase_index = len(rec.plan.phases) - 1
         fitted = rec.calibration.copy_values(PUPIL_PARAMETERS)
         restore_branch(rec, start)
@@ -164,9 +162,7 @@ class ConfirmModelParts:
         if not result["dropped"]:
             return Verdict.GO_ON
         work.choosing["backward_before"] = drop_parts(rec, result)
-        phase = rec.plan.phases[rec._phase_index]  # the stage again from its start without them, priced so
-        again = phase.priced_as(rec._stage_phase(phase.stage, phase.pass_name, tuple(kept_auto_parts(rec))), label=True)
-        rec._revise_plan(replace(rec.plan.with_rerun([again]), if_part_dropped_s=None))
+        rec._revise_plan(replace(rec.plan.with_rerun([_stage_again_phase(rec)]), if_part_dropped_s=None))
         rec._phase_index = len(rec.plan.phases) - 1
         restore_branch(rec, start)
         _rebuild(rec, work)
@@ -175,6 +171,13 @@ class ConfirmModelParts:
         work.record.stopped_at = None
         return Verdict.STAGE_AGAIN
         yield  # (a generator)
+
+
+def _stage_again_phase(rec: Reconstructor) -> Phase:
+    """The current stage again from its start, priced (and labelled) with every part the run keeps now, those kept in
+    a pass before included."""
+    phase = rec.plan.phases[rec._phase_index]
+    return phase.priced_as(rec._stage_phase(phase.stage, phase.pass_name, tuple(kept_auto_parts(rec))), label=True)
 
 
 def _rebuild(rec: Reconstructor, work: StageWork) -> None:
