@@ -148,7 +148,7 @@ def test_auto_field_grid_is_tried_only_where_the_camera_grid_aliases_the_medium_
 
     from napari_fdt import Optics
     from napari_fdt.recon.config import SolverConfig
-    from napari_fdt.recon.parts_switch import requested_for
+    from napari_fdt.recon.model_parts import requested_for
 
     camera = dict(OPTICS)
     auto = SolverConfig(field_oversampling="auto")

@@ -334,7 +334,7 @@ def test_a_real_cameras_pixel_integration_follows_the_physical_rule() -> None:
     at Δn error 0.258 and 0.101 against 0.305 and 0.163, docs/decisions/model-parts.md). A statement, or a simulated
     folder without one, is taken as it is."""
     from napari_fdt import Acquisition, Optics
-    from napari_fdt.recon.parts_switch import requested_for
+    from napari_fdt.recon.model_parts import requested_for
 
     def requested(na: float, extra: dict) -> tuple[bool | None, str]:
         o = Optics(wavelength_um=0.635, n_background=1.33, na=na, pixel_size_um=0.33, n_slices=4, slice_spacing_um=2.0)

@@ -168,7 +168,7 @@ def test_auto_sub_slices_are_tried_only_where_the_slices_are_thick_against_the_d
     from types import SimpleNamespace
 
     from napari_fdt.recon.config import SolverConfig
-    from napari_fdt.recon.parts_switch import requested_for
+    from napari_fdt.recon.model_parts import requested_for
 
     thick, thin = Optics(**OPTICS), Optics(**{**OPTICS, "slice_spacing_um": 1.0})
     assert thick.depth_of_field_um == pytest.approx(0.635 / (1.33 * (1 - np.sqrt(1 - (0.8 / 1.33) ** 2))))

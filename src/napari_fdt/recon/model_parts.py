@@ -31,7 +31,7 @@ The finest stage then goes on with the kept parts, from the fitted values. The v
 trained without them, so the test is conservative: a part must show through a volume that may have absorbed some of
 its effect. Without a validation split the auto parts are off. (Pixel integration is not chosen here: where the files
 do not state it, the physical rule of :func:`napari_fdt.physics.camera.needs_pixel_integration` sets it,
-:func:`napari_fdt.recon.parts_switch.requested_for`.)
+:func:`requested_for`.)
 """
 
 from __future__ import annotations
@@ -41,11 +41,14 @@ from typing import Any
 
 import numpy as np
 
+from napari_fdt.physics.camera import needs_pixel_integration
 from napari_fdt.recon.config import AUTO, SolverConfig
+from napari_fdt.recon.stages import camera_grid_drops_band, stated_pixel_integration, thick_slices
 
 __all__ = ["PARTS", "BINARY_PARTS", "FITTED_PARTS", "SETTING_OF", "STANDARD_ERRORS_LEVEL", "standard_errors", "MIN_IMPROVEMENT", "FIT_ITERATIONS",
            "FIT_IMAGES", "FIT_RATES", "PILOT_ITERATIONS", "PILOT_BATCH",
-           "FINEST_ONLY_PARTS", "PartsChoice", "EarlyTrials", "pupil_pilot_wanted", "decide", "switch", "requested_parts", "parts_stage"]
+           "FINEST_ONLY_PARTS", "PartsChoice", "EarlyTrials", "pupil_pilot_wanted", "decide", "switch", "requested_parts", "requested_for", "parts_stage",
+           "coarse_test_stage", "coarse_end_test_planned"]
 
 #: Parts without parameters, tried first, in this order (sub-slices first: a spectral model or a pupil fit can absorb
 #: part of a thin screen's error, as the spectral model did on beads simulated with sub-slices, docs/benchmarks.md).
@@ -225,3 +228,52 @@ class EarlyTrials:
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "EarlyTrials":
         return cls(list(d.get("trials", [])), float(d.get("seconds", 0.0)))
+
+def requested_for(cfg, acquisition) -> tuple[dict[str, bool | None], dict[str, str]]:
+    """Each part as the settings and the acquisition ask for it (None: "auto", to choose from the data), and why."""
+    requested = requested_parts(cfg)
+    chosen_by = {p: "setting" for p in PARTS}
+    stated = stated_pixel_integration(cfg, acquisition)
+    if cfg.pixel_integration == "auto" and stated is not None:
+        chosen_by["pixel_integration"] = "acquisition"
+    elif stated is None:
+        # a real camera's files that do not say: every camera integrates over its pixels, and the physical rule says
+        # where that shows in the images. The data cannot choose it: at Δn = 0 the sources' smooth light does not show
+        # it (the pilot), and at the finest stage's end, through a volume trained without it, it made the held-out
+        # images worse on cells_pupil's images (+3.5 %) that have it (docs/decisions/model-parts.md)
+        o = acquisition.optics
+        stated = needs_pixel_integration(o.na, o.wavelength_um, o.pixel_size_um)
+        chosen_by["pixel_integration"] = "physics: " + ("the intensity's band 2·NA/λ exceeds the camera's Nyquist" if stated
+                                                        else "the camera's Nyquist holds the intensity's band 2·NA/λ")
+    requested["pixel_integration"] = stated
+    if requested["sub_slices"] is None and not thick_slices(acquisition.optics):
+        # the physics' criterion: slices thin against the depth of field are thin screens, no trial needed
+        requested["sub_slices"] = False
+        chosen_by["sub_slices"] = "physics: slices under half the depth of field"
+    if requested["field_grid"] is None and not camera_grid_drops_band(acquisition.optics):
+        # the physics' criterion: the camera grid holds every wave the medium carries, nothing aliases
+        requested["field_grid"] = False
+        chosen_by["field_grid"] = "physics: the camera grid holds the medium's band"
+    extra = getattr(acquisition, "extra", None) or {}
+    if requested["pupil"] is None and "pupil_edge" in extra and cfg.pupil_edge is None:
+        # a pupil the acquisition states (as fdt simulate writes it) is taken as stated, like its pixel integration
+        requested["pupil"] = False
+        chosen_by["pupil"] = "acquisition"
+    return requested, chosen_by
+
+
+def coarse_test_stage(config: SolverConfig) -> int | None:
+    """The stage at whose end the aberrations are tested: the last stage with iterations before the finest one and
+    coarser than it (None where there is none)."""
+    last = parts_stage(config)
+    before = [i for i in range(last) if config.stages[i].iterations > 0 and config.stages[i].factor > config.stages[last].factor]
+    return before[-1] if before else None
+
+
+def coarse_end_test_planned(config: SolverConfig, n_held_out: int, parts_to_test: bool) -> bool:
+    """Whether a test at :func:`coarse_test_stage`'s end is to run: ``parts_pilot`` on, ``parts_rerun`` ``"stages"``,
+    ``parts_to_test`` (in a first pass: the aberrations ``"auto"``), at least two images held out (the test's noise
+    estimate), and such a stage (in a distributed run too: each rank predicts and fits on its own images). Known before
+    the run (the plan prices what a part kept there adds: :attr:`~napari_fdt.recon.plan.Plan.if_part_kept_early_s`)."""
+    return (bool(config.parts_pilot) and config.parts_rerun == "stages" and n_held_out >= 2
+            and parts_to_test and coarse_test_stage(config) is not None)

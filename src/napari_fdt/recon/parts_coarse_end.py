@@ -26,30 +26,29 @@ import copy
 import time
 from typing import TYPE_CHECKING, Callable
 
-from napari_fdt.recon.model_parts import COARSE_END_MIN_IMPROVEMENT, FITTED_PARTS, EarlyTrials, PartsChoice, next_pass, parts_stage
+from napari_fdt.recon.model_parts import (
+    COARSE_END_MIN_IMPROVEMENT,
+    FITTED_PARTS,
+    EarlyTrials,
+    PartsChoice,
+    coarse_end_test_planned,
+    coarse_test_stage,
+    next_pass,
+    parts_stage,
+)
 from napari_fdt.recon.parts_search import choice_errors, pupil_values, try_fitted_parts
 from napari_fdt.recon.parts_switch import parts_chosen_by, restart_with_parts, set_parts
 from napari_fdt.recon.phases import RERUN, RUN
 from napari_fdt.recon.snapshot import rerun_parts
 
 if TYPE_CHECKING:
-    from napari_fdt.recon.config import SolverConfig
     from napari_fdt.recon.solver import Reconstructor
     from napari_fdt.recon.stage_loop import StageWork
 
-__all__ = ["COARSE_END_PARTS", "coarse_end_parts", "coarse_end_test_due", "coarse_test_stage", "coarse_end_test_planned",
-           "early_test_stage", "choose_fitted_parts_at_coarse_end"]
+__all__ = ["COARSE_END_PARTS", "coarse_end_parts", "coarse_end_test_due", "early_test_stage", "choose_fitted_parts_at_coarse_end"]
 
 #: The parts tested at the last coarse stage's end.
 COARSE_END_PARTS = ("aberrations",)
-
-
-def coarse_test_stage(config: SolverConfig) -> int | None:
-    """The stage at whose end the aberrations are tested: the last stage with iterations before the finest one and
-    coarser than it (None where there is none)."""
-    last = parts_stage(config)
-    before = [i for i in range(last) if config.stages[i].iterations > 0 and config.stages[i].factor > config.stages[last].factor]
-    return before[-1] if before else None
 
 
 def coarse_end_parts(rec: Reconstructor) -> list[str]:
@@ -62,15 +61,6 @@ def coarse_end_parts(rec: Reconstructor) -> list[str]:
     if choice.rerun == "stages":
         return [p for p in FITTED_PARTS if p in rec._choose_again]
     return []
-
-
-def coarse_end_test_planned(config: SolverConfig, n_held_out: int, parts_to_test: bool) -> bool:
-    """Whether a test at :func:`coarse_test_stage`'s end is to run: ``parts_pilot`` on, ``parts_rerun`` ``"stages"``,
-    ``parts_to_test`` (in a first pass: the aberrations ``"auto"``), at least two images held out (the test's noise
-    estimate), and such a stage (in a distributed run too: each rank predicts and fits on its own images). Known before
-    the run (the plan prices what a part kept there adds: :attr:`~napari_fdt.recon.plan.Plan.if_part_kept_early_s`)."""
-    return (bool(config.parts_pilot) and config.parts_rerun == "stages" and n_held_out >= 2
-            and parts_to_test and coarse_test_stage(config) is not None)
 
 
 def early_test_stage(rec: Reconstructor) -> int | None:

@@ -8,11 +8,9 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 from napari_fdt.model.coherence import emission_spectrum
-from napari_fdt.physics.camera import needs_pixel_integration
 from napari_fdt.recon.calibration import PUPIL_PARAMETERS
-from napari_fdt.recon.model_parts import PARTS, PartsChoice, requested_parts
+from napari_fdt.recon.model_parts import PARTS, PartsChoice, requested_for
 from napari_fdt.recon.stage_roles import set_stage_roles
-from napari_fdt.recon.stages import camera_grid_drops_band, stated_pixel_integration, thick_slices
 
 if TYPE_CHECKING:
     from napari_fdt.recon.solver import Reconstructor
@@ -20,37 +18,6 @@ if TYPE_CHECKING:
 __all__ = ["init_parts", "drop_parts_that_do_not_fit", "set_parts", "parts_chosen_by", "apply_parts_choice", "restart_with_parts", "finest_again_with_parts"]
 
 
-def requested_for(cfg, acquisition) -> tuple[dict[str, bool | None], dict[str, str]]:
-    """Each part as the settings and the acquisition ask for it (None: "auto", to choose from the data), and why."""
-    requested = requested_parts(cfg)
-    chosen_by = {p: "setting" for p in PARTS}
-    stated = stated_pixel_integration(cfg, acquisition)
-    if cfg.pixel_integration == "auto" and stated is not None:
-        chosen_by["pixel_integration"] = "acquisition"
-    elif stated is None:
-        # a real camera's files that do not say: every camera integrates over its pixels, and the physical rule says
-        # where that shows in the images. The data cannot choose it: at Δn = 0 the sources' smooth light does not show
-        # it (the pilot), and at the finest stage's end, through a volume trained without it, it made the held-out
-        # images worse on cells_pupil's images (+3.5 %) that have it (docs/decisions/model-parts.md)
-        o = acquisition.optics
-        stated = needs_pixel_integration(o.na, o.wavelength_um, o.pixel_size_um)
-        chosen_by["pixel_integration"] = "physics: " + ("the intensity's band 2·NA/λ exceeds the camera's Nyquist" if stated
-                                                        else "the camera's Nyquist holds the intensity's band 2·NA/λ")
-    requested["pixel_integration"] = stated
-    if requested["sub_slices"] is None and not thick_slices(acquisition.optics):
-        # the physics' criterion: slices thin against the depth of field are thin screens, no trial needed
-        requested["sub_slices"] = False
-        chosen_by["sub_slices"] = "physics: slices under half the depth of field"
-    if requested["field_grid"] is None and not camera_grid_drops_band(acquisition.optics):
-        # the physics' criterion: the camera grid holds every wave the medium carries, nothing aliases
-        requested["field_grid"] = False
-        chosen_by["field_grid"] = "physics: the camera grid holds the medium's band"
-    extra = getattr(acquisition, "extra", None) or {}
-    if requested["pupil"] is None and "pupil_edge" in extra and cfg.pupil_edge is None:
-        # a pupil the acquisition states (as fdt simulate writes it) is taken as stated, like its pixel integration
-        requested["pupil"] = False
-        chosen_by["pupil"] = "acquisition"
-    return requested, chosen_by
 
 
 def init_parts(rec: Reconstructor) -> None:

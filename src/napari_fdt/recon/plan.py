@@ -333,7 +333,7 @@ def make_plan(config: SolverConfig, optics: Optics, image_shape: tuple[int, int]
     be chosen from the data (:attr:`Plan.if_part_kept_s` then says what keeping one would add); ``finest_parts``: the
     ``"auto"`` parts of the finest stage's model among them (:attr:`Plan.if_finest_parts_kept_s`); ``pupil_pilot``: the
     pupil is tried before the stages (:attr:`Plan.pupil_pilot`); ``early_test_stage``: the stage at whose end the aberrations
-    are tested in the first pass (:func:`~napari_fdt.recon.parts_coarse_end.coarse_end_test_planned`; None: no such test)."""
+    are tested in the first pass (:func:`~napari_fdt.recon.model_parts.coarse_end_test_planned`; None: no such test)."""
     src = np.asarray(sources_um, dtype=np.float64)
     stages = [stage_phase(config, optics, image_shape, src, i, coarse_model, device_type, pixel_integration=pixel_integration,
                           pupil_edge=pupil_edge)
@@ -398,12 +398,10 @@ def plan_for(acquisition, config: SolverConfig, device_type: str, sources_um: np
     n_held = len(holdout_indices(src, cfg.validation_fraction))
     split = n_held > 0
     choose_tv_at = min(selection_stages(cfg)) if tv_is_auto(cfg) and split else None
-    from napari_fdt.recon.model_parts import FINEST_ONLY_PARTS, pupil_pilot_wanted
-    from napari_fdt.recon.parts_switch import requested_for
+    from napari_fdt.recon.model_parts import FINEST_ONLY_PARTS, coarse_end_test_planned, coarse_test_stage, pupil_pilot_wanted, requested_for
 
     # the parts as the run starts them; pixel integration as stated, else the physical rule
     requested, _ = requested_for(cfg, acquisition)
-    from napari_fdt.recon.parts_coarse_end import coarse_end_test_planned, coarse_test_stage
 
     early = coarse_test_stage(cfg) if coarse_end_test_planned(cfg, n_held, requested["aberrations"] is None) else None
     plan = make_plan(cfg, acquisition.optics, acquisition.image_shape, src, resolve_coarse_model(cfg.coarse_model, device_type),

@@ -307,7 +307,7 @@ def camera_model_options(config, acquisition) -> dict:
 
 def stated_pixel_integration(config, acquisition) -> bool | None:
     """Pixel integration as the setting or the acquisition states it; None when nothing does (``"auto"`` on a real
-    camera's data without the key): the solver then applies the physical rule (:func:`~napari_fdt.recon.parts_switch.requested_for`).
+    camera's data without the key): the solver then applies the physical rule (:func:`~napari_fdt.recon.model_parts.requested_for`).
 
     ``true``/``false``: as set; ``"auto"``: ``acquisition.json``'s ``pixel_integration`` if present, False for a
     simulated folder without it (written before the camera model existed, with point samples)."""
