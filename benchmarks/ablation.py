@@ -29,10 +29,10 @@ import numpy as np
 
 from benchmarks._results import write_document
 from napari_fdt import read_acquisition, read_volume_tiff, simulate, source_grid
-from napari_fdt.recon.config import SolverConfig, StageConfig
-from napari_fdt.recon.metrics import ri_metrics
-from napari_fdt.recon.report import evaluate_images, source_errors
-from napari_fdt.recon.solver import Reconstructor
+from napari_fdt.recon.assess.metrics import ri_metrics
+from napari_fdt.recon.run.report import evaluate_images, source_errors
+from napari_fdt.recon.run.solver import Reconstructor
+from napari_fdt.recon.settings.config import SolverConfig, StageConfig
 from napari_fdt.sim.phantoms import text_phantom
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -27,9 +27,9 @@ def run(scene: str, model: str, device: str) -> dict:
     from benchmarks.scenes import SCENES
     from napari_fdt import read_acquisition, read_volume_tiff
     from napari_fdt.model.envelope import EnvelopeModel
-    from napari_fdt.recon.config import SolverConfig
-    from napari_fdt.recon.metrics import relative_delta_n_error
-    from napari_fdt.recon.solver import Reconstructor
+    from napari_fdt.recon.assess.metrics import relative_delta_n_error
+    from napari_fdt.recon.run.solver import Reconstructor
+    from napari_fdt.recon.settings.config import SolverConfig
 
     folder, _ = SCENES[scene]
     acq = read_acquisition(folder)

@@ -4,7 +4,7 @@
     python -m benchmarks run coarse_stage_speed --device cuda --cuda-graph                # adds CUDA-graph rows
 
 For each geometry and stage factor (4, 2, 1) the stage is built as the solver builds it
-(:func:`napari_fdt.recon.stages.build_stage`) and one iteration is timed: forward through the stage model, an L2
+(:func:`napari_fdt.recon.problem.stages.build_stage`) and one iteration is timed: forward through the stage model, an L2
 loss against the stage's images, backward to Δn (stage grid), the source positions and the gains. Models:
 
 - ``envelope``: :class:`~napari_fdt.model.envelope.EnvelopeModel`, all sources and slices batched (``images_batched``,
@@ -33,7 +33,7 @@ import torch
 
 from benchmarks._results import results_file, write_document
 from napari_fdt import Optics, read_acquisition, resolve_device, source_grid
-from napari_fdt.recon.stages import build_stage
+from napari_fdt.recon.problem.stages import build_stage
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -17,9 +17,9 @@ import time
 
 from benchmarks.scenes import folder_of  # noqa: E402
 from napari_fdt import read_acquisition, read_volume_tiff  # noqa: E402
-from napari_fdt.recon.config import SolverConfig  # noqa: E402
-from napari_fdt.recon.metrics import relative_delta_n_error  # noqa: E402
-from napari_fdt.recon.solver import Reconstructor  # noqa: E402
+from napari_fdt.recon.assess.metrics import relative_delta_n_error  # noqa: E402
+from napari_fdt.recon.run.solver import Reconstructor  # noqa: E402
+from napari_fdt.recon.settings.config import SolverConfig  # noqa: E402
 
 
 def main() -> None:

@@ -20,7 +20,7 @@ import numpy as np
 from benchmarks._results import results_file, write_document  # noqa: E402
 from benchmarks.suite import _letters_scene, run_scene  # noqa: E402
 from napari_fdt import resolve_device  # noqa: E402
-from napari_fdt.recon.config import SolverConfig, StageConfig  # noqa: E402
+from napari_fdt.recon.settings.config import SolverConfig, StageConfig  # noqa: E402
 
 VARIANTS = {
     "default": {},

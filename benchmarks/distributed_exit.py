@@ -33,7 +33,7 @@ def main() -> int:
     args = ap.parse_args()
     from benchmarks.scenes import tiny_scene
     from napari_fdt.data.io import write_acquisition
-    from napari_fdt.recon.config import SolverConfig, StageConfig
+    from napari_fdt.recon.settings.config import SolverConfig, StageConfig
 
     work = Path(tempfile.mkdtemp(prefix="fdt_exit_"))
     acq = write_acquisition(tiny_scene(grid=4, seed=2).acquisition, work / "acq")

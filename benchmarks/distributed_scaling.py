@@ -88,7 +88,7 @@ def main() -> None:
     args = p.parse_args()
 
     from napari_fdt.data.io import read_acquisition
-    from napari_fdt.recon.config import SolverConfig
+    from napari_fdt.recon.settings.config import SolverConfig
 
     cfg = SolverConfig()
     for s in cfg.stages:

@@ -29,8 +29,8 @@ START, END = "<!-- full-size:start -->", "<!-- full-size:end -->"
 SET_UP = """
 import sys
 from napari_fdt.data.io import read_acquisition
-from napari_fdt.recon.config import SolverConfig
-from napari_fdt.recon.solver import Reconstructor
+from napari_fdt.recon.settings.config import SolverConfig
+from napari_fdt.recon.run.solver import Reconstructor
 acq = read_acquisition(sys.argv[1])
 rec = Reconstructor(acq, SolverConfig(snapshot_every=1), device="cpu")
 n = int(sys.argv[2])  # iterations of the first stage to run (its block averages built), 0: none
@@ -105,7 +105,7 @@ def main() -> None:
         "The stack is a read-only memory map of the file (`napari_fdt.data.mapped`): `fdt info` and `fdt plan` read the "
         "header and the JSON, the napari reader hands napari the map (it reads the planes it shows), and what must see "
         "every pixel (NaN and negative checks, blank and saturated images, the mean) goes through it in chunks of "
-        "64 MB. The solver reads each batch's rows from it (`napari_fdt.recon.stage_images`: no float32 copy of the "
+        "64 MB. The solver reads each batch's rows from it (`napari_fdt.recon.problem.stage_images`: no float32 copy of the "
         "stack on the CPU; a coarse stage holds its block averages, a GPU stage the stack on the device). With the "
         "version before (commit 4873372, measured the same day) `fdt info` peaked at 1,020 MB and the solver's set-up "
         "at 4,047 MB (three float32 copies). The plugin's computation process receives the file reference, not a "

@@ -116,8 +116,8 @@ def check_model(dev) -> None:
 
 
 def check_reconstruction(dev) -> None:
-    from napari_fdt.recon.config import SolverConfig, StageConfig
-    from napari_fdt.recon.solver import Reconstructor
+    from napari_fdt.recon.run.solver import Reconstructor
+    from napari_fdt.recon.settings.config import SolverConfig, StageConfig
     from napari_fdt.sim.simulate import make_scene, simulate
 
     o = Optics(wavelength_um=0.6, n_background=1.33, na=0.65, pixel_size_um=0.33, n_slices=6, slice_spacing_um=1.5, image_plane_um=4.5)
@@ -125,7 +125,7 @@ def check_reconstruction(dev) -> None:
     sim = simulate(dn, o, source_grid(5, 12.0, 30.0), device="cpu", seed=1)
     # the same algorithm on both devices ("auto" picks a different coarse model on CUDA)
     cfg = SolverConfig(stages=[StageConfig(2, 20), StageConfig(1, 20)], batch_size=8, seed=3, coarse_model="envelope")
-    from napari_fdt.recon.metrics import relative_delta_n_error
+    from napari_fdt.recon.assess.metrics import relative_delta_n_error
 
     out = {}
     for d in ("cpu", dev):

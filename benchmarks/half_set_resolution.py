@@ -61,12 +61,12 @@ def _figure(um: float | None, grid: float) -> str:
 
 def _reported(scene: str, cell: dict) -> tuple[float, str]:
     """The figure the report gives and what sets it. Rows of 2026-11-27 07:38-07:45 were made before the band limit
-    was part of it: for them :func:`napari_fdt.recon.half_sets.resolution_figure` applies it here as the report does."""
+    was part of it: for them :func:`napari_fdt.recon.run.half_sets.resolution_figure` applies it here as the report does."""
     if "limited_by" in cell:
         return cell["resolution_um"], cell["limited_by"]
     from napari_fdt import read_acquisition
     from napari_fdt.physics.band import band_limit_per_um
-    from napari_fdt.recon.half_sets import resolution_figure
+    from napari_fdt.recon.run.half_sets import resolution_figure
 
     acq = read_acquisition(folder_of(scene))
     axis = "lateral" if cell["grid_um"] == 2 * acq.optics.pixel_size_um else "axial"

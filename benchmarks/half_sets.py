@@ -29,20 +29,20 @@ import torch
 from benchmarks._results import append_row, results_file
 from benchmarks.scenes import folder_of
 from napari_fdt import read_acquisition, read_volume_tiff
-from napari_fdt.recon.config import SolverConfig
-from napari_fdt.recon.metrics import relative_delta_n_error
-from napari_fdt.recon.regularisation import selection_stages
-from napari_fdt.recon.run_validation import validation
-from napari_fdt.recon.solver import Reconstructor
-from napari_fdt.recon.stage_loop import Verdict, capture_branch, new_optimiser, restore_branch
-from napari_fdt.recon.validation import split_halves
+from napari_fdt.recon.assess.metrics import relative_delta_n_error
+from napari_fdt.recon.assess.validation import split_halves
+from napari_fdt.recon.loop.regularisation import selection_stages
+from napari_fdt.recon.loop.run_validation import validation
+from napari_fdt.recon.loop.stage_loop import Verdict, capture_branch, new_optimiser, restore_branch
+from napari_fdt.recon.run.solver import Reconstructor
+from napari_fdt.recon.settings.config import SolverConfig
 
 OUT = results_file("half_sets", "cpu")
 
 
 def halves(sources_um: np.ndarray, train: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray]:
     """Split ``train`` (image indices) in two: nearest-neighbour pairs by source (x, y), one of each pair per half
-    (:func:`napari_fdt.recon.validation.split_halves` on the training images)."""
+    (:func:`napari_fdt.recon.assess.validation.split_halves` on the training images)."""
     a, b = split_halves(sources_um[train], seed)
     return train[a], train[b]
 

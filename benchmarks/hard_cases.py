@@ -31,8 +31,8 @@ from napari_fdt.errors import FDTInputError, FDTWarning
 from napari_fdt.model.forward import MultiSliceModel
 from napari_fdt.physics.grid import plan_for_sources
 from napari_fdt.physics.optics import Optics
-from napari_fdt.recon.config import SolverConfig, StageConfig
-from napari_fdt.recon.solver import Reconstructor
+from napari_fdt.recon.run.solver import Reconstructor
+from napari_fdt.recon.settings.config import SolverConfig, StageConfig
 from napari_fdt.sim.simulate import simulate, source_grid
 
 ROOT = Path(__file__).resolve().parents[1]

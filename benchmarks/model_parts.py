@@ -80,10 +80,10 @@ def scene_names() -> list[str]:
 def run_one(scene: str, setting: str, device: str) -> dict:
     """One full reconstruction with the defaults plus the setting's overrides; the results row."""
     from napari_fdt import read_acquisition, read_volume_tiff
-    from napari_fdt.recon.config import SolverConfig
-    from napari_fdt.recon.metrics import relative_delta_n_error
-    from napari_fdt.recon.report import model_parts_summary, source_errors
-    from napari_fdt.recon.solver import Reconstructor
+    from napari_fdt.recon.assess.metrics import relative_delta_n_error
+    from napari_fdt.recon.run.report import model_parts_summary, source_errors
+    from napari_fdt.recon.run.solver import Reconstructor
+    from napari_fdt.recon.settings.config import SolverConfig
 
     folder = PARTS_SCENES[scene][0]
     acq = read_acquisition(folder)

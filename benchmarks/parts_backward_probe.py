@@ -6,7 +6,7 @@ Usage (repository root)::
     python -m benchmarks run parts_backward_probe SCENE [--seed S]
 
 Runs the defaults with ``parts_backward`` off (the run the choice alone makes), then
-:func:`napari_fdt.recon.parts_backward.marginal_effects` on its final state: per kept part the held-out error with it
+:func:`napari_fdt.recon.choices.parts_backward.marginal_effects` on its final state: per kept part the held-out error with it
 taken out, the paired change and its standard error, and whether it earns its place. One JSON row per run is appended
 to ``benchmarks/results/parts_backward_cpu.jsonl`` (with the Δn error against the scene's truth and the run's seconds).
 """
@@ -25,10 +25,10 @@ def main(argv: list[str] | None = None) -> None:
     import torch
 
     from napari_fdt import read_acquisition, read_volume_tiff
-    from napari_fdt.recon.config import SolverConfig
-    from napari_fdt.recon.metrics import relative_delta_n_error
-    from napari_fdt.recon.parts_backward import marginal_effects
-    from napari_fdt.recon.solver import Reconstructor
+    from napari_fdt.recon.assess.metrics import relative_delta_n_error
+    from napari_fdt.recon.choices.parts_backward import marginal_effects
+    from napari_fdt.recon.run.solver import Reconstructor
+    from napari_fdt.recon.settings.config import SolverConfig
 
     ap = argparse.ArgumentParser(prog="python -m benchmarks run parts_backward_probe")
     ap.add_argument("scene")

@@ -83,8 +83,8 @@ def profile_solver_demo(device: str = "cuda", side: int = 512, n_slices: int = 1
     from torch.profiler import ProfilerActivity, profile, schedule
 
     from benchmarks.suite import _letters_scene
-    from napari_fdt.recon.config import SolverConfig, StageConfig
-    from napari_fdt.recon.solver import Reconstructor
+    from napari_fdt.recon.run.solver import Reconstructor
+    from napari_fdt.recon.settings.config import SolverConfig, StageConfig
 
     dev = torch.device(device)
     acq, dn = _letters_scene(side, n_slices, n_grid, 84.0 * side / 512, side // 5, dev, text="UCDAVIS")

@@ -42,7 +42,7 @@ SCENES = SUITE
 
 def config_for(setting: str, base: dict | None = None):
     """The solver configuration of a row: the defaults with TV ``auto``, off (``0``) or τ_xy = τ, τ_z = τ/2."""
-    from napari_fdt.recon.config import SolverConfig
+    from napari_fdt.recon.settings.config import SolverConfig
 
     d = dict(base or {})
     if setting == "auto":
@@ -57,9 +57,9 @@ def run_one(scene: str, setting: str, device: str, base: dict | None = None, on_
     """One full reconstruction; the row of the results file. ``on_snapshot(rec, snap, truth_src, t0)``, if given, sees
     every snapshot (``benchmarks/source_positions.py`` traces the sources with it)."""
     from napari_fdt import read_acquisition, read_volume_tiff
-    from napari_fdt.recon.metrics import relative_delta_n_error
-    from napari_fdt.recon.report import evaluate_images, source_errors
-    from napari_fdt.recon.solver import Reconstructor
+    from napari_fdt.recon.assess.metrics import relative_delta_n_error
+    from napari_fdt.recon.run.report import evaluate_images, source_errors
+    from napari_fdt.recon.run.solver import Reconstructor
 
     folder, _ = SCENES[scene]
     acq = read_acquisition(folder)
@@ -101,7 +101,7 @@ def results_path(device: str) -> Path:
 def _effective_overrides(overrides: dict) -> dict:
     """The overrides that differ from the current defaults (a row made with an override equal to today's default
     belongs to the default rows)."""
-    from napari_fdt.recon.config import SolverConfig
+    from napari_fdt.recon.settings.config import SolverConfig
 
     defaults = SolverConfig().to_dict()
     return {k: v for k, v in overrides.items() if defaults.get(k) != v}

@@ -50,10 +50,10 @@ def fixed_volume_fit(folder: Path, factor: int, model: str, start: str = "initia
                      overrides: dict | None = None, verbose: bool = False, freeze_depth: bool = False) -> list[dict]:
     """Train the calibration only, the volume fixed; returns the error rows (one per ``every`` iterations)."""
     from napari_fdt import read_acquisition, read_volume_tiff
-    from napari_fdt.recon.config import SolverConfig
-    from napari_fdt.recon.losses import total_loss
-    from napari_fdt.recon.solver import Reconstructor
-    from napari_fdt.recon.stages import block_average
+    from napari_fdt.recon.problem.losses import total_loss
+    from napari_fdt.recon.problem.stages import block_average
+    from napari_fdt.recon.run.solver import Reconstructor
+    from napari_fdt.recon.settings.config import SolverConfig
 
     acq = read_acquisition(folder)
     truth_ri, _ = read_volume_tiff(folder / "ground_truth_ri.tif")
@@ -70,7 +70,7 @@ def fixed_volume_fit(folder: Path, factor: int, model: str, start: str = "initia
     stage = rec._build_stage(0)
     if model == "envelope" and factor == 1:  # the envelope model on the acquisition's grid (the solver uses it at factor > 1 only)
         from napari_fdt.model.envelope import EnvelopeModel
-        from napari_fdt.recon.stages import Stage
+        from napari_fdt.recon.problem.stages import Stage
 
         h, w = acq.image_shape
         env = EnvelopeModel(acq.optics, (h, w), 1, (0.0, 0.0))

@@ -23,8 +23,8 @@ import torch
 
 from benchmarks.naive_step import naive_step  # noqa: E402
 from napari_fdt.data.io import read_acquisition  # noqa: E402
-from napari_fdt.recon.config import SolverConfig  # noqa: E402
-from napari_fdt.recon.solver import Reconstructor  # noqa: E402
+from napari_fdt.recon.run.solver import Reconstructor  # noqa: E402
+from napari_fdt.recon.settings.config import SolverConfig  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -65,7 +65,7 @@ def main() -> None:
                                          calibration_from_stage=1 if args.frozen_sources else 0)
     cfg = rec.config
 
-    from napari_fdt.recon.stages import multislice_plan
+    from napari_fdt.recon.problem.stages import multislice_plan
 
     h, w = multislice_plan(acq.optics, 1, acq.image_shape, rec.calibration.sources_um())[3].padded_shape
     b, n = cfg.batch_size, acq.optics.n_slices

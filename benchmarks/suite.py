@@ -30,9 +30,9 @@ import torch
 
 from benchmarks._results import results_file, write_document
 from napari_fdt import Optics, read_acquisition, read_volume_tiff, resolve_device, source_grid
-from napari_fdt.recon.config import SolverConfig, StageConfig
-from napari_fdt.recon.metrics import paper_normalised_metrics, relative_delta_n_error
-from napari_fdt.recon.solver import Reconstructor
+from napari_fdt.recon.assess.metrics import paper_normalised_metrics, relative_delta_n_error
+from napari_fdt.recon.run.solver import Reconstructor
+from napari_fdt.recon.settings.config import SolverConfig, StageConfig
 from napari_fdt.sim.simulate import make_scene, simulate
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -138,7 +138,7 @@ def main() -> None:
     path = args.out or results_file("suite", device, table=False)
     demo_cfg = None
     if args.demo_config is not None:
-        from napari_fdt.recon.config import load_config
+        from napari_fdt.recon.settings.config import load_config
         demo_cfg = load_config(args.demo_config)
     for name in args.scenes.split(","):
         t = time.perf_counter()
@@ -151,7 +151,7 @@ def main() -> None:
         else:
             raise SystemExit(f"unknown scene {name}")
         if args.coarse_model is not None:
-            from napari_fdt.recon.config import SolverConfig
+            from napari_fdt.recon.settings.config import SolverConfig
             cfg = SolverConfig.from_dict(dict(cfg.to_dict(), coarse_model=args.coarse_model))
         print(f"{name}: data ready in {time.perf_counter() - t:.1f} s ({acq.n_images} images {acq.image_shape}, {acq.optics.n_slices} slices)", flush=True)
         res = run_scene(name, acq, truth, cfg, device, args.eval_every)

@@ -7,7 +7,7 @@ Run it as the first thing in a fresh process on a freshly started machine: that 
 (``benchmarks/suite.py``'s ``demo``: 512²×14, 1521 sources, letters Δn 0.03) is simulated first, not timed. Two
 clocks: ``solver_s`` from the ``Reconstructor``'s construction (data in memory, as ``docs/benchmarks.md``'s 14.6 s),
 and ``process_s`` from the start of this process (imports, CUDA initialisation and the simulation included). The
-suite's metric evaluations (``napari_fdt.recon.metrics.paper_normalised_metrics`` every ``--eval-every`` iterations)
+suite's metric evaluations (``napari_fdt.recon.assess.metrics.paper_normalised_metrics`` every ``--eval-every`` iterations)
 are excluded from ``solver_s``; the first evaluation meeting both targets ends the run, so the time is an upper bound
 by at most ``--eval-every`` iterations. Speed-up = 720 s (the authors' ≈ 12 minutes for 500 iterations on one H100)
 over ``solver_s``; the issue asks for ≥ 100×. Appends a JSON line to ``benchmarks/results/time_to_accuracy_<device>.jsonl``.
@@ -34,9 +34,9 @@ AUTHORS_S = 720.0
 def main() -> None:
     from benchmarks.suite import demo_config, scene_demo, scene_sample
     from napari_fdt import resolve_device
-    from napari_fdt.recon.config import SolverConfig
-    from napari_fdt.recon.metrics import paper_normalised_metrics
-    from napari_fdt.recon.solver import Reconstructor
+    from napari_fdt.recon.assess.metrics import paper_normalised_metrics
+    from napari_fdt.recon.run.solver import Reconstructor
+    from napari_fdt.recon.settings.config import SolverConfig
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--device", default="cuda")

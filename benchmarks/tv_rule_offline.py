@@ -14,7 +14,7 @@ errors. So any rule that reads only those trials can be evaluated without runnin
 a weight of the path, and its outcome is the fixed-weight row of that weight and seed (``regularisation.py run
 --settings 0,1,3,10 --set '{"seed": S}'``). A rule whose choice has no such row is reported as missing, never guessed.
 
-The rules: the paired k-standard-error rule of ``napari_fdt.recon.regularisation.pick`` for k = 0 (the plain lowest
+The rules: the paired k-standard-error rule of ``napari_fdt.recon.loop.regularisation.pick`` for k = 0 (the plain lowest
 validation error), 1 (the default) and 2. Each scene's reference is the best weight of the sweep by its mean error
 over the same seeds (weights run with every seed that has an "auto" row).
 """
@@ -27,7 +27,7 @@ import numpy as np
 
 from benchmarks._results import RESULTS, read_rows  # noqa: E402
 from benchmarks.regularisation import SCENES, load_rows  # noqa: E402
-from napari_fdt.recon.regularisation import pick  # noqa: E402
+from napari_fdt.recon.loop.regularisation import pick  # noqa: E402
 
 RULES = {"argmin (0 SE)": 0.0, "1 SE (default)": 1.0, "2 SE": 2.0}
 

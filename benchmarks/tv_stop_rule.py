@@ -34,11 +34,11 @@ def _z(trial: dict, best: dict) -> float:
 
 
 def choose(trials: list[dict], stop_se: float | str | None) -> tuple[float, int]:
-    """(the weight :func:`~napari_fdt.recon.regularisation.pick` takes from the trials a stop rule lets run, how many
+    """(the weight :func:`~napari_fdt.recon.loop.regularisation.pick` takes from the trials a stop rule lets run, how many
     ran): the trials in order until one has a larger weight than the best so far and a rise of more than ``stop_se``
     paired standard errors ("t": Student's t(0.975, n − 1), today's rule; None: no stop)."""
-    from napari_fdt.recon.model_parts import standard_errors
-    from napari_fdt.recon.regularisation import pick
+    from napari_fdt.recon.loop.model_parts import standard_errors
+    from napari_fdt.recon.loop.regularisation import pick
 
     tried: list[dict] = []
     for t in trials:
@@ -51,11 +51,11 @@ def choose(trials: list[dict], stop_se: float | str | None) -> tuple[float, int]
 
 
 def run(scenes: list[str], seeds: list[int]) -> None:
-    import napari_fdt.recon.tv_search as tv_search
+    import napari_fdt.recon.choices.tv_search as tv_search
     from benchmarks.scenes import folder_of, make_scenes
     from napari_fdt import read_acquisition
-    from napari_fdt.recon.config import SolverConfig
-    from napari_fdt.recon.solver import Reconstructor
+    from napari_fdt.recon.run.solver import Reconstructor
+    from napari_fdt.recon.settings.config import SolverConfig
 
     make_scenes([s for s in scenes if s != "sample"])
     tv_search.tried_enough = lambda trials, *a, **k: False  # every weight of the path (this process only)

@@ -16,8 +16,8 @@ import napari
 from make_screenshots import OUT, WINDOW, grab, pump, shot
 
 from napari_fdt.napari.settings import parse_stages
-from napari_fdt.napari.widget_family import FamilyWidget
-from napari_fdt.recon.config import SolverConfig
+from napari_fdt.napari.widgets.widget_family import FamilyWidget
+from napari_fdt.recon.settings.config import SolverConfig
 
 
 def main() -> int:

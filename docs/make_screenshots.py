@@ -21,8 +21,8 @@ from PIL import Image
 from qtpy.QtGui import QImage
 from qtpy.QtWidgets import QApplication, QWidget
 
-from napari_fdt.napari.widget_acquisition import AcquisitionWidget
-from napari_fdt.napari.widget_reconstruction import ReconstructionWidget
+from napari_fdt.napari.widgets.widget_acquisition import AcquisitionWidget
+from napari_fdt.napari.widgets.widget_reconstruction import ReconstructionWidget
 
 OUT = Path(__file__).resolve().parent / "images"
 WINDOW: list = []  # napari's main window (a Qt widget), found through a docked widget

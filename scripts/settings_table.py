@@ -12,10 +12,10 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from napari_fdt.recon.config import settings_markdown
+from napari_fdt.recon.settings.config import settings_markdown
 
 DOC = Path(__file__).resolve().parents[1] / "docs" / "settings.md"
-BEGIN = "<!-- settings table: generated from napari_fdt.recon.config by scripts/settings_table.py --write; do not edit -->"
+BEGIN = "<!-- settings table: generated from napari_fdt.recon.settings.config by scripts/settings_table.py --write; do not edit -->"
 END = "<!-- end of the generated settings table -->"
 
 

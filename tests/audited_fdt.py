@@ -56,7 +56,7 @@ def _write_log() -> None:
 
 
 def _count_local_batches() -> None:
-    from napari_fdt.recon.distributed import Group
+    from napari_fdt.recon.problem.distributed import Group
 
     local = Group.local
 
@@ -72,7 +72,7 @@ def _fail_on_request() -> None:
     rank, _, call = os.environ.get("FDT_TEST_FAIL", "").partition(":")
     if not call or os.environ.get("RANK") != rank:
         return
-    from napari_fdt.recon.solver import Reconstructor
+    from napari_fdt.recon.run.solver import Reconstructor
 
     predict, calls = Reconstructor._predict_normalised, [0]
 

@@ -49,7 +49,7 @@ def notifications():
 
 @pytest.fixture(autouse=True, scope="session")
 def _plugin_checkpoints_in_a_temporary_folder(tmp_path_factory):
-    """The plugin's runs checkpoint under the user's cache (napari_fdt.napari.resume); in the tests, under a temporary
+    """The plugin's runs checkpoint under the user's cache (napari_fdt.napari.jobs.resume); in the tests, under a temporary
     folder instead (inherited by the computation processes the widget starts)."""
     import os
 

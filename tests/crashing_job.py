@@ -1,6 +1,6 @@
 """A job for the plugin's computation process that dies as a native crash or an out-of-memory kill would (tests only).
 
-``crash_after_first_stage`` runs :func:`napari_fdt.napari.job.reconstruction_job` and kills its own process with
+``crash_after_first_stage`` runs :func:`napari_fdt.napari.jobs.job.reconstruction_job` and kills its own process with
 SIGKILL once the first stage's end has been sent to napari's process.
 """
 
@@ -9,8 +9,8 @@ from __future__ import annotations
 import os
 import signal
 
-from napari_fdt.napari.job import reconstruction_job
-from napari_fdt.recon.phases import TV_CHOICE
+from napari_fdt.napari.jobs.job import reconstruction_job
+from napari_fdt.recon.loop.phases import TV_CHOICE
 
 
 def crash_after_first_stage(**kwargs):

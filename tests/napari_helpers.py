@@ -22,9 +22,9 @@ from napari.utils.notifications import notification_manager  # noqa: E402
 from napari_fdt import Acquisition, FDTWarning, Optics, simulate, source_grid, write_acquisition  # noqa: E402
 from napari_fdt.data.io import read_volume_tiff  # noqa: E402
 from napari_fdt.napari.layers import META_ACQUISITION, META_KIND, META_REPORT  # noqa: E402
-from napari_fdt.napari.widget_acquisition import AcquisitionWidget  # noqa: E402
-from napari_fdt.napari.widget_reconstruction import ReconstructionWidget  # noqa: E402
-from napari_fdt.recon.config import SolverConfig, load_config  # noqa: E402
+from napari_fdt.napari.widgets.widget_acquisition import AcquisitionWidget  # noqa: E402
+from napari_fdt.napari.widgets.widget_reconstruction import ReconstructionWidget  # noqa: E402
+from napari_fdt.recon.settings.config import SolverConfig, load_config  # noqa: E402
 from napari_fdt.sim.phantoms import text_phantom  # noqa: E402
 
 # what the test modules take from here: the helpers below, and the names they need once napari is known to import

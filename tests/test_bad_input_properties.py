@@ -23,7 +23,7 @@ from napari_fdt.cli import main
 from napari_fdt.data.io import read_acquisition
 from napari_fdt.errors import FDTInputError, FDTWarning
 from napari_fdt.physics.optics import OPTICS_FIELDS
-from napari_fdt.recon.config import SolverConfig, StageConfig
+from napari_fdt.recon.settings.config import SolverConfig, StageConfig
 
 # Any JSON value a user could write.
 json_values = st.recursive(

@@ -18,8 +18,8 @@ from napari_fdt.physics.aberrations import parse_aberrations, zernike_phase
 from napari_fdt.physics.camera import needs_pixel_integration, pixel_averaged_intensity, resolve_pixel_integration
 from napari_fdt.physics.grid import plan_for_sources
 from napari_fdt.physics.optics import Optics
-from napari_fdt.recon.config import SolverConfig
-from napari_fdt.recon.stages import camera_model_options
+from napari_fdt.recon.problem.stages import camera_model_options
+from napari_fdt.recon.settings.config import SolverConfig
 
 
 def test_pixel_average_matches_numerical_integration() -> None:

@@ -13,9 +13,9 @@ import torch
 from napari_fdt.cli import main
 from napari_fdt.data.io import write_acquisition
 from napari_fdt.errors import FDTInputError
-from napari_fdt.recon.checkpoint import FORMAT, VERSION, _from_plain, _plain, read_checkpoint
-from napari_fdt.recon.config import SolverConfig, StageConfig
-from napari_fdt.recon.solver import Reconstructor
+from napari_fdt.recon.loop.checkpoint import FORMAT, VERSION, _from_plain, _plain, read_checkpoint
+from napari_fdt.recon.run.solver import Reconstructor
+from napari_fdt.recon.settings.config import SolverConfig, StageConfig
 
 
 class _Payload:

@@ -29,9 +29,9 @@ from benchmarks.scenes import tiny_scene
 from napari_fdt.cli import main
 from napari_fdt.data.io import read_volume_tiff, write_acquisition
 from napari_fdt.errors import FDTInputError
-from napari_fdt.recon import distributed
-from napari_fdt.recon.config import SolverConfig, StageConfig
-from napari_fdt.recon.losses import BatchShare, LossWeights, total_loss
+from napari_fdt.recon.problem import distributed
+from napari_fdt.recon.problem.losses import BatchShare, LossWeights, total_loss
+from napari_fdt.recon.settings.config import SolverConfig, StageConfig
 
 TESTS = Path(__file__).resolve().parent
 DN_TOL = 1e-5  # absolute, on Δn (4e-6 held with the full-window model; the split-field model's table products round
@@ -373,7 +373,7 @@ def _matrix_config(batch: int | None, validation: bool, auto: bool) -> SolverCon
 
 def _single(acq, config: SolverConfig, noise_seed: int | None = None) -> dict:
     """The single process's result; with ``noise_seed`` its predictions carry relative noise of 2^-24 (one float32 ulp)."""
-    from napari_fdt.recon.solver import Reconstructor
+    from napari_fdt.recon.run.solver import Reconstructor
 
     rec = Reconstructor(acq, config, device="cpu")
     if noise_seed is not None:

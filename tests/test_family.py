@@ -12,8 +12,8 @@ import pytest
 from napari_fdt.cli import main
 from napari_fdt.cli.family import member_path
 from napari_fdt.data.io import read_volume_tiff, write_acquisition
-from napari_fdt.recon.config import SolverConfig, StageConfig
-from napari_fdt.recon.family import FAMILY_TAUS, Member, member_config, verdict
+from napari_fdt.recon.run.family import FAMILY_TAUS, Member, member_config, verdict
+from napari_fdt.recon.settings.config import SolverConfig, StageConfig
 
 
 def _member(tau: float, errors: list[float]) -> Member:

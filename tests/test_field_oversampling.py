@@ -114,9 +114,9 @@ def test_the_solver_runs_its_finest_stage_on_the_fine_grid(scene16) -> None:
     """`field_oversampling = 2` reaches the finest stage (not the coarse ones) and the evaluation, the plan and the
     memory estimate price the fine grid, the parts' test (which fits a pupil on exit spectra) runs through it, and a
     short run stays finite."""
-    from napari_fdt.recon.config import SolverConfig, StageConfig
-    from napari_fdt.recon.preflight import finest_stage_bytes
-    from napari_fdt.recon.solver import Reconstructor
+    from napari_fdt.recon.problem.preflight import finest_stage_bytes
+    from napari_fdt.recon.run.solver import Reconstructor
+    from napari_fdt.recon.settings.config import SolverConfig, StageConfig
 
     base = dict(stages=[StageConfig(2, 3), StageConfig(1, 4)], batch_size=4, final_stage_min_passes=0,
                 tv_xy_weight=0.0, tv_z_weight=0.0, calibrate_pupil="auto")
@@ -147,8 +147,8 @@ def test_auto_field_grid_is_tried_only_where_the_camera_grid_aliases_the_medium_
     from types import SimpleNamespace
 
     from napari_fdt import Optics
-    from napari_fdt.recon.config import SolverConfig
-    from napari_fdt.recon.model_parts import requested_for
+    from napari_fdt.recon.loop.model_parts import requested_for
+    from napari_fdt.recon.settings.config import SolverConfig
 
     camera = dict(OPTICS)
     auto = SolverConfig(field_oversampling="auto")
@@ -163,8 +163,8 @@ def test_auto_field_grid_is_tried_only_where_the_camera_grid_aliases_the_medium_
 def test_auto_field_grid_stays_off_on_data_made_on_the_camera_grid() -> None:
     """Through a volume fitted on the camera grid to data made there, the 2x grid predicts the test images worse; its
     trial predicts the held-out images and at most GRID_TRIAL_TRAINING_IMAGES training images."""
-    from napari_fdt.recon.parts_search import GRID_TRIAL_TRAINING_IMAGES
-    from napari_fdt.recon.solver import Reconstructor
+    from napari_fdt.recon.choices.parts_search import GRID_TRIAL_TRAINING_IMAGES
+    from napari_fdt.recon.run.solver import Reconstructor
     from tests.test_sub_slices import _auto_config, _letters_acquisition
 
     rec = Reconstructor(_letters_acquisition(1), _auto_config(sub_slices=1, field_oversampling="auto"), device="cpu")
@@ -181,7 +181,7 @@ def test_a_kept_field_grid_runs_the_finest_stage_again_on_the_fine_grid(monkeypa
     """Kept (the verdict forced: the mechanics are under test), the finest stage runs again from its start with its
     field on the 2x grid; the coarse stage keeps the envelope model; the phase is priced on the fine grid."""
     from napari_fdt.model.oversampled import OversampledModel
-    from napari_fdt.recon.solver import Reconstructor
+    from napari_fdt.recon.run.solver import Reconstructor
     from tests.test_sub_slices import _auto_config, _forced, _letters_acquisition
 
     _forced(monkeypatch, {1})

@@ -17,9 +17,9 @@ from napari_fdt.errors import FDTInputError
 from napari_fdt.napari.layers import META_KIND, META_REPORT
 from napari_fdt.napari.reader import get_reader
 from napari_fdt.napari.writer import write_ri
-from napari_fdt.recon.command import config_from_file, format_command, reconstruct_command
-from napari_fdt.recon.config import SolverConfig, StageConfig
-from napari_fdt.recon.solver import Reconstructor
+from napari_fdt.recon.run.solver import Reconstructor
+from napari_fdt.recon.settings.command import config_from_file, format_command, reconstruct_command
+from napari_fdt.recon.settings.config import SolverConfig, StageConfig
 from napari_fdt.sim.phantoms import text_phantom
 
 REPORT = {"format": "napari-fdt-report", "version": 1, "ri": {"voxel_size_um": [2.0, 0.33, 0.33]}}
@@ -291,7 +291,7 @@ def test_command_for_folder_refuses_what_the_folder_does_not_hold(tiny_dir: Path
     import dataclasses
     import shlex
 
-    from napari_fdt.recon.command import command_for_folder
+    from napari_fdt.recon.settings.command import command_for_folder
 
     acq = read_acquisition(tiny_dir)
     config = SolverConfig(stages=[StageConfig(1, 5)], seed=3)

@@ -15,8 +15,8 @@ from benchmarks import hard_cases as hc  # the benchmark's cases
 from napari_fdt.data.acquisition import Acquisition
 from napari_fdt.errors import FDTInputError
 from napari_fdt.physics.optics import Optics
-from napari_fdt.recon.config import SolverConfig, StageConfig
-from napari_fdt.recon.solver import Reconstructor
+from napari_fdt.recon.run.solver import Reconstructor
+from napari_fdt.recon.settings.config import SolverConfig, StageConfig
 
 NAMES = [c.name for c in hc.CASES]
 

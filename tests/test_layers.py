@@ -21,8 +21,8 @@ from benchmarks.scenes import tiny_scene
 from napari_fdt import Optics, write_acquisition
 from napari_fdt.data.io import read_volume_tiff
 from napari_fdt.errors import FDTInputError
-from napari_fdt.napari.compute import forward_preview, illumination_coverage, mask_stack, predicted_vs_measured
-from napari_fdt.napari.job import reconstruction_job
+from napari_fdt.napari.jobs.compute import forward_preview, illumination_coverage, mask_stack, predicted_vs_measured
+from napari_fdt.napari.jobs.job import reconstruction_job
 from napari_fdt.napari.layers import (
     META_ACQUISITION,
     META_NEEDS_OPTICS,
@@ -36,8 +36,8 @@ from napari_fdt.napari.reader import get_reader
 from napari_fdt.napari.sample_data import BEADS_NAME, LETTERS_NAME, letters_sample, sample_dir
 from napari_fdt.napari.settings import format_stages, merge_config, parse_stages
 from napari_fdt.napari.writer import write_ri
-from napari_fdt.recon.config import SolverConfig, StageConfig
-from napari_fdt.recon.solver import Reconstructor
+from napari_fdt.recon.run.solver import Reconstructor
+from napari_fdt.recon.settings.config import SolverConfig, StageConfig
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -56,8 +56,8 @@ def tiny_dir(tiny, tmp_path) -> Path:
 def test_core_imports_no_qt_or_napari() -> None:
     """The headless core and the plugin's Qt-free modules import neither napari nor a Qt binding."""
     code = (
-        "import sys, napari_fdt, napari_fdt.recon.solver, napari_fdt.recon.report, napari_fdt.cli, napari_fdt.napari.layers, "
-        "napari_fdt.napari.compute, napari_fdt.napari.job, napari_fdt.napari.settings, napari_fdt.napari.reader, napari_fdt.napari.writer, "
+        "import sys, napari_fdt, napari_fdt.recon.run.solver, napari_fdt.recon.run.report, napari_fdt.cli, napari_fdt.napari.layers, "
+        "napari_fdt.napari.jobs.compute, napari_fdt.napari.jobs.job, napari_fdt.napari.settings, napari_fdt.napari.reader, napari_fdt.napari.writer, "
         "napari_fdt.napari.sample_data\n"
         "bad = sorted(m for m in sys.modules if m.split('.')[0] in "
         "('napari', 'magicgui', 'qtpy', 'PyQt5', 'PyQt6', 'PySide2', 'PySide6', 'vispy', 'superqt'))\n"
@@ -302,7 +302,7 @@ def test_optics_labels_are_plain_words_and_tooltips_name_the_field() -> None:
     """The acquisition widget labels each optics field in plain words with its unit; its tooltip starts with the
     field's name in the files and the API (``n_background: …``), so both vocabularies are on screen."""
     from napari_fdt.napari.settings import OPTICS_LABELS
-    from napari_fdt.napari.widget_acquisition import OPTICS_TIPS
+    from napari_fdt.napari.widgets.widget_acquisition import OPTICS_TIPS
     from napari_fdt.physics.optics import OPTICS_FIELDS
 
     assert set(OPTICS_LABELS) == set(OPTICS_TIPS) == set(OPTICS_FIELDS)

@@ -8,9 +8,18 @@ import numpy as np
 import pytest
 import torch
 
-import napari_fdt.recon.losses as losses
+import napari_fdt.recon.problem.losses as losses
 from napari_fdt.errors import FDTInputError
-from napari_fdt.recon.losses import (
+from napari_fdt.recon.assess.metrics import (
+    image_metrics,
+    paper_normalised_metrics,
+    psnr,
+    relative_delta_n_error,
+    ri_metrics,
+    rmse,
+    volume_ssim,
+)
+from napari_fdt.recon.problem.losses import (
     LossWeights,
     as_floats,
     l1_l2_weights,
@@ -21,15 +30,6 @@ from napari_fdt.recon.losses import (
     total_loss,
     tv_xy,
     tv_z,
-)
-from napari_fdt.recon.metrics import (
-    image_metrics,
-    paper_normalised_metrics,
-    psnr,
-    relative_delta_n_error,
-    ri_metrics,
-    rmse,
-    volume_ssim,
 )
 
 skmetrics = pytest.importorskip("skimage.metrics")

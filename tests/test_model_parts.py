@@ -9,9 +9,9 @@ import torch
 
 from napari_fdt.cli import build_parser
 from napari_fdt.errors import FDTInputError
-from napari_fdt.recon.config import SolverConfig, StageConfig
-from napari_fdt.recon.model_parts import PARTS, PartsChoice, decide, requested_parts, standard_errors, switch
-from napari_fdt.recon.solver import Reconstructor
+from napari_fdt.recon.loop.model_parts import PARTS, PartsChoice, decide, requested_parts, standard_errors, switch
+from napari_fdt.recon.run.solver import Reconstructor
+from napari_fdt.recon.settings.config import SolverConfig, StageConfig
 
 
 def test_settings_accept_auto_true_false() -> None:
@@ -58,7 +58,7 @@ def test_decide_is_a_paired_test_against_noise() -> None:
 
 
 def test_next_pass_counts_the_passes_the_trials_were_made_in() -> None:
-    from napari_fdt.recon.model_parts import next_pass
+    from napari_fdt.recon.loop.model_parts import next_pass
 
     assert next_pass([{"pass": 0}]) == 1  # after the pilot: the first pass's finest stage
     assert next_pass([{"pass": 1}]) == 2  # after a first pass's finest stage (or its coarse stage's end)
@@ -153,7 +153,7 @@ def test_auto_switches_the_aberrations_on_only_where_the_data_has_them(scenes) -
     assert rec.stages[-1].validation_error < choice.reference_error
     trial = next(t for t in choice.trials if t["part"] == "aberrations")
     assert trial["improvement"] > trial["threshold"] * trial["standard_error"]
-    # found at the coarse stage's end (recon/parts_coarse_end.py), through its volume on the finest model: every stage
+    # found at the coarse stage's end (recon/choices/parts_coarse_end.py), through its volume on the finest model: every stage
     # ran again before the first pass's finest stage ran (no snapshot of it; the plan never held it twice)
     assert trial["at_stage"] == 0 and trial["pass"] == 1 and choice.stage == 0
     assert all(st == 0 for _, _, st in snaps[:back])
@@ -192,7 +192,7 @@ def test_a_second_pass_tries_the_pupil_at_its_coarse_stages_end() -> None:
     stage's end, and is then either on from the finest stage's start (not tried again there) or tried again at the
     finest stage's end; the trials say which pass and where."""
     from napari_fdt import Optics, simulate, source_grid
-    from napari_fdt.recon.report import describe_parts, model_parts_summary
+    from napari_fdt.recon.run.report import describe_parts, model_parts_summary
     from napari_fdt.sim.phantoms import text_phantom
 
     o = Optics(wavelength_um=0.635, n_background=1.33, na=0.8, pixel_size_um=0.33, n_slices=3,
@@ -256,7 +256,7 @@ def test_no_choice_without_a_split_or_with_fixed_settings(scenes) -> None:
 
 
 def test_describe_parts_names_the_second_pass() -> None:
-    from napari_fdt.recon.report import describe_parts
+    from napari_fdt.recon.run.report import describe_parts
 
     chosen = {"reference_error": 0.2, "stage": 2, "seconds": 3.0, "trials": [
         {"part": "aberrations", "on": True, "improvement": 0.02, "pass": 1},
@@ -264,7 +264,7 @@ def test_describe_parts_names_the_second_pass() -> None:
     line = describe_parts({"needed": ["pupil", "aberrations"], "chosen": chosen})
     # improvements relative to the first reference: 0.02 / 0.2 = 10 %, 0.004 / 0.2 = 2 %
     assert "aberrations on (-10.0 %)" in line and "pupil (again, all stages rerun) on (-2.0 %)" in line
-    # a part found at a coarse stage's end (recon/parts_coarse_end.py), each trial against its own reference
+    # a part found at a coarse stage's end (recon/choices/parts_coarse_end.py), each trial against its own reference
     chosen = {"reference_error": 0.2, "stage": 1, "seconds": 3.0, "trials": [
         {"part": "aberrations", "on": True, "improvement": 0.01, "pass": 1, "at_stage": 1, "reference_error": 0.25},
         {"part": "obliquity", "on": False, "improvement": -0.002, "pass": 2, "after": "stages"}]}
@@ -312,8 +312,8 @@ def test_the_reports_predictions_use_the_model_the_run_fitted(scene16) -> None:
     """The image fit of RI.json and the widget's predicted-vs-measured (Reconstructor.evaluation_stage) use the run's
     camera, pupil edge and sub-slices: the same images as the finest stage's own model (they used point samples and
     the default pupil before)."""
-    from napari_fdt.recon.config import SolverConfig, StageConfig
-    from napari_fdt.recon.solver import Reconstructor
+    from napari_fdt.recon.run.solver import Reconstructor
+    from napari_fdt.recon.settings.config import SolverConfig, StageConfig
 
     cfg = SolverConfig(stages=[StageConfig(1, 2)], batch_size=4, final_stage_min_passes=0, tv_xy_weight=0.0, tv_z_weight=0.0,
                        pixel_integration=True, pupil_edge=0.0, sub_slices=2, calibrate_pupil=False,
@@ -334,7 +334,7 @@ def test_a_real_cameras_pixel_integration_follows_the_physical_rule() -> None:
     at Δn error 0.258 and 0.101 against 0.305 and 0.163, docs/decisions/model-parts.md). A statement, or a simulated
     folder without one, is taken as it is."""
     from napari_fdt import Acquisition, Optics
-    from napari_fdt.recon.model_parts import requested_for
+    from napari_fdt.recon.loop.model_parts import requested_for
 
     def requested(na: float, extra: dict) -> tuple[bool | None, str]:
         o = Optics(wavelength_um=0.635, n_background=1.33, na=na, pixel_size_um=0.33, n_slices=4, slice_spacing_um=2.0)

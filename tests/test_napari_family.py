@@ -9,13 +9,13 @@ import json
 import numpy as np
 
 from napari_fdt.data.io import write_acquisition
-from napari_fdt.recon.config import SolverConfig, StageConfig
-from napari_fdt.recon.family import FAMILY_TAUS
+from napari_fdt.recon.run.family import FAMILY_TAUS
+from napari_fdt.recon.settings.config import SolverConfig, StageConfig
 from tests.napari_helpers import _docked, _open, read_volume_tiff
 
 
 def test_a_family_runs_shows_its_members_on_a_slider_and_saves_the_one_shown(make_napari_viewer, qtbot, scene16, tmp_path) -> None:
-    from napari_fdt.napari.widget_family import FamilyWidget
+    from napari_fdt.napari.widgets.widget_family import FamilyWidget
 
     viewer = make_napari_viewer()
     acq_layer = _open(viewer, write_acquisition(scene16.acquisition, tmp_path / "acq"))

@@ -40,7 +40,7 @@ def held_fit(monkeypatch):
     """``initial_sources`` that waits for ``release`` before fitting, and records the thread it ran in."""
     import threading
 
-    import napari_fdt.recon.source_fit as source_fit
+    import napari_fdt.recon.calibration.source_fit as source_fit
 
     real = source_fit.initial_sources
     state = {"release": threading.Event(), "entered": threading.Event(), "threads": [], "real": real}
@@ -122,7 +122,7 @@ def test_an_error_in_a_background_fit_is_shown_and_the_widget_stays_usable(make_
 
 
 def test_a_bug_in_a_preview_is_reported_with_its_type(make_napari_viewer, qtbot, tiny_dir, monkeypatch, notifications) -> None:
-    import napari_fdt.napari.widget_results as wr  # the result and preview actions
+    import napari_fdt.napari.widgets.widget_results as wr  # the result and preview actions
 
     def broken(*args, **kwargs):
         raise RuntimeError("simulated failure")
@@ -147,7 +147,7 @@ def test_a_bug_in_a_preview_is_reported_with_its_type(make_napari_viewer, qtbot,
 def test_closing_the_viewer_stops_background_actions(make_napari_viewer, qtbot, tiny_dir, held_fit, monkeypatch) -> None:
     import threading
 
-    import napari_fdt.napari.widget_acquisition as wa
+    import napari_fdt.napari.widgets.widget_acquisition as wa
 
     shown = []
     monkeypatch.setattr(wa, "set_sources", lambda *a, **k: shown.append(a))
@@ -262,8 +262,8 @@ def test_any_optics_typed_into_the_widget_is_applied_or_explained(make_napari_vi
 
 def test_settings_widgets_are_generated_from_the_schema(make_napari_viewer) -> None:
     """Bounds, defaults, choices and tooltips of the settings widgets are the schema's (no second declaration)."""
-    from napari_fdt.napari.schema_widgets import schema_widget
-    from napari_fdt.recon.config import COARSE_MODELS, COHERENCE_MODELS
+    from napari_fdt.napari.widgets.schema_widgets import schema_widget
+    from napari_fdt.recon.settings.config import COARSE_MODELS, COHERENCE_MODELS
     from napari_fdt.schema import schema_fields
 
     viewer = make_napari_viewer()
@@ -283,7 +283,7 @@ def test_settings_widgets_are_generated_from_the_schema(make_napari_viewer) -> N
     with pytest.raises(TypeError):
         schema_widget(SolverConfig, "stages")
     # no experimental setting in the widget (issue 24: settings in tiers); a loaded file keeps its value for the run
-    from napari_fdt.napari.widget_reconstruction import _FIELDS
+    from napari_fdt.napari.widgets.widget_reconstruction import _FIELDS
     from napari_fdt.schema import tier
 
     assert not [n for n in _FIELDS if tier(fields[n]) == "experimental"] and not hasattr(w, "parts_rerun")
@@ -311,7 +311,7 @@ def test_error_curve_updates_during_a_run(make_napari_viewer, qtbot, tmp_path) -
     curve = w.curve.curve
     # snapshot_every 1: 10 + 96 iterations, but for the first stage's first ones, which the winning TV trial ran (its
     # snapshot is a trial's: no curve point)
-    from napari_fdt.recon.phases import probe_iterations
+    from napari_fdt.recon.loop.phases import probe_iterations
 
     assert len(curve.validation) == len(curve.train) == 106 - probe_iterations(10)
     assert w._report["stage_lengths"]["iterations"] == [10, 96] and w._report["config"]["stages"][1]["iterations"] == 40

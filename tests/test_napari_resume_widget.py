@@ -3,8 +3,8 @@ viewer: cancelled in its last stage, the run is offered when its acquisition is 
 
 from __future__ import annotations
 
+from napari_fdt.napari.jobs.resume import checkpoint_folder
 from napari_fdt.napari.layers import META_PATH
-from napari_fdt.napari.resume import checkpoint_folder
 from tests.napari_helpers import META_REPORT, ReconstructionWidget, _docked, _open, _settings, _wait_done
 
 

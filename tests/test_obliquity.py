@@ -60,8 +60,8 @@ def test_the_model_offers_the_per_source_correction() -> None:
 
 
 def test_obliquity_correction_setting_reaches_the_multislice_stages(monkeypatch) -> None:
-    import napari_fdt.recon.solver as solver
-    from napari_fdt.recon.config import SolverConfig, StageConfig
+    import napari_fdt.recon.run.solver as solver
+    from napari_fdt.recon.settings.config import SolverConfig, StageConfig
     from napari_fdt.sim.simulate import simulate, source_grid
 
     o = ob.Optics(wavelength_um=0.6, n_background=1.33, na=0.5, pixel_size_um=0.4, n_slices=2, slice_spacing_um=2.0)

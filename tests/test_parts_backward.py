@@ -1,15 +1,15 @@
 """The backward step of the "auto" model parts (issue 49): a kept part earns its place in the final state, or is
-dropped and the finest stage runs again without it (recon/parts_backward.py)."""
+dropped and the finest stage runs again without it (recon/choices/parts_backward.py)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from napari_fdt.recon.config import SolverConfig, StageConfig
-from napari_fdt.recon.model_parts import PARTS, PartsChoice, decide
-from napari_fdt.recon.parts_backward import keep_the_better
-from napari_fdt.recon.solver import Reconstructor
+from napari_fdt.recon.choices.parts_backward import keep_the_better
+from napari_fdt.recon.loop.model_parts import PARTS, PartsChoice, decide
+from napari_fdt.recon.run.solver import Reconstructor
+from napari_fdt.recon.settings.config import SolverConfig, StageConfig
 
 
 def _acquisition(**effects):
@@ -57,7 +57,7 @@ def test_a_part_kept_by_a_false_admission_is_dropped_and_the_finest_stage_runs_a
     admission forced on, as noise could): every stage runs again with it; at the end its removal is not worse by more
     than noise, so it is dropped, the finest stage runs again from its start without it (priced in the plan, its
     snapshots say so), and that rerun is kept: its held-out images are no worse than with the part."""
-    import napari_fdt.recon.parts_search as parts_search
+    import napari_fdt.recon.choices.parts_search as parts_search
 
     def admit(reference, candidate, **kw):
         return {**decide(reference, candidate, **kw), "on": True}
@@ -80,14 +80,14 @@ def test_a_part_kept_by_a_false_admission_is_dropped_and_the_finest_stage_runs_a
     finest = [s.plan_iteration for s in snaps]
     assert finest == sorted(finest) and finest[-1] == rec.plan.iterations  # the bar never goes back
     assert rec.plan.if_part_dropped_s is None  # the step is made: nothing more to price for it
-    from napari_fdt.recon.report import describe_parts, model_parts_summary
+    from napari_fdt.recon.run.report import describe_parts, model_parts_summary
 
     words = describe_parts(model_parts_summary(rec))
     assert "spectral dropped" in words and "ran again without the dropped parts and was kept" in words
 
 
 def test_parts_backward_off_leaves_the_kept_parts(monkeypatch) -> None:
-    import napari_fdt.recon.parts_search as parts_search
+    import napari_fdt.recon.choices.parts_search as parts_search
 
     monkeypatch.setattr(parts_search, "decide", lambda r, c, **kw: {**decide(r, c, **kw), "on": True})
     rec, _ = _run(_acquisition(), _config(coherence="auto", calibrate_aberrations="false", parts_backward=False))
@@ -103,7 +103,7 @@ def test_the_rerun_is_kept_unless_worse_by_more_than_noise() -> None:
 
 
 def test_the_plan_prices_a_drop_and_the_choice_round_trips() -> None:
-    from napari_fdt.recon.plan import plan_for
+    from napari_fdt.recon.loop.plan import plan_for
 
     acq = _acquisition()
     plan, _ = plan_for(acq, _config(calibrate_aberrations="auto"), "cpu")

@@ -1,17 +1,17 @@
-"""The pupil chosen before the stages from a pilot at Δn = 0 (:mod:`napari_fdt.recon.parts_pilot`)."""
+"""The pupil chosen before the stages from a pilot at Δn = 0 (:mod:`napari_fdt.recon.choices.parts_pilot`)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from napari_fdt.recon import parts_pilot
-from napari_fdt.recon.config import SolverConfig, StageConfig
-from napari_fdt.recon.model_parts import PILOT_ITERATIONS
-from napari_fdt.recon.phases import PUPIL_PILOT
-from napari_fdt.recon.plan import RERUN
-from napari_fdt.recon.report import describe_parts, model_parts_summary
-from napari_fdt.recon.solver import Reconstructor
+from napari_fdt.recon.choices import parts_pilot
+from napari_fdt.recon.loop.model_parts import PILOT_ITERATIONS
+from napari_fdt.recon.loop.phases import PUPIL_PILOT
+from napari_fdt.recon.loop.plan import RERUN
+from napari_fdt.recon.run.report import describe_parts, model_parts_summary
+from napari_fdt.recon.run.solver import Reconstructor
+from napari_fdt.recon.settings.config import SolverConfig, StageConfig
 
 
 @pytest.fixture(scope="module")

@@ -10,11 +10,11 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from napari_fdt.recon import tv_search
-from napari_fdt.recon.config import SolverConfig, StageConfig
-from napari_fdt.recon.model_parts import PARTS, PartsChoice
-from napari_fdt.recon.phases import TV_CHOICE, phase_label
-from napari_fdt.recon.solver import Reconstructor, Snapshot
+from napari_fdt.recon.choices import tv_search
+from napari_fdt.recon.loop.model_parts import PARTS, PartsChoice
+from napari_fdt.recon.loop.phases import TV_CHOICE, phase_label
+from napari_fdt.recon.run.solver import Reconstructor, Snapshot
+from napari_fdt.recon.settings.config import SolverConfig, StageConfig
 
 
 def _config(**kw) -> SolverConfig:

@@ -1,4 +1,4 @@
-"""The plan of a run (:mod:`napari_fdt.recon.plan`): its phases match what the solver builds, its prior prediction is
+"""The plan of a run (:mod:`napari_fdt.recon.loop.plan`): its phases match what the solver builds, its prior prediction is
 within a factor 2 of recorded stage times, the time left it gives is within 30 % once a tenth of the run is measured,
 and a run's snapshots count along it without ever starting again."""
 
@@ -14,11 +14,11 @@ import torch
 
 from napari_fdt.data.io import read_acquisition
 from napari_fdt.model.envelope import EnvelopeModel
-from napari_fdt.recon.config import SolverConfig, StageConfig, resolve_stage_lengths
-from napari_fdt.recon.phases import RUN, TV_CHOICE, probe_iterations
-from napari_fdt.recon.plan import Pace, Plan, make_plan
-from napari_fdt.recon.regularisation import TV_PATH
-from napari_fdt.recon.stages import build_stage
+from napari_fdt.recon.loop.phases import RUN, TV_CHOICE, probe_iterations
+from napari_fdt.recon.loop.plan import Pace, Plan, make_plan
+from napari_fdt.recon.loop.regularisation import TV_PATH
+from napari_fdt.recon.problem.stages import build_stage
+from napari_fdt.recon.settings.config import SolverConfig, StageConfig, resolve_stage_lengths
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -146,8 +146,8 @@ def test_time_left_with_noisy_iterations_and_a_slow_machine(sample) -> None:
 
 
 def test_a_run_counts_along_its_plan_and_its_time_table_adds_up(scene16) -> None:
-    from napari_fdt.recon.report import plan_report
-    from napari_fdt.recon.solver import Reconstructor
+    from napari_fdt.recon.run.report import plan_report
+    from napari_fdt.recon.run.solver import Reconstructor
 
     cfg = SolverConfig(stages=[StageConfig(4, 4), StageConfig(2, 6), StageConfig(1, 6)], batch_size=4, snapshot_every=2,
                        validation_fraction=0.2, final_stage_min_passes=0)
@@ -174,7 +174,7 @@ def test_fdt_plan_prints_the_plan_the_solver_makes(sample, capsys) -> None:
     """``fdt plan --json``: the phases (each with its name and predicted seconds), their total and the peak memory of
     the finest stage, before any iteration; the phases are the ones a Reconstructor of the same settings plans."""
     from napari_fdt.cli import main
-    from napari_fdt.recon.solver import Reconstructor
+    from napari_fdt.recon.run.solver import Reconstructor
 
     assert main(["plan", str(ROOT / "sample_data" / "letters"), "--device", "cpu", "--json"]) == 0
     out = json.loads(capsys.readouterr().out)
@@ -220,7 +220,7 @@ def test_pixel_integration_costs_what_its_fine_grid_ffts_cost(sample) -> None:
     """The camera's pixel integration adds 4 FFTs on a twice-finer grid to a multi-slice iteration (envelope stages do
     not model it): at 256², 6 slices the model says 1.75×, measured 1.77× (189.3 / 106.7 ms, 2 cores, 2026-11-25,
     benchmarks/step_profile_cpu.py on cells_pupil)."""
-    from napari_fdt.recon.plan import iteration_units
+    from napari_fdt.recon.loop.plan import iteration_units
 
     ratio = iteration_units(16, 6, (256, 256), True) / iteration_units(16, 6, (256, 256))
     assert ratio == pytest.approx(189.3 / 106.7, rel=0.05)
@@ -258,7 +258,7 @@ def test_the_pupil_pilot_is_priced_by_what_it_runs(sample) -> None:
 def test_the_plan_says_what_keeping_a_model_part_would_add(sample) -> None:
     """Where "auto" model parts are still to be chosen, the plan prices every stage again (multi-slice coarse stages
     under coarse_model "auto") as its own line; with every part given as a setting there is no such line."""
-    from napari_fdt.recon.plan import plan_for, stage_phase
+    from napari_fdt.recon.loop.plan import plan_for, stage_phase
 
     cfg = SolverConfig()
     plan, src = plan_for(sample, cfg, "cpu")
@@ -273,7 +273,7 @@ def test_the_plan_says_what_keeping_a_model_part_would_add(sample) -> None:
     assert plan.if_part_kept_early_s == pytest.approx(plan.if_part_kept_s - plan.phases[-1].predicted_s)
     assert "where stage 2/3's end finds it: the finest stage then runs once" in plan.summary()
     assert plan.without(len(plan.phases) - 1).if_part_kept_early_s is None  # (what a part kept there leaves of it)
-    from napari_fdt.recon.solver import Reconstructor
+    from napari_fdt.recon.run.solver import Reconstructor
 
     run_plan = Reconstructor(sample, cfg, device="cpu").plan  # the run's own plan says the same
     assert run_plan.early_test_stage == 1 and run_plan.if_part_kept_early_s == pytest.approx(plan.if_part_kept_early_s)
@@ -304,8 +304,8 @@ def test_kept_parts_are_priced_by_what_they_run(sample) -> None:
     pass per wavelength (``n_wavelengths`` times the units), obliquity on the full window (the split field has no
     per-source screens: the grid the solver then builds). Before, the spectral rerun of a thick slab was priced as a
     plain one (fibres_thick, 2026-11-27: 16.9 s planned for a finest stage that took 704 s beside other runs)."""
-    from napari_fdt.recon.plan import stage_phase
-    from napari_fdt.recon.solver import Reconstructor
+    from napari_fdt.recon.loop.plan import stage_phase
+    from napari_fdt.recon.run.solver import Reconstructor
 
     cfg = resolve_stage_lengths(SolverConfig(), sample.n_images)
     src, last = _sources(sample), len(cfg.stages) - 1

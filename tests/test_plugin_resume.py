@@ -10,9 +10,9 @@ import time
 import numpy as np
 import pytest
 
-from napari_fdt.napari import resume
-from napari_fdt.napari.job import reconstruction_job
-from napari_fdt.recon.config import SolverConfig, StageConfig
+from napari_fdt.napari.jobs import resume
+from napari_fdt.napari.jobs.job import reconstruction_job
+from napari_fdt.recon.settings.config import SolverConfig, StageConfig
 
 
 def _drain(gen, on_update=None):

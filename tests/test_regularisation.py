@@ -10,9 +10,9 @@ import torch
 
 from napari_fdt.cli import build_parser
 from napari_fdt.errors import FDTInputError, FDTWarning
-from napari_fdt.recon.config import SolverConfig, StageConfig
-from napari_fdt.recon.regularisation import TV_PATH, TV_Z_RATIO, candidate_weights, pick, selection_stages, tried_enough
-from napari_fdt.recon.solver import Reconstructor
+from napari_fdt.recon.loop.regularisation import TV_PATH, TV_Z_RATIO, candidate_weights, pick, selection_stages, tried_enough
+from napari_fdt.recon.run.solver import Reconstructor
+from napari_fdt.recon.settings.config import SolverConfig, StageConfig
 
 
 def _config(**kw) -> SolverConfig:
@@ -144,7 +144,7 @@ def test_the_path_is_cut_only_by_a_rise_beyond_the_held_out_images_noise() -> No
     """Issue 47, item 3: a rise of the held-out error that the images' paired spread could make does not stop the trials
     (a 1-standard-error stop did, on an unseen sparse scene, and lost an 18 % better volume); the threshold is the model
     parts' Student's t(0.975, n − 1)."""
-    from napari_fdt.recon.model_parts import standard_errors
+    from napari_fdt.recon.loop.model_parts import standard_errors
 
     base = np.array([0.10, 0.12, 0.09, 0.11, 0.13, 0.10])
     noise = np.array([1.0, -0.5, 0.8, -0.2, 0.6, -0.1])  # a rise with a spread: z = mean / (std / sqrt(6))

@@ -12,11 +12,11 @@ import pytest
 
 from benchmarks.scenes import tiny_scene
 from napari_fdt.errors import FDTInputError
-from napari_fdt.napari.compute_process import ComputeError, portable_exception
-from napari_fdt.napari.job import reconstruction_job
-from napari_fdt.napari.remote_job import ComputeProcessDied, RunResult, describe_exit, remote_reconstruction
+from napari_fdt.napari.jobs.compute_process import ComputeError, portable_exception
+from napari_fdt.napari.jobs.job import reconstruction_job
+from napari_fdt.napari.jobs.remote_job import ComputeProcessDied, RunResult, describe_exit, remote_reconstruction
 from napari_fdt.napari.result_view import content_slice, results_line, ri_contrast_limits
-from napari_fdt.recon.config import SolverConfig, StageConfig
+from napari_fdt.recon.settings.config import SolverConfig, StageConfig
 
 
 @pytest.fixture(scope="module")

@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from napari_fdt.recon.fsc import HALF_SET_THRESHOLD, fsc_curves, resolution, resolutions, truth_fsc_from_halves
-from napari_fdt.recon.validation import split_halves
+from napari_fdt.recon.assess.fsc import HALF_SET_THRESHOLD, fsc_curves, resolution, resolutions, truth_fsc_from_halves
+from napari_fdt.recon.assess.validation import split_halves
 
 PIXEL_UM, SLICE_UM = 0.25, 1.0
 
@@ -85,10 +85,10 @@ def test_halves_split_every_pair_of_neighbours_and_cover_the_field() -> None:
 
 
 def test_the_halves_settings_fix_what_the_run_chose(scene16) -> None:
-    from napari_fdt.recon.config import SolverConfig
-    from napari_fdt.recon.half_sets import chosen_settings
-    from napari_fdt.recon.model_parts import switch
-    from napari_fdt.recon.solver import Reconstructor
+    from napari_fdt.recon.loop.model_parts import switch
+    from napari_fdt.recon.run.half_sets import chosen_settings
+    from napari_fdt.recon.run.solver import Reconstructor
+    from napari_fdt.recon.settings.config import SolverConfig
 
     rec = Reconstructor(scene16.acquisition, SolverConfig(half_set_resolution=True), device="cpu")
     rec.loss_weights = dataclasses.replace(rec.loss_weights, tv_xy=3.0, tv_z=1.5)
@@ -143,8 +143,8 @@ def test_the_halves_run_with_the_run_s_choices_and_report_a_resolution(tmp_path:
 def test_the_plan_prices_the_halves(scene16) -> None:
     """Asked for, the plan says what the halves add: each half's stages, on its half of the sources, about as long as
     the run's stages (the halves' batches are the run's); not asked for, nothing."""
-    from napari_fdt.recon.config import SolverConfig
-    from napari_fdt.recon.plan import plan_for
+    from napari_fdt.recon.loop.plan import plan_for
+    from napari_fdt.recon.settings.config import SolverConfig
 
     plain, _ = plan_for(scene16.acquisition, SolverConfig(), "cpu")
     asked, _ = plan_for(scene16.acquisition, SolverConfig(half_set_resolution=True), "cpu")

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from napari_fdt import read_volume_tiff, write_acquisition
-from napari_fdt.recon.checkpoint import latest_checkpoint
+from napari_fdt.recon.loop.checkpoint import latest_checkpoint
 
 
 def _fdt(*args: str) -> list[str]:
@@ -59,8 +59,8 @@ def test_a_run_stopped_inside_a_stage_resumes_there_and_equals_the_unbroken_run(
     """In one process: a run stopped inside its finest stage leaves a checkpoint of that stage's progress (its RI
     optimiser, best iterate, record, the state the model-parts choice starts it again from); resumed from the folder it
     ends bit-identical to the unbroken run, the choice of model parts at the stage's end included."""
-    from napari_fdt.recon.config import SolverConfig, StageConfig
-    from napari_fdt.recon.solver import Reconstructor
+    from napari_fdt.recon.run.solver import Reconstructor
+    from napari_fdt.recon.settings.config import SolverConfig, StageConfig
 
     cfg = SolverConfig(stages=[StageConfig(2, 6), StageConfig(1, 12)], batch_size=4, snapshot_every=2, validation_fraction=0.2,
                        final_stage_min_passes=0, checkpoint_every_s=0.0)
@@ -103,8 +103,8 @@ def test_the_folder_resumes_from_the_checkpoint_written_last(tmp_path: Path) -> 
 def test_the_checkpoint_interval_counts_computation_not_the_consumers_pauses(scene16, tmp_path: Path) -> None:
     """A consumer that holds every snapshot for 0.4 s (a viewer drawing, a slow disk) does not make the run write more
     checkpoints: ``checkpoint_every_s`` counts the solver's own seconds (its ``elapsed_s``)."""
-    from napari_fdt.recon.config import SolverConfig, StageConfig
-    from napari_fdt.recon.solver import Reconstructor
+    from napari_fdt.recon.run.solver import Reconstructor
+    from napari_fdt.recon.settings.config import SolverConfig, StageConfig
 
     cfg = SolverConfig(stages=[StageConfig(1, 10)], batch_size=4, snapshot_every=1, validation_fraction=0.0,
                        final_stage_min_passes=0, checkpoint_every_s=2.0, tv_xy_weight=0.0, tv_z_weight=0.0)
@@ -124,7 +124,7 @@ def test_ctrl_c_writes_the_last_complete_stage(scene16, tmp_path: Path) -> None:
     and exits with 130 (recon.session.finish_run, shared with the plugin); its volume equals stage 1's checkpoint."""
     import torch
 
-    from napari_fdt.recon.volume import RIVolume
+    from napari_fdt.recon.problem.volume import RIVolume
 
     acq = write_acquisition(scene16.acquisition, tmp_path / "acq")
     cfg = tmp_path / "cfg.json"

@@ -179,7 +179,7 @@ def test_reconstructor_warns_at_construction(capsys, tmp_path) -> None:
     from napari_fdt.cli import main
     from napari_fdt.data.acquisition import Acquisition
     from napari_fdt.data.io import write_acquisition
-    from napari_fdt.recon.solver import Reconstructor
+    from napari_fdt.recon.run.solver import Reconstructor
 
     optics = _optics(pixel_size_um=0.55)
     rng = np.random.default_rng(0)

@@ -7,9 +7,9 @@ import math
 import numpy as np
 import pytest
 
-from napari_fdt.recon.config import SolverConfig, StageConfig
-from napari_fdt.recon.schedule import final_step_scale
-from napari_fdt.recon.solver import Reconstructor
+from napari_fdt.recon.run.solver import Reconstructor
+from napari_fdt.recon.settings.config import SolverConfig, StageConfig
+from napari_fdt.recon.settings.schedule import final_step_scale
 
 
 def test_final_step_scale_is_a_half_cosine_from_one_to_the_ratio() -> None:
@@ -52,7 +52,7 @@ def test_the_finest_stage_settles_with_a_falling_step() -> None:
 
 # -- the finest stage's length in passes over the images (``final_stage_min_passes``) ------------------------------
 def test_the_finest_stage_is_lengthened_to_the_passes_asked() -> None:
-    from napari_fdt.recon.config import resolve_stage_lengths
+    from napari_fdt.recon.settings.config import resolve_stage_lengths
 
     cfg = SolverConfig(stages=[StageConfig(4, 100), StageConfig(2, 100), StageConfig(1, 160)], batch_size=16,
                        final_stage_min_passes=24)
@@ -76,7 +76,7 @@ def test_the_finest_stage_is_lengthened_to_the_passes_asked() -> None:
 
 def test_the_solver_runs_and_reports_the_lengthened_stage() -> None:
     from napari_fdt import Optics, simulate, source_grid
-    from napari_fdt.recon.report import stage_lengths
+    from napari_fdt.recon.run.report import stage_lengths
     from napari_fdt.sim.phantoms import text_phantom
 
     o = Optics(wavelength_um=0.635, n_background=1.33, na=0.8, pixel_size_um=0.33, n_slices=2,

@@ -11,8 +11,8 @@ import pytest
 
 from napari_fdt.errors import FDTInputError
 from napari_fdt.physics.optics import OPTICS_FIELDS, Optics
-from napari_fdt.recon.config import COARSE_MODELS, SolverConfig, StageConfig, settings_markdown
-from napari_fdt.recon.losses import LossWeights
+from napari_fdt.recon.problem.losses import LossWeights
+from napari_fdt.recon.settings.config import COARSE_MODELS, SolverConfig, StageConfig, settings_markdown
 from napari_fdt.schema import bounds, choices, example, scalar_type, schema_fields
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -82,7 +82,7 @@ def test_removed_backward_mode_fused_loads_as_auto_with_a_warning(tmp_path) -> N
     import json
 
     from napari_fdt.errors import FDTWarning
-    from napari_fdt.recon.command import REPORT_FORMAT, config_from_file
+    from napari_fdt.recon.settings.command import REPORT_FORMAT, config_from_file
 
     data = {"backward_mode": "fused", "stages": [{"factor": 1, "iterations": 5}]}
     with pytest.warns(FDTWarning, match=r'backward_mode: "fused" was removed on 2026-11-26: slower than the FFT loop on '

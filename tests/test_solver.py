@@ -13,10 +13,10 @@ from napari_fdt import Optics, simulate, source_grid
 from napari_fdt.cli import main
 from napari_fdt.data.io import read_acquisition, read_volume_tiff
 from napari_fdt.errors import FDTInputError
-from napari_fdt.recon.config import SolverConfig, StageConfig, load_config
-from napari_fdt.recon.metrics import relative_delta_n_error
-from napari_fdt.recon.report import source_errors
-from napari_fdt.recon.solver import Reconstructor
+from napari_fdt.recon.assess.metrics import relative_delta_n_error
+from napari_fdt.recon.run.report import source_errors
+from napari_fdt.recon.run.solver import Reconstructor
+from napari_fdt.recon.settings.config import SolverConfig, StageConfig, load_config
 from napari_fdt.sim.phantoms import text_phantom
 
 SAMPLE = Path(__file__).resolve().parents[1] / "sample_data" / "letters"
@@ -117,8 +117,8 @@ def test_resume_from_checkpoint_gives_the_same_result(tiny, tmp_path: Path, extr
 
 def test_predict_is_the_evaluation_and_the_calibration_has_its_own_state(tiny) -> None:
     """predict(indices) gives evaluate_images' rows (acquisition units); the calibration's state dict restores it."""
-    from napari_fdt.recon.calibration import Calibration
-    from napari_fdt.recon.report import evaluate_images
+    from napari_fdt.recon.calibration.calibration import Calibration
+    from napari_fdt.recon.run.report import evaluate_images
 
     rec = Reconstructor(tiny.acquisition, _tiny_config(), device="cpu")
     with pytest.raises(RuntimeError):
@@ -228,7 +228,7 @@ def test_a_batch_that_cannot_fit_is_refused_before_running(tiny, monkeypatch, wi
     import napari_fdt.device as device_module
     import napari_fdt.model.memory as memory
     from napari_fdt.model.split_field import split_plan
-    from napari_fdt.recon.stages import multislice_plan
+    from napari_fdt.recon.problem.stages import multislice_plan
 
     o = tiny.acquisition.optics
     _, opt, _, plan = multislice_plan(o, 1, tiny.acquisition.image_shape, tiny.acquisition.sources_um)
@@ -293,7 +293,7 @@ def test_a_stage_may_have_its_own_batch_size(tiny) -> None:
 
 
 def test_coarse_model_auto_resolves_per_device(tiny) -> None:
-    from napari_fdt.recon.config import resolve_coarse_model
+    from napari_fdt.recon.settings.config import resolve_coarse_model
 
     assert resolve_coarse_model("auto", "cpu") == "envelope" and resolve_coarse_model("auto", "cuda") == "multislice"
     assert resolve_coarse_model("multislice", "cpu") == "multislice"
@@ -310,8 +310,8 @@ def test_a_batch_of_held_out_images_only_trains_on_nothing_and_goes_on(scene16) 
     import torch
 
     from napari_fdt.model.coherence import spectral_images
-    from napari_fdt.recon.config import SolverConfig, StageConfig
-    from napari_fdt.recon.solver import Reconstructor
+    from napari_fdt.recon.run.solver import Reconstructor
+    from napari_fdt.recon.settings.config import SolverConfig, StageConfig
 
     cfg = SolverConfig(stages=[StageConfig(2, 8), StageConfig(1, 8)], batch_size=1, tv_xy_weight=1, tv_z_weight=0.5,
                        final_stage_min_passes=0)

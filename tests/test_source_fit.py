@@ -22,7 +22,7 @@ import pytest
 import torch
 
 from napari_fdt import Acquisition, FDTInputError, FDTWarning, Optics, make_scene, simulate, source_grid
-from napari_fdt.recon.source_fit import (
+from napari_fdt.recon.calibration.source_fit import (
     GaussianFit,
     calibrate_sigma,
     depth_from_sigma,

@@ -7,8 +7,8 @@ import pytest
 import torch
 
 from napari_fdt import Optics
-from napari_fdt.recon.calibration import Calibration, RowAdam
-from napari_fdt.recon.config import SolverConfig, StageConfig
+from napari_fdt.recon.calibration.calibration import Calibration, RowAdam
+from napari_fdt.recon.settings.config import SolverConfig, StageConfig
 
 OPTICS = Optics(wavelength_um=0.6, n_background=1.33, na=0.65, pixel_size_um=0.33, n_slices=4,
                 slice_spacing_um=1.5, image_plane_um=0.0)
@@ -119,7 +119,7 @@ def test_steps_longer_than_max_step_are_shortened() -> None:
     ((4, 2), "envelope", False, set()),  # no multi-slice stage follows: the envelope stages are all there is
 ])
 def test_positions_train_only_in_multislice_stages(factors, coarse, in_envelope, frozen) -> None:
-    from napari_fdt.recon.solver import position_frozen_stages
+    from napari_fdt.recon.run.solver import position_frozen_stages
 
     cfg = SolverConfig(stages=[StageConfig(f, 1) for f in factors], calibration_from_stage=0,
                        calibrate_sources_in_envelope_stages=in_envelope)
@@ -149,8 +149,8 @@ def deep16():
 
 def _fixed_volume_fit(sim, start: np.ndarray, source_step: str, iterations: int) -> np.ndarray:
     """Positions fitted by the solver's loss, batches and calibration optimiser with the volume held at the truth."""
-    from napari_fdt.recon.losses import total_loss
-    from napari_fdt.recon.solver import Reconstructor
+    from napari_fdt.recon.problem.losses import total_loss
+    from napari_fdt.recon.run.solver import Reconstructor
 
     cfg = SolverConfig(stages=[StageConfig(1, iterations)], batch_size=4, validation_fraction=0.0, tv_xy_weight=0.0,
                        tv_z_weight=0.0, calibration_from_stage=0, calibrate_source_depth=False, source_step=source_step,
@@ -248,7 +248,7 @@ def test_a_new_stage_restarts_the_moments_of_the_positions_and_depth_offset(rest
 def test_depths_stay_fixed_in_envelope_stages_while_xy_train(factors, coarse, depth_in_envelope, frozen) -> None:
     """``calibrate_source_depth_in_envelope_stages`` off: in the envelope stages before a multi-slice stage the gradient
     reaches x and y of every source but neither its own depth nor the common offset."""
-    from napari_fdt.recon.solver import depth_frozen_stages
+    from napari_fdt.recon.run.solver import depth_frozen_stages
 
     cfg = SolverConfig(stages=[StageConfig(f, 1) for f in factors], calibration_from_stage=0,
                        calibrate_source_depth_in_envelope_stages=depth_in_envelope)

@@ -187,7 +187,7 @@ def _unit(t: torch.Tensor, index: tuple) -> torch.Tensor:
 
 
 def test_the_solver_uses_it_where_it_holds() -> None:
-    from napari_fdt.recon.stages import uses_split_field
+    from napari_fdt.recon.problem.stages import uses_split_field
 
     assert uses_split_field("split", "cpu", 1, 0.4) and uses_split_field("split", "cuda", 1, 1.0)  # as the user says
     assert not uses_split_field("full", "cpu", 1, 0.4)
@@ -206,7 +206,7 @@ def test_the_solver_uses_it_where_it_holds() -> None:
 def test_a_sample_that_is_not_there_adds_no_field() -> None:
     """Δn ≡ 0 (a constant the loop would multiply by 1): the sample's field S is zero, so the images are the
     homogeneous medium's, as the independent reference gives them for a volume of n_b alone (the pupil pilot's model,
-    ``recon/parts_pilot.py``, relies on it to skip the slice loop)."""
+    ``recon/choices/parts_pilot.py``, relies on it to skip the slice loop)."""
     dn, src, o, plan = _setup()
     zero = np.zeros_like(dn)
     model = SplitFieldModel(o, plan, device="cpu", dtype=torch.float64)

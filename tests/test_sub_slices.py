@@ -125,8 +125,8 @@ def test_fdt_simulate_forward_accuracy_high_makes_the_sub_sliced_images(tmp_path
 def test_the_solver_runs_its_multi_slice_stages_with_the_setting(scene16) -> None:
     """`sub_slices` reaches the multi-slice stages (not the envelope ones), the plan prices its screens, and a short
     run stays finite."""
-    from napari_fdt.recon.config import SolverConfig, StageConfig
-    from napari_fdt.recon.solver import Reconstructor
+    from napari_fdt.recon.run.solver import Reconstructor
+    from napari_fdt.recon.settings.config import SolverConfig, StageConfig
 
     base = dict(stages=[StageConfig(2, 3), StageConfig(1, 3)], batch_size=4, final_stage_min_passes=0,
                 tv_xy_weight=0.0, tv_z_weight=0.0)
@@ -138,7 +138,7 @@ def test_the_solver_runs_its_multi_slice_stages_with_the_setting(scene16) -> Non
     assert np.isfinite(two.delta_n_full()).all() and two.completed_stages == 2
 
 
-# -- the "auto" sub-slices part (recon/model_parts.py): tried where the physics says the slices are thick, kept where
+# -- the "auto" sub-slices part (recon/loop/model_parts.py): tried where the physics says the slices are thick, kept where
 # the held-out images show it, and then only the finest stage runs again ----------------------------------------------
 
 
@@ -154,7 +154,7 @@ def _letters_acquisition(sub_slices: int):
 
 
 def _auto_config(**kw):
-    from napari_fdt.recon.config import SolverConfig, StageConfig
+    from napari_fdt.recon.settings.config import SolverConfig, StageConfig
 
     base = dict(stages=[StageConfig(2, 10), StageConfig(1, 30)], batch_size=8, snapshot_every=5, validation_fraction=0.25,
                 final_stage_min_passes=0, tv_xy_weight=0.0, tv_z_weight=0.0, pixel_integration="false", coherence="none",
@@ -167,8 +167,8 @@ def test_auto_sub_slices_are_tried_only_where_the_slices_are_thick_against_the_d
     2 µm slices (0.84) are tried, 1 µm slices (0.42) are thin screens; a number given is taken as set."""
     from types import SimpleNamespace
 
-    from napari_fdt.recon.config import SolverConfig
-    from napari_fdt.recon.model_parts import requested_for
+    from napari_fdt.recon.loop.model_parts import requested_for
+    from napari_fdt.recon.settings.config import SolverConfig
 
     thick, thin = Optics(**OPTICS), Optics(**{**OPTICS, "slice_spacing_um": 1.0})
     assert thick.depth_of_field_um == pytest.approx(0.635 / (1.33 * (1 - np.sqrt(1 - (0.8 / 1.33) ** 2))))
@@ -184,7 +184,7 @@ def test_auto_sub_slices_stay_off_on_data_made_with_one_screen_per_slice() -> No
     """Through a volume fitted with one screen per slice to data made that way, two screens per slice predict the
     held-out images worse (the volume holds what thin screens need): the trial's paired change is negative, the part
     stays off, and the run is the one without it (one finest stage, one screen per slice)."""
-    from napari_fdt.recon.solver import Reconstructor
+    from napari_fdt.recon.run.solver import Reconstructor
 
     rec = Reconstructor(_letters_acquisition(1), _auto_config(), device="cpu")
     snaps = list(rec.run())
@@ -199,7 +199,7 @@ def test_auto_sub_slices_stay_off_on_data_made_with_one_screen_per_slice() -> No
 def _forced(monkeypatch, keep: set[int]) -> None:
     """The parts' test with its verdict forced on at the listed calls (1: the first part tried, sub-slices) and off
     elsewhere: the mechanics are under test here, not the test's power."""
-    import napari_fdt.recon.parts_search as parts_search
+    import napari_fdt.recon.choices.parts_search as parts_search
 
     decide, calls = parts_search.decide, []
 
@@ -214,8 +214,8 @@ def test_kept_sub_slices_run_only_the_finest_stage_again_with_two_screens_per_sl
     """Where the test keeps sub-slices alone, the finest stage runs again from its start with 2 screens per slice (a
     plan phase of its own, priced with them); the coarse stage is not run again (its model has no sub-slices), and the
     parts not kept are tried again at the end, through the volume trained with sub-slices."""
-    from napari_fdt.recon.report import describe_parts, model_parts_summary
-    from napari_fdt.recon.solver import Reconstructor
+    from napari_fdt.recon.run.report import describe_parts, model_parts_summary
+    from napari_fdt.recon.run.solver import Reconstructor
 
     _forced(monkeypatch, {1})
     rec = Reconstructor(_letters_acquisition(4), _auto_config(obliquity_correction="auto"), device="cpu")
@@ -241,7 +241,7 @@ def test_a_part_kept_after_the_finest_stage_ran_again_makes_every_stage_run_agai
     """Sub-slices kept first (the finest stage again), then obliquity kept at that stage's end: every stage runs again
     from the first with both (the coarse stage multi-slice with one screen per slice, the finest with 2), and the
     plan's phase of each stage is found as the last of that stage."""
-    from napari_fdt.recon.solver import Reconstructor
+    from napari_fdt.recon.run.solver import Reconstructor
 
     _forced(monkeypatch, {1, 3})  # calls: sub-slices (1), obliquity (2), obliquity again (3)
     rec = Reconstructor(_letters_acquisition(4), _auto_config(obliquity_correction="auto", parts_backward=False), device="cpu")
@@ -267,8 +267,8 @@ def test_auto_sub_slices_are_not_tried_where_they_would_not_fit_in_memory(monkey
     import dataclasses
 
     import napari_fdt.device as device_module
-    from napari_fdt.recon.preflight import finest_stage_bytes
-    from napari_fdt.recon.solver import Reconstructor
+    from napari_fdt.recon.problem.preflight import finest_stage_bytes
+    from napari_fdt.recon.run.solver import Reconstructor
 
     acq, cfg = _letters_acquisition(1), _auto_config()
     one = finest_stage_bytes(acq, dataclasses.replace(cfg, sub_slices=1), acq.sources_um, 1, "cpu")[0]

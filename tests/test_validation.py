@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from napari_fdt.errors import FDTWarning
-from napari_fdt.recon.validation import MIN_VALIDATION_IMAGES, BestIterate, holdout_indices, per_image_errors, relative_image_error
+from napari_fdt.recon.assess.validation import MIN_VALIDATION_IMAGES, BestIterate, holdout_indices, per_image_errors, relative_image_error
 
 
 def _grid(n: int, pitch_um: float = 5.0, depth_um: float = 20.0) -> np.ndarray:
@@ -104,7 +104,7 @@ def scene16():
 
 
 def _config(**kw):
-    from napari_fdt.recon.config import SolverConfig, StageConfig
+    from napari_fdt.recon.settings.config import SolverConfig, StageConfig
 
     # Fixed TV weights: with "auto" the held-out images choose the weights (test_regularisation.py), which is their use
     base = dict(stages=[StageConfig(2, 6), StageConfig(1, 8)], batch_size=4, snapshot_every=2, validation_fraction=0.2,
@@ -117,7 +117,7 @@ def test_held_out_images_never_reach_the_volume_and_their_error_is_reported(scen
     """Held-out images are drawn like the others, but only their own position and gain learn from them: with
     their measurements replaced (each flipped: same mean and maximum, other content) the volume is bit-identical."""
     from napari_fdt.data.acquisition import Acquisition
-    from napari_fdt.recon.solver import Reconstructor
+    from napari_fdt.recon.run.solver import Reconstructor
 
     acq = scene16.acquisition
     # the model parts fixed: the held-out images choose them (by design), and a part kept changes the volume
@@ -151,7 +151,7 @@ def test_held_out_images_never_reach_the_volume_and_their_error_is_reported(scen
 
 
 def test_no_split_leaves_the_run_as_before(scene16) -> None:
-    from napari_fdt.recon.solver import Reconstructor
+    from napari_fdt.recon.run.solver import Reconstructor
 
     runs = []
     for frac in (0.0, 0.0):
@@ -170,8 +170,8 @@ PARTS_OFF = dict(calibrate_pupil="false", calibrate_aberrations="false", obliqui
 def test_stop_ends_a_stage_on_a_rise_and_keeps_its_best_iterate(scene16, monkeypatch) -> None:
     """A scripted validation signal: the stage's start (iteration 0) worst, best at the 2nd snapshot, then rising;
     "stop" with patience 2 ends the stage two snapshots later and returns to the state captured at the best one."""
-    from napari_fdt.recon.config import StageConfig
-    from napari_fdt.recon.solver import Reconstructor
+    from napari_fdt.recon.run.solver import Reconstructor
+    from napari_fdt.recon.settings.config import StageConfig
 
     # the optional model parts fixed: their choice at the stage's end could run the stage again (docs/solver.md)
     cfg = _config(stages=[StageConfig(1, 20)], early_stopping="stop", early_stopping_patience=2, snapshot_every=2, **PARTS_OFF)
@@ -194,8 +194,8 @@ def test_stop_ends_a_stage_on_a_rise_and_keeps_its_best_iterate(scene16, monkeyp
 def test_a_stage_that_only_worsens_the_held_out_images_ends_where_it_began(scene16, monkeypatch) -> None:
     """The stage's start is an iterate too: with the held-out error lowest at iteration 0, "best" returns to the
     starting volume (for stage 0: the empty volume, never one that explains the held-out images worse)."""
-    from napari_fdt.recon.config import StageConfig
-    from napari_fdt.recon.solver import Reconstructor
+    from napari_fdt.recon.run.solver import Reconstructor
+    from napari_fdt.recon.settings.config import StageConfig
 
     rec = Reconstructor(scene16.acquisition, _config(stages=[StageConfig(1, 6)], snapshot_every=2, **PARTS_OFF), device="cpu")
     signal = iter([0.1, 0.2, 0.3, 0.4])

@@ -17,9 +17,9 @@ from napari_fdt.model.forward import MultiSliceModel
 from napari_fdt.model.render import render_images
 from napari_fdt.physics.grid import GridPlan, plan_for_sources, plan_grid
 from napari_fdt.physics.optics import Optics
-from napari_fdt.recon.config import SolverConfig, StageConfig, load_config
-from napari_fdt.recon.report import build_report, write_result
-from napari_fdt.recon.solver import Reconstructor, Snapshot, reconstruct
+from napari_fdt.recon.run.report import build_report, write_result
+from napari_fdt.recon.run.solver import Reconstructor, Snapshot, reconstruct
+from napari_fdt.recon.settings.config import SolverConfig, StageConfig, load_config
 from napari_fdt.sim.simulate import Simulation, make_scene, simulate, source_grid
 
 __all__ = [

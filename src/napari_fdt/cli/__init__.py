@@ -73,7 +73,7 @@ def _add_optics_args(p: argparse.ArgumentParser) -> None:
 
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of ``fdt``."""
-    from napari_fdt.recon.config import SolverConfig
+    from napari_fdt.recon.settings.config import SolverConfig
 
     parser = argparse.ArgumentParser(prog="fdt", description="Fluorescence diffraction tomography (napari-fdt).")
     parser.add_argument("--version", action="store_true", help="print the version and exit")
@@ -283,7 +283,7 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
 def _cmd_info(args: argparse.Namespace) -> int:
     from napari_fdt.data.io import read_acquisition
     from napari_fdt.physics.grid import plan_for_sources
-    from napari_fdt.recon.stages import thick_slices
+    from napari_fdt.recon.problem.stages import thick_slices
 
     acq = read_acquisition(args.acquisition)
     o = acq.optics
@@ -315,7 +315,7 @@ def _cmd_info(args: argparse.Namespace) -> int:
     print(f"forward window: {hp}x{wp} px ({plan.padding_factor:.2f}x the image area), light-cone margin {plan.margin_um:.1f} µm, "
           f"band limit {plan.f_lo_per_um:.3f}..{plan.f_hi_per_um:.3f} cycles/µm")
     from napari_fdt.model.split_field import split_plan
-    from napari_fdt.recon.stages import SPLIT_MAX_FRACTION, split_window_fraction
+    from napari_fdt.recon.problem.stages import SPLIT_MAX_FRACTION, split_window_fraction
 
     sh, sw = split_plan(plan, o).padded_shape
     fraction = split_window_fraction(plan, o)
@@ -331,9 +331,9 @@ def _cmd_plan(args: argparse.Namespace) -> int:
     from napari_fdt.cli.family import family_json, family_summary, planned_config
     from napari_fdt.data.io import read_acquisition
     from napari_fdt.device import resolve_device
-    from napari_fdt.recon.config import resolve_stage_lengths
-    from napari_fdt.recon.plan import plan_for
-    from napari_fdt.recon.preflight import finest_stage_bytes
+    from napari_fdt.recon.loop.plan import plan_for
+    from napari_fdt.recon.problem.preflight import finest_stage_bytes
+    from napari_fdt.recon.settings.config import resolve_stage_lengths
 
     config = _config_from_args(args)
     acq = read_acquisition(args.acquisition)
@@ -400,8 +400,8 @@ def _cmd_forward(args: argparse.Namespace) -> int:
 
 def _config_from_args(args: argparse.Namespace):
     """The settings of ``fdt reconstruct``: the ``--config`` file (or report's config), then each flag given."""
-    from napari_fdt.recon.command import config_from_file
-    from napari_fdt.recon.config import SolverConfig
+    from napari_fdt.recon.settings.command import config_from_file
+    from napari_fdt.recon.settings.config import SolverConfig
     from napari_fdt.schema import schema_fields
 
     config = config_from_file(args.config) if args.config is not None else SolverConfig()
@@ -415,8 +415,8 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
     import json
 
     from napari_fdt.data.io import check_report_free, read_acquisition, read_volume_tiff, report_path
-    from napari_fdt.recon import distributed
-    from napari_fdt.recon.command import read_report
+    from napari_fdt.recon.problem import distributed
+    from napari_fdt.recon.settings.command import read_report
 
     config = _config_from_args(args)
     # Under torchrun every rank runs this; everything up to the process group is checked on all ranks alike,
@@ -479,8 +479,8 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
 
 def _run_and_write(args, config, acq, out: Path, json_out: Path, truth, truth_src, group) -> int:
     from napari_fdt.cli.resolution import add_resolution_and_write
-    from napari_fdt.recon.report import describe_parts, describe_plan, write_result
-    from napari_fdt.recon.session import finish_run, open_run, resolution_due
+    from napari_fdt.recon.run.report import describe_parts, describe_plan, write_result
+    from napari_fdt.recon.run.session import finish_run, open_run, resolution_due
 
     device = args.device if group is None else group.device
     rec = open_run(acq, config, device=device, resume=args.resume, group=group)

@@ -1,4 +1,4 @@
-"""``fdt reconstruct --tv-family``: a family of volumes across TV weights (:mod:`napari_fdt.recon.family`), written as
+"""``fdt reconstruct --tv-family``: a family of volumes across TV weights (:mod:`napari_fdt.recon.run.family`), written as
 each member completes (``RI_tv3.tif`` beside ``--out``), then the pick to ``--out`` with the family's verdict in its
 report (``regularisation.family``)."""
 
@@ -9,7 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from napari_fdt.errors import FDTInputError
-from napari_fdt.recon.config import AUTO, SolverConfig
+from napari_fdt.recon.settings.config import AUTO, SolverConfig
 
 __all__ = ["member_path", "check_family_request", "run_family_and_write", "planned_config", "family_summary", "family_json"]
 
@@ -26,14 +26,14 @@ def member_path(out: Path, tau: float) -> Path:
 def planned_config(config: SolverConfig) -> SolverConfig:
     """The configuration one run of ``config`` plans: with ``tv_family``, a member's (every member plans alike: the TV
     weights are numbers and no trials run)."""
-    from napari_fdt.recon.family import FAMILY_TAUS, member_config
+    from napari_fdt.recon.run.family import FAMILY_TAUS, member_config
 
     return member_config(config, FAMILY_TAUS[0]) if config.tv_family else config
 
 
 def family_summary(config: SolverConfig, plan) -> str:
     """``fdt plan``'s text: the plan, or with ``tv_family`` the family's price and one member's plan."""
-    from napari_fdt.recon.family import FAMILY_TAUS
+    from napari_fdt.recon.run.family import FAMILY_TAUS
 
     if not config.tv_family:
         return plan.summary()
@@ -43,7 +43,7 @@ def family_summary(config: SolverConfig, plan) -> str:
 
 def family_json(config: SolverConfig, plan) -> dict[str, Any]:
     """``fdt plan --json``'s ``tv_family`` entry (empty without a family)."""
-    from napari_fdt.recon.family import FAMILY_TAUS
+    from napari_fdt.recon.run.family import FAMILY_TAUS
 
     if not config.tv_family:
         return {}
@@ -55,7 +55,7 @@ def check_family_request(config: SolverConfig, args: Any, out: Path, distributed
     """Refuse what a family cannot do, before any run (FDTInputError naming the field); return the members' paths
     (each checked free unless ``--overwrite``)."""
     from napari_fdt.data.io import report_path
-    from napari_fdt.recon.family import FAMILY_TAUS
+    from napari_fdt.recon.run.family import FAMILY_TAUS
 
     if config.tv_xy_weight != AUTO or config.tv_z_weight != AUTO:
         raise FDTInputError("tv_family", "sets the TV weights of its members itself, but tv_xy_weight or tv_z_weight is a number",
@@ -82,10 +82,10 @@ def run_family_and_write(args, config: SolverConfig, acq, out: Path, truth, trut
     """Run the family, each member written as it completes, then the pick to ``out``; prints the verdict."""
     from napari_fdt.cli.progress import _progress_bar, _show_progress
     from napari_fdt.data.io import report_path
-    from napari_fdt.recon.family import FAMILY_TAUS, Member, family_entries, member_config, run_family, with_family
-    from napari_fdt.recon.report import write_result
-    from napari_fdt.recon.session import finish_run
-    from napari_fdt.recon.solver import Reconstructor
+    from napari_fdt.recon.run.family import FAMILY_TAUS, Member, family_entries, member_config, run_family, with_family
+    from napari_fdt.recon.run.report import write_result
+    from napari_fdt.recon.run.session import finish_run
+    from napari_fdt.recon.run.solver import Reconstructor
 
     paths = check_family_request(config, args, out, distributed_launch=False)
     first = Reconstructor(acq, member_config(config, FAMILY_TAUS[0]), device=args.device)

@@ -43,7 +43,7 @@ def _progress_bar(total: int, *, disable: bool, stream=None):
 def _show_progress(bar, snap) -> None:
     """Advance the bar to a snapshot: the plan's phase in words, loss, validation error and the solver's time-left.
 
-    The bar counts the iterations of the whole plan (:mod:`napari_fdt.recon.plan`: the stages, the trials of the TV
+    The bar counts the iterations of the whole plan (:mod:`napari_fdt.recon.loop.plan`: the stages, the trials of the TV
     weights, and the stages run again with kept model parts), so it never starts again; it grows when a choice of
     model parts appends the stages run again. A line is written after each TV weight tried and each stage's end.
     """

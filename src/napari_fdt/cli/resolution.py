@@ -1,4 +1,4 @@
-"""``fdt reconstruct``'s half-set resolution (``half_set_resolution``, :mod:`napari_fdt.recon.half_sets`): estimated
+"""``fdt reconstruct``'s half-set resolution (``half_set_resolution``, :mod:`napari_fdt.recon.run.half_sets`): estimated
 after the result and its report are written, the report then written again with its ``resolution`` section."""
 
 from __future__ import annotations
@@ -8,8 +8,8 @@ from pathlib import Path
 from typing import Any
 
 from napari_fdt.data.io import write_json_atomic
-from napari_fdt.recon.half_sets import describe_resolution
-from napari_fdt.recon.session import add_resolution
+from napari_fdt.recon.run.half_sets import describe_resolution
+from napari_fdt.recon.run.session import add_resolution
 
 __all__ = ["add_resolution_and_write"]
 

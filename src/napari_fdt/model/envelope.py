@@ -67,7 +67,7 @@ class EnvelopeModel:
     grid_shape: (h, w) of the stage grid (RI and images).
     factor: stage factor.
     shift_um: (x, y) position of the stage grid's block-centre origin relative to the convention
-        (see :mod:`napari_fdt.recon.stages`).
+        (see :mod:`napari_fdt.recon.problem.stages`).
     pupil_taper: soft edge of the angular aperture, as the pupil's.
     batched: ``True`` (default; ``"auto"`` is the same): all sources and slices in one batch (:meth:`images_batched`:
         few, large operations: ~3× fewer kernel launches on CUDA, and on a 2-core CPU the training step 1.5–1.6× faster

@@ -18,7 +18,7 @@ __all__ = ["ImageModel"]
 
 @runtime_checkable
 class ImageModel(Protocol):
-    """What :mod:`napari_fdt.recon.stages`, :mod:`napari_fdt.recon.solver` and :mod:`napari_fdt.model.coherence` use of a model.
+    """What :mod:`napari_fdt.recon.problem.stages`, :mod:`napari_fdt.recon.run.solver` and :mod:`napari_fdt.model.coherence` use of a model.
 
     Attributes: ``optics`` (the acquisition's optics: wavelength, n_b, NA, slices), ``device`` and ``dtype``
     (the real dtype of images and volumes, float32 or float64).

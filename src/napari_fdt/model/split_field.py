@@ -24,7 +24,7 @@ the full window's pixels. Supported: one or more screens per slice, the pupil's 
 non-radial phase takes the camera's source field from the full window, one FFT per image), pixel integration,
 per-call optics overrides (self-calibration, the spectral model); not the per-source obliquity screens or the 2× field
 grid (plain autograd through the loop). A pupil edge narrower than the window's taper is
-better served by the full window (its tails wrap on the small one): :func:`~napari_fdt.recon.stages.uses_split_field`.
+better served by the full window (its tails wrap on the small one): :func:`~napari_fdt.recon.problem.stages.uses_split_field`.
 """
 
 from __future__ import annotations

@@ -30,7 +30,7 @@ class ErrorCurve:
         self.validation.clear()
 
     def add(self, snapshot: Any) -> None:
-        """Record a :class:`~napari_fdt.recon.solver.Snapshot`'s errors (those that are None or not finite are skipped).
+        """Record a :class:`~napari_fdt.recon.run.solver.Snapshot`'s errors (those that are None or not finite are skipped).
 
         A snapshot before the last point's iteration means the run went back (a stage run again from its start,
         e.g. with model parts the validation error chose): the points from there on are replaced, not doubled."""

@@ -1,7 +1,7 @@
 """Putting a reconstruction in view: the RI layer selected, at a slice with content, contrast from the data, the
 z slider kept inside the volume when the sources layer (which lies below the volume) appears, an oblique 3D camera,
 and the key numbers of a run in one line. Public napari API only; no physics (the error against a truth is
-:func:`napari_fdt.recon.metrics.relative_delta_n_error`).
+:func:`napari_fdt.recon.assess.metrics.relative_delta_n_error`).
 
 Axes: the RI volume (n_slices, H, W) is the viewer's last three dimensions (z, y, x), so its z is dims axis
 ``ndim − 3`` whatever the other layers (a stack layer adds the image axis in front).
@@ -108,7 +108,7 @@ def truth_layer(viewer, owner: str | None, shape: tuple[int, ...]):
 
 def truth_error(viewer, acq_layer, ri: np.ndarray, n_background: float) -> float | None:
     """Relative Δn error of ``ri`` against the truth loaded with the acquisition (sample data), or None."""
-    from napari_fdt.recon.metrics import relative_delta_n_error
+    from napari_fdt.recon.assess.metrics import relative_delta_n_error
 
     truth = truth_layer(viewer, acq_layer.metadata.get(META_ID), np.shape(ri))
     if truth is None:
@@ -141,7 +141,7 @@ def results_line(report: dict[str, Any] | None, truth_err: float | None = None) 
         lines.append(", ".join(second))
     res = report.get("resolution")
     if res:
-        from napari_fdt.recon.half_sets import describe_bounds
+        from napari_fdt.recon.run.half_sets import describe_bounds
 
         lines.append(f"resolution (half-set FSC): {describe_bounds(res)}")
     return "\n".join(lines)

@@ -1,6 +1,6 @@
 """Solver settings as the reconstruction widget shows them: the stage list as text, and checked configs.
 
-The widget edits a subset of :class:`~napari_fdt.recon.config.SolverConfig`; the other settings keep the
+The widget edits a subset of :class:`~napari_fdt.recon.settings.config.SolverConfig`; the other settings keep the
 values of the last loaded settings file (or the defaults), so that saving writes a complete file in the
 format of ``fdt reconstruct --config``.
 """
@@ -12,8 +12,8 @@ from typing import Any
 
 from napari_fdt.errors import FDTInputError
 from napari_fdt.physics.optics import Optics
-from napari_fdt.recon.command import unique_path  # noqa: F401 (re-exported: it lived here)
-from napari_fdt.recon.config import SolverConfig, StageConfig
+from napari_fdt.recon.settings.command import unique_path  # noqa: F401 (re-exported: it lived here)
+from napari_fdt.recon.settings.config import SolverConfig, StageConfig
 
 __all__ = [
     "format_stages", "parse_stages", "merge_config", "OPTICS_LABELS", "OPTICS_OPTIONAL", "format_entry", "missing_optics",
@@ -61,7 +61,7 @@ def merge_config(base: SolverConfig, values: dict[str, Any]) -> SolverConfig:
 # -- optics as the acquisition widget shows them: text fields, empty until the file or the user gives them --------
 
 #: The label of every optics field in the widget, in plain words (errors name the field by its label; the tooltips,
-#: ``napari_fdt.napari.widget_acquisition.OPTICS_TIPS``, start with the field's name in the files and the API).
+#: ``napari_fdt.napari.widgets.widget_acquisition.OPTICS_TIPS``, start with the field's name in the files and the API).
 OPTICS_LABELS: dict[str, str] = {
     "wavelength_um": "emission wavelength (µm)", "n_background": "medium refractive index", "na": "objective NA",
     "pixel_size_um": "pixel size in sample (µm)", "n_slices": "number of slices", "slice_spacing_um": "slice thickness (µm)",

@@ -1,0 +1,477 @@
+"""The plan of a run: its phases in order, with their iterations and predicted seconds, known before the first iteration.
+
+A *phase* is a stretch of iterations of one kind at one stage: a stage of the pass, the trials of the ``"auto"`` TV
+weights at the selection stage (the stages before them marked as part of the choice), or a stage run again with kept model parts
+(:mod:`napari_fdt.recon.loop.phases` names the kinds). :func:`make_plan` lists them from the configuration, the
+acquisition's geometry and the device, before anything is allocated; the solver counts its progress along the plan
+(``Snapshot.plan_iteration`` of ``plan_iterations``: one count for the whole run, never restarted) and :class:`Pace`
+turns the plan and the times the run measures into one time-left estimate. The command line's bar, the widget and the
+report read them. When the choice of model parts keeps a part and the stages run again (``parts_rerun = "stages"``),
+:meth:`Plan.with_rerun` appends those phases (the count grows; it never restarts).
+
+**One cost model.** An iteration of a stage costs about ``batch · slices · P · log2 P`` units, ``P`` the pixels of the
+grid the model's FFTs run on (the multi-slice window, or the envelope model's padded grid), times a per-model rate of
+the device (:data:`SECONDS_PER_UNIT`) plus a per-iteration overhead (kernel launches on a GPU). The rates were
+measured on the bundled sample (docs/benchmarks.md, "The plan's cost model"); a run corrects them by what it measures.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+from typing import Any, Sequence
+
+import numpy as np
+
+from napari_fdt.physics.optics import Optics
+from napari_fdt.recon.loop.model_parts import PILOT_BATCH, PILOT_ITERATIONS
+from napari_fdt.recon.loop.phases import PUPIL_PILOT, RERUN, RUN, TV_CHOICE, probe_iterations
+from napari_fdt.recon.loop.regularisation import TV_PATH, selection_stages
+from napari_fdt.recon.settings.config import SolverConfig
+
+__all__ = ["SECONDS_PER_UNIT", "OVERHEAD_S", "SOURCE_FIELD_UNITS", "Phase", "Plan", "Pace", "iteration_units", "envelope_padded_shape", "stage_phase",
+           "make_plan", "plan_for"]
+
+#: Seconds per cost unit of one iteration, by (device type, model). CPU: the bundled sample's default run on 2 cores
+#: (x4 and x2 envelope stages on their 2·3·5-smooth 40² and 80² windows 15.5 and 51.5 ms per iteration, 2026-11-26;
+#: the x1 multi-slice stage 237 ms, 2026-11-25). CUDA: an H100 on 2026-11-26 (docs/decisions/gpu-checklist-h100.md):
+#: the sample's finest stage 15.8-21 ms and the demo's 32.6 ms per multi-slice iteration, about 17 ms of it outside the
+#: model's step (before: 9 ms, from the November suite rows 10.0, 19.5, 99.5 ms); the envelope model on CUDA (not the
+#: default there) is priced like the multi-slice one.
+SECONDS_PER_UNIT: dict[tuple[str, str], float] = {
+    ("cpu", "envelope"): 5.5e-9,
+    ("cpu", "multislice"): 1.09e-9,
+    ("cuda", "envelope"): 6.7e-12,
+    ("cuda", "multislice"): 6.7e-12,
+}
+#: Seconds of one iteration that do not scale with its size (kernel launches), by device type.
+OVERHEAD_S: dict[str, float] = {"cpu": 0.0, "cuda": 1.7e-2}
+#: Seconds of one step of the pupil's pilot on the CPU that do not scale with its size (the sources' and gains'
+#: updates, Python), on the machine of :data:`SECONDS_PER_UNIT`: the sample's pilot took 2.1 s for 60 steps where its
+#: units give 0.6 s (an AMD EPYC whose finest sample iteration took 1.54x the plan's, 2026-11-26 night); on the GPU the
+#: iteration's overhead (:data:`OVERHEAD_S`) stands for it.
+PILOT_STEP_OVERHEAD_S = 0.016
+
+
+#: Cost units of the split-field model's source field at one image pixel of one screen of one image (the radial
+#: tables' interpolation and phase, forward and backward): the sample's finest stage on 2 CPU cores, 0.134 s per
+#: iteration on a 192² window against 0.078 s for its FFTs alone (2026-11-26).
+SOURCE_FIELD_UNITS = 43.0
+
+
+def iteration_units(batch: int, n_slices: int, fft_shape: tuple[int, int], pixel_integration: bool = False,
+                    source_pixels: int = 0, camera_points: int = 0) -> float:
+    """Cost units of one iteration: ``batch · (n_slices + s_pi) · P · log2 P`` with ``P`` the pixels of ``fft_shape``,
+    plus ``batch · (n_slices · source_pixels + camera_points) ·`` :data:`SOURCE_FIELD_UNITS` for the split-field
+    model's source fields at the screens (``source_pixels``: the image's pixels) and at the camera (``camera_points``:
+    the image's pixels, or the fine grid's over the image and its margin with pixel integration); 0 for the other
+    models. (The split model's pixel integration on the sample: 94 ms more per step, 41 ms of FFTs and 45 ms of camera
+    field in these units.)
+
+    A slice costs about 4 FFTs of the window (a forward and an adjoint transform pair); the camera's pixel integration
+    (multi-slice model) adds 4 FFTs on a grid twice as fine (4P pixels), ``s_pi = 4·log2(4P)/log2(P)`` slices' worth
+    (measured: 1.77× the step at 256², 6 slices, where this gives 1.75×)."""
+    p = max(2, int(fft_shape[0]) * int(fft_shape[1]))
+    extra = 4.0 * math.log2(4 * p) / math.log2(p) if pixel_integration else 0.0
+    sources = float(batch) * (float(n_slices) * float(source_pixels) + float(camera_points)) * SOURCE_FIELD_UNITS
+    return float(batch) * (float(n_slices) + extra) * p * math.log2(p) + sources
+
+
+def envelope_padded_shape(optics: Optics, image_shape: tuple[int, int], factor: int) -> tuple[int, int]:
+    """The padded grid (h, w) the envelope model of a stage of ``factor`` works on (as
+    :class:`~napari_fdt.model.envelope.EnvelopeModel` pads it)."""
+    from napari_fdt.model.envelope import envelope_window
+
+    return envelope_window(optics, (image_shape[0] // factor, image_shape[1] // factor), factor)[0]
+
+
+#: The finest stage's model parts in words (the plan's summary).
+PART_WORDS: dict[str, str] = {"sub_slices": "sub-slices", "field_grid": "the 2x field grid"}
+
+@dataclass(frozen=True)
+class Phase:
+    """One phase of a run. ``pass_name``: the snapshot's ``phase`` ("tv_choice", "run", "rerun"); ``trials``: the
+    trials of the TV weights (``iterations`` for all of them) rather than a stage; ``model`` "envelope" or
+    "multislice"; ``fft_shape`` (h, w) px the model's FFTs run on; ``seconds_per_iteration`` the prior prediction;
+    ``parts`` the model parts a rerun holds; ``first_iteration`` the stage iterations done before the phase starts
+    (the selection stage's rest starts after the winning trial's)."""
+
+    pass_name: str
+    stage: int
+    n_stages: int
+    factor: int
+    model: str
+    iterations: int
+    fft_shape: tuple[int, int]
+    seconds_per_iteration: float
+    trials: bool = False
+    parts: tuple[str, ...] = ()
+    first_iteration: int = 0
+
+    @property
+    def predicted_s(self) -> float:
+        return self.iterations * self.seconds_per_iteration
+
+    @property
+    def name(self) -> str:
+        """The phase in words: "stage 2/3 (x2)", "choosing the TV weight: stage 1/3 (x4) with the lightest TV" (a stage before the
+        trials),
+        "choosing the TV weight at stage 2/3 (x2)" (the trials), …"""
+        where = f"stage {self.stage + 1}/{self.n_stages} (x{self.factor})"
+        if self.pass_name == PUPIL_PILOT:
+            return "checking the pupil at Δn = 0, before the stages"
+        if self.pass_name == TV_CHOICE:
+            return f"choosing the TV weight at {where}" if self.trials else f"choosing the TV weight: {where} with the lightest TV"
+        if self.pass_name == RERUN or self.parts:  # (a stage run again from its start with kept parts: parts_rerun "finest")
+            return f"{where} again with {'+'.join(self.parts)}" if self.parts else f"{where} again"
+        return where
+
+    def priced_as(self, other: "Phase", label: bool = False) -> "Phase":
+        """This phase with ``other``'s model, FFT grid and seconds per iteration: a stage priced again for the parts a
+        choice kept (``other`` from :func:`stage_phase` with them); ``label``: its ``parts`` too (its name says them)."""
+        return replace(self, model=other.model, fft_shape=other.fft_shape, seconds_per_iteration=other.seconds_per_iteration,
+                       **({"parts": other.parts} if label else {}))
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"name": self.name, "phase": self.pass_name, "stage": self.stage, "factor": self.factor, "model": self.model,
+                "iterations": self.iterations, "fft_shape": list(self.fft_shape),
+                "seconds_per_iteration": self.seconds_per_iteration, "predicted_s": self.predicted_s}
+
+
+@dataclass(frozen=True)
+class Plan:
+    """The phases of a run, in order (:func:`make_plan`)."""
+
+    phases: tuple[Phase, ...]
+    device_type: str
+    #: seconds more if the choice of model parts keeps one (every stage then runs again, its coarse stages multi-slice
+    #: under ``coarse_model = "auto"``); None where no such choice is to come
+    if_part_kept_s: float | None = None
+    #: seconds more where a part is found at the last coarse stage's end (the test of
+    #: :mod:`~napari_fdt.recon.choices.parts_coarse_end`): every stage again, the first pass's finest stage never run; None where
+    #: no such test is planned
+    if_part_kept_early_s: float | None = None
+    #: the stage of that test
+    early_test_stage: int | None = None
+    #: seconds more if the choice keeps only parts of the finest stage's model (:data:`finest_parts`: the finest stage
+    #: then runs again with them), priced with all of them; None where none is to choose
+    if_finest_parts_kept_s: float | None = None
+    #: the "auto" parts of the finest stage's model to choose (sub-slices, the 2x field grid)
+    finest_parts: tuple[str, ...] = ()
+    #: seconds more if a kept part no longer earns its place at the end (``parts_backward``,
+    #: :mod:`~napari_fdt.recon.choices.parts_backward`: the finest stage again without it); None where no part is to choose
+    if_part_dropped_s: float | None = None
+    #: seconds of the half-set resolution after the run (``half_set_resolution``: each half of the images run again, no
+    #: trials); None where it is not asked for
+    half_sets_s: float | None = None
+
+    @property
+    def pupil_pilot(self) -> bool:
+        """Whether the "auto" pupil is tried before the stages, from a pilot at Δn = 0 (the first phase;
+        :mod:`napari_fdt.recon.choices.parts_pilot`)."""
+        return any(p.pass_name == PUPIL_PILOT for p in self.phases)
+
+    @property
+    def iterations(self) -> int:
+        return sum(p.iterations for p in self.phases)
+
+    @property
+    def predicted_s(self) -> float:
+        return sum(p.predicted_s for p in self.phases)
+
+    def index(self, pass_name: str, stage: int, trials: bool = False) -> int:
+        """The index of the phase of ``pass_name`` at ``stage`` (``trials``: the TV trials); the last one where the stage
+        runs again more than once (the finest stage again with sub-slices, then every stage again)."""
+        for i in reversed(range(len(self.phases))):
+            p = self.phases[i]
+            if p.pass_name == pass_name and p.stage == stage and p.trials == trials:
+                return i
+        raise KeyError(f"no phase {pass_name!r} at stage {stage} (trials {trials}) in the plan")
+
+    def iterations_before(self, index: int) -> int:
+        """Iterations of the phases before phase ``index``."""
+        return sum(p.iterations for p in self.phases[:index])
+
+    def with_phase(self, index: int, phase: Phase) -> "Plan":
+        """The plan with phase ``index`` replaced by ``phase``."""
+        return replace(self, phases=self.phases[:index] + (phase,) + self.phases[index + 1:])
+
+    def with_iterations(self, index: int, iterations: int) -> "Plan":
+        """The plan with phase ``index`` cut to ``iterations`` (the TV trials that ended early)."""
+        return self.with_phase(index, replace(self.phases[index], iterations=int(iterations)))
+
+    def has(self, pass_name: str, stage: int, trials: bool = False) -> bool:
+        """Whether the plan holds the phase of ``pass_name`` at ``stage``."""
+        return any(p.pass_name == pass_name and p.stage == stage and p.trials == trials for p in self.phases)
+
+    def with_stages_again(self, stage: int) -> "Plan":
+        """The plan when the TV choice at ``stage`` changes what the stages before it did (a weight larger than the one
+        they ran with won): they run again with it (the run's phases of those stages, priced as the phases before the
+        trials), and ``stage`` runs in full instead of going on after the winner's probe. The plan without this is
+        the one where the stages before are kept (:func:`make_plan`)."""
+        before = [replace(p, pass_name=RUN) for p in self.phases if p.pass_name == TV_CHOICE and not p.trials and p.stage < stage]
+        phases = []
+        for p in self.phases:
+            if p.pass_name == RUN and p.stage == stage and p.first_iteration > 0:
+                phases += before
+                p = replace(p, iterations=p.iterations + p.first_iteration, first_iteration=0)
+            phases.append(p)
+        return replace(self, phases=tuple(phases))
+
+    def without(self, index: int) -> "Plan":
+        """The plan without phase ``index`` (a phase that will not run: the first pass's finest stage when a part is
+        kept at the last coarse stage's end)."""
+        return replace(self, phases=self.phases[:index] + self.phases[index + 1:], if_part_kept_early_s=None, early_test_stage=None)
+
+    def with_rerun(self, reruns: Sequence[Phase], choice_to_come: bool = False) -> "Plan":
+        """The plan with the phases of the stages run again appended (their ``pass_name`` set to "rerun"); without
+        ``choice_to_come`` no choice of parts is to come (and nothing more to price for one)."""
+        phases = self.phases + tuple(replace(p, pass_name=RERUN) for p in reruns)
+        if choice_to_come:
+            return replace(self, phases=phases, if_finest_parts_kept_s=None, finest_parts=(), if_part_kept_early_s=None,
+                           early_test_stage=None)
+        return Plan(phases, self.device_type, half_sets_s=self.half_sets_s, if_part_dropped_s=self.if_part_dropped_s)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"device": self.device_type, "phases": [p.to_dict() for p in self.phases],
+                "iterations": self.iterations, "predicted_total_s": self.predicted_s,
+                "predicted_extra_s_if_a_part_is_kept": self.if_part_kept_s,
+                "predicted_extra_s_if_a_part_is_kept_before_the_finest_stage": self.if_part_kept_early_s,
+                "predicted_extra_s_if_finest_parts_are_kept": self.if_finest_parts_kept_s, "finest_parts": list(self.finest_parts),
+                "pupil_pilot": self.pupil_pilot, "predicted_extra_s_if_a_part_is_dropped_at_the_end": self.if_part_dropped_s,
+                "predicted_extra_s_half_set_resolution": self.half_sets_s}
+
+    def summary(self) -> str:
+        """One line per phase with its iterations and predicted seconds, and the total."""
+        lines = [f"  {p.name}: {p.iterations} it, ~{_seconds(p.predicted_s)}" for p in self.phases]
+        if self.if_part_kept_s:
+            early = ""
+            if self.if_part_kept_early_s is not None:
+                p = next(q for q in self.phases if q.stage == self.early_test_stage)
+                early = (f" (~{_seconds(self.if_part_kept_early_s)} where stage {p.stage + 1}/{p.n_stages}'s end finds it:"
+                         " the finest stage then runs once)")
+            lines.append(f"  if the data ask for a model part (pupil, aberrations, ...): every stage again, "
+                         f"~{_seconds(self.if_part_kept_s)} more{early}")
+        if self.if_finest_parts_kept_s:
+            what = " or ".join(PART_WORDS.get(p, p) for p in self.finest_parts)
+            lines.append(f"  if the data ask for {what} alone: the finest stage again with them, ~{_seconds(self.if_finest_parts_kept_s)} more")
+        if self.if_part_dropped_s:
+            lines.append(f"  if a kept part no longer helps at the end: the finest stage again without it, ~{_seconds(self.if_part_dropped_s)} more")
+        if self.half_sets_s is not None:
+            lines.append(f"  then the half-set resolution: each half of the images run again with the run's choices, "
+                         f"~{_seconds(self.half_sets_s)} more")
+        return "\n".join([f"plan ({self.device_type}): {len(self.phases)} phases, {self.iterations} iterations, "
+                          f"about {_seconds(self.predicted_s)}", *lines])
+
+
+def _seconds(s: float) -> str:
+    if s < 90:
+        return f"{s:.0f} s"
+    if s < 5400:
+        return f"{s / 60:.0f} min"
+    return f"{s / 3600:.1f} h"
+
+
+def stage_phase(config: SolverConfig, optics: Optics, image_shape: tuple[int, int], sources_um: np.ndarray, stage: int,
+                coarse_model: str, device_type: str, pass_name: str = RUN, parts: tuple[str, ...] = (),
+                pixel_integration: bool = False, pupil_edge: float | None = None, pilot: bool = False) -> Phase:
+    """The phase of stage ``stage`` (its model, FFT grid and predicted seconds per iteration; ``pixel_integration``: the
+    multi-slice model's camera integrates over its pixels; ``pupil_edge`` its pupil's edge, None the default; ``parts``
+    the kept model parts it runs with: sub-slices and the 2x field grid in the finest stage, obliquity on the full
+    window, the spectral model one pass per wavelength).
+
+    ``pilot``: a step of the pupil's pilot on this stage's model instead (:mod:`napari_fdt.recon.choices.parts_pilot`):
+    ``2·PILOT_BATCH`` images at Δn = 0, where the split-field model skips its slice loop (its camera's source field and
+    pixel integration remain: on cells_pupil, with pixel integration, the pilot costs 31 finest iterations, on the
+    sample 10), plus :data:`PILOT_STEP_OVERHEAD_S` on the CPU."""
+    from napari_fdt.recon.problem.stages import config_uses_split_field, fine_field_grid, model_window, multislice_plan, stage_field_oversampling, stage_sub_slices
+
+    sc = config.stages[stage]
+    envelope = sc.factor > 1 and coarse_model == "envelope"
+    split = False
+    if envelope:
+        shape = envelope_padded_shape(optics, image_shape, sc.factor)
+    else:
+        _, opt, _, window = multislice_plan(optics, sc.factor, image_shape, sources_um)
+        split = config_uses_split_field(config, device_type, sc.factor, window, opt, pupil_edge, field_grid="field_grid" in parts,
+                                        obliquity="obliquity" in parts)
+        shape = model_window(window, opt, split)
+    model = "envelope" if envelope else "multislice"
+    dev = "cuda" if device_type == "cuda" else "cpu"
+    batch = 2 * PILOT_BATCH if pilot else config.stage_batch(stage)
+    screens = optics.n_slices * (1 if envelope else stage_sub_slices(config.sub_slices, "sub_slices" in parts, sc.factor))
+    if pilot and split:
+        screens = 0
+    fine = stage_field_oversampling(config.field_oversampling, "field_grid" in parts)
+    if not envelope and fine_field_grid(fine, sc.factor):  # the field on a grid twice as fine
+        shape = (2 * shape[0], 2 * shape[1])
+    source_pixels = camera_points = 0
+    if split:
+        from napari_fdt.model.split_field import FINE_MARGIN
+
+        h, w = window.image_shape
+        source_pixels = h * w
+        camera_points = (2 * h + 2 * FINE_MARGIN) * (2 * w + 2 * FINE_MARGIN) if pixel_integration else h * w
+    units = iteration_units(batch, screens, shape, pixel_integration and not envelope, source_pixels, camera_points)
+    if not envelope and ("spectral" in parts or config.coherence in ("spectral", "mask+spectral")):
+        units *= config.n_wavelengths  # the spectral model: one forward and backward pass per wavelength
+    per_it = OVERHEAD_S[dev] + SECONDS_PER_UNIT[(dev, model)] * units + (PILOT_STEP_OVERHEAD_S if pilot and dev == "cpu" else 0.0)
+    return Phase(pass_name, stage, len(config.stages), sc.factor, model, sc.iterations, shape, per_it, parts=parts)
+
+
+def make_plan(config: SolverConfig, optics: Optics, image_shape: tuple[int, int], sources_um: np.ndarray,
+              coarse_model: str, device_type: str, choose_tv_at: int | None, pixel_integration: bool = False,
+              parts_to_choose: bool = False, pupil_edge: float | None = None, finest_parts: tuple[str, ...] = (),
+              pupil_pilot: bool = False, early_test_stage: int | None = None) -> Plan:
+    """The plan of a run of ``config`` (as run: its stages resolved) on ``device_type`` ("cpu" or "cuda"), with the
+    initial ``sources_um`` (N, 3) µm, ``coarse_model`` resolved for the device; ``choose_tv_at``: the stage at whose
+    start the ``"auto"`` TV weights are tried (None: no choice), every weight for :func:`probe_iterations` of its
+    iterations, after the stages before it at the path's smallest weight; then the run's stages from there, the
+    selection stage going on after the winner's probe: the plan of the common case, where that smallest weight wins
+    (:meth:`Plan.with_stages_again` adds the stages before, run again, where a larger weight wins);
+    ``pixel_integration``, ``pupil_edge``: the camera model's (as the first pass runs it); ``parts_to_choose``: "auto" model parts will
+    be chosen from the data (:attr:`Plan.if_part_kept_s` then says what keeping one would add); ``finest_parts``: the
+    ``"auto"`` parts of the finest stage's model among them (:attr:`Plan.if_finest_parts_kept_s`); ``pupil_pilot``: the
+    pupil is tried before the stages (:attr:`Plan.pupil_pilot`); ``early_test_stage``: the stage at whose end the aberrations
+    are tested in the first pass (:func:`~napari_fdt.recon.loop.model_parts.coarse_end_test_planned`; None: no such test)."""
+    src = np.asarray(sources_um, dtype=np.float64)
+    stages = [stage_phase(config, optics, image_shape, src, i, coarse_model, device_type, pixel_integration=pixel_integration,
+                          pupil_edge=pupil_edge)
+              for i in range(len(config.stages))]
+    phases: list[Phase] = []
+    if choose_tv_at is not None:
+        probe = probe_iterations(config.stages[choose_tv_at].iterations)
+        phases += [replace(p, pass_name=TV_CHOICE) for p in stages[:choose_tv_at]]
+        phases.append(replace(stages[choose_tv_at], pass_name=TV_CHOICE, trials=True, iterations=len(TV_PATH) * probe))
+        # the selection stage goes on from the winner's trial; the stages before are kept (the smallest weight won)
+        stages = stages[choose_tv_at:]
+        stages[0] = replace(stages[0], iterations=stages[0].iterations - probe, first_iteration=probe)
+    phases += stages
+    extra = None
+    if parts_to_choose and config.parts_rerun == "stages":
+        again = "multislice" if config.coarse_model == "auto" else coarse_model
+        extra = sum(stage_phase(config, optics, image_shape, src, i, again, device_type, RERUN,
+                                pixel_integration=pixel_integration, pupil_edge=pupil_edge).predicted_s for i in range(len(config.stages)))
+    elif parts_to_choose:  # parts_rerun "finest": the finest stage again
+        extra = stages[-1].predicted_s
+    early = None
+    if extra is not None and config.parts_rerun == "stages" and early_test_stage is not None:
+        early = extra - stages[-1].predicted_s  # found at the coarse stage's end: the first pass's finest stage never runs
+    finest_again, finest_parts = None, tuple(finest_parts) if parts_to_choose else ()
+    if finest_parts:
+        last = len(config.stages) - 1
+        finest_again = stage_phase(config, optics, image_shape, src, last, coarse_model, device_type, RERUN, finest_parts,
+                                   pixel_integration=pixel_integration, pupil_edge=pupil_edge).predicted_s
+    if pupil_pilot:  # first, the pupil's pilot: steps of 2·PILOT_BATCH images through the finest stage's model at Δn = 0
+        pilot = stage_phase(config, optics, image_shape, src, len(config.stages) - 1, coarse_model, device_type,
+                            pixel_integration=pixel_integration, pupil_edge=pupil_edge, pilot=True)
+        phases.insert(0, replace(pilot, pass_name=PUPIL_PILOT, iterations=PILOT_ITERATIONS, first_iteration=0))
+    halves = None
+    if config.half_set_resolution:  # the stages of each half (as given; the finest stage may run shorter on fewer images)
+        from napari_fdt.recon.assess.validation import split_halves
+
+        halves = sum(stage_phase(config, optics, image_shape, src[idx], i, coarse_model, device_type, pixel_integration=pixel_integration,
+                                 pupil_edge=pupil_edge).predicted_s
+                     for idx in split_halves(src, config.seed) for i in range(len(config.stages)))
+    dropped = stages[-1].predicted_s if parts_to_choose and config.parts_backward else None
+    return Plan(tuple(phases), "cuda" if device_type == "cuda" else "cpu", extra, early, early_test_stage if early is not None else None,
+                finest_again, finest_parts, dropped, halves)
+
+
+def plan_for(acquisition, config: SolverConfig, device_type: str, sources_um: np.ndarray | None = None) -> tuple[Plan, np.ndarray]:
+    """The plan a reconstruction of ``acquisition`` with ``config`` would run on ``device_type``, before anything is
+    allocated (as :class:`~napari_fdt.recon.run.solver.Reconstructor` makes it), and the initial sources (N, 3) µm it used:
+    ``sources_um``, else the acquisition's, else the 2D-Gaussian fit of the images (a few seconds)."""
+    from napari_fdt.recon.assess.validation import holdout_indices
+    from napari_fdt.recon.loop.regularisation import tv_is_auto
+    from napari_fdt.recon.problem.stages import camera_model_options
+    from napari_fdt.recon.settings.config import resolve_coarse_model, resolve_stage_lengths
+
+    cfg = resolve_stage_lengths(config, acquisition.n_images)
+    if sources_um is None:
+        sources_um = acquisition.sources_um
+    if sources_um is None:
+        from napari_fdt.recon.calibration.source_fit import initial_sources
+
+        sources_um, _ = initial_sources(acquisition, depth_um=cfg.source_depth_um, device="cpu")
+    src = np.asarray(sources_um, dtype=np.float64)
+    n_held = len(holdout_indices(src, cfg.validation_fraction))
+    split = n_held > 0
+    choose_tv_at = min(selection_stages(cfg)) if tv_is_auto(cfg) and split else None
+    from napari_fdt.recon.loop.model_parts import FINEST_ONLY_PARTS, coarse_end_test_planned, coarse_test_stage, pupil_pilot_wanted, requested_for
+
+    # the parts as the run starts them; pixel integration as stated, else the physical rule
+    requested, _ = requested_for(cfg, acquisition)
+
+    early = coarse_test_stage(cfg) if coarse_end_test_planned(cfg, n_held, requested["aberrations"] is None) else None
+    plan = make_plan(cfg, acquisition.optics, acquisition.image_shape, src, resolve_coarse_model(cfg.coarse_model, device_type),
+                     device_type, choose_tv_at, pixel_integration=requested["pixel_integration"],
+                     parts_to_choose=split and any(v is None for v in requested.values()),
+                     pupil_edge=camera_model_options(cfg, acquisition)["pupil_edge"],
+                     finest_parts=tuple(p for p in FINEST_ONLY_PARTS if requested[p] is None),
+                     pupil_pilot=pupil_pilot_wanted(cfg, n_held, requested["pupil"] is None), early_test_stage=early)
+    return plan, src
+
+
+class Pace:
+    """Time left from a :class:`Plan` and the times a run measures.
+
+    :meth:`observe` takes each snapshot's phase index, the iterations done along the plan and the run's elapsed
+    seconds. A phase's first interval (from the previous snapshot to its first) holds its set-up (building the stage's
+    model) and is kept apart from its steady intervals. The steady seconds measured, over the plan's prediction for the
+    same iterations, is the correction applied to the phases ahead; the current phase's rest goes at its own steady pace
+    once it has one; each phase ahead adds the mean set-up time measured.
+    """
+
+    def __init__(self, plan: Plan) -> None:
+        self.plan = plan
+        self._last: tuple[int, int, float] | None = None  # (phase, done, elapsed)
+        #: phase → [iterations, seconds] of its first interval, and of its steady intervals
+        self._first: dict[int, list[float]] = {}
+        self._steady: dict[int, list[float]] = {}
+
+    def observe(self, phase: int, done: int, elapsed_s: float) -> None:
+        """``done`` iterations along the plan after ``elapsed_s`` seconds of the run, in phase ``phase``."""
+        if self._last is None:
+            prev_done, prev_t = self.plan.iterations_before(phase), 0.0
+        else:
+            prev_done, prev_t = self._last[1], self._last[2]
+        acc = self._first if phase not in self._first else self._steady
+        n, s = acc.setdefault(phase, [0.0, 0.0])
+        acc[phase] = [n + max(0, int(done) - prev_done), s + max(0.0, float(elapsed_s) - prev_t)]
+        self._last = (phase, int(done), float(elapsed_s))
+
+    def _predicted(self, phase: int, iterations: float) -> float:
+        return iterations * self.plan.phases[phase].seconds_per_iteration
+
+    def correction(self) -> float:
+        """Measured over predicted seconds of the steady intervals seen (of the first intervals while there are none;
+        1 before any)."""
+        acc = self._steady if any(n > 0 for n, _ in self._steady.values()) else self._first
+        seen = sum(s for _, s in acc.values())
+        predicted = sum(self._predicted(i, n) for i, (n, _) in acc.items())
+        return seen / predicted if predicted > 0 and seen > 0 else 1.0
+
+    def setup_seconds(self) -> float:
+        """The mean set-up time of a phase: the excess of its first interval over its steady pace."""
+        extra = [max(0.0, first[1] - first[0] * self._steady[i][1] / self._steady[i][0])
+                 for i, first in self._first.items() if i in self._steady and self._steady[i][0] > 0 and first[0] > 0]
+        return sum(extra) / len(extra) if extra else 0.0
+
+    def seconds_left(self) -> float:
+        """Seconds to the end of the plan (its prediction before any observation)."""
+        if self._last is None:
+            return self.plan.predicted_s
+        phase, done, _ = self._last
+        ratio = self.correction()
+        p = self.plan.phases[phase]
+        n, s = self._steady.get(phase, (0, 0.0))
+        per_it = s / n if n > 0 else p.seconds_per_iteration * ratio
+        left_here = max(0, self.plan.iterations_before(phase) + p.iterations - done)
+        ahead = self.plan.phases[phase + 1:]
+        return left_here * per_it + ratio * sum(q.predicted_s for q in ahead) + len(ahead) * self.setup_seconds()
+
+    def measured_seconds(self) -> list[float | None]:
+        """Each phase's measured seconds, set-up included (None for a phase not reached)."""
+        return [None if i not in self._first else self._first[i][1] + self._steady.get(i, (0, 0.0))[1]
+                for i in range(len(self.plan.phases))]
