@@ -47,7 +47,7 @@ def drop_parts_that_do_not_fit(rec: Run, sources_um) -> None:
     import dataclasses
 
     from napari_fdt.recon.problem.preflight import finest_stage_fits
-    from napari_fdt.recon.problem.stages import AUTO_SUB_SLICES
+    from napari_fdt.recon.problem.stage_spec import AUTO_SUB_SLICES
 
     if rec.parts_choice is not None:
         return

@@ -284,10 +284,13 @@ def stage_phase(config: SolverConfig, optics: Optics, image_shape: tuple[int, in
     ``2·PILOT_BATCH`` images at Δn = 0, where the split-field model skips its slice loop (its camera's source field and
     pixel integration remain: on cells_pupil, with pixel integration, the pilot costs 31 finest iterations, on the
     sample 10), plus :data:`PILOT_STEP_OVERHEAD_S` on the CPU."""
-    from napari_fdt.recon.problem.stages import config_uses_split_field, fine_field_grid, model_window, multislice_plan, stage_field_oversampling, stage_sub_slices
+    from napari_fdt.recon.problem.stage_spec import CameraModel, stage_spec
+    from napari_fdt.recon.problem.stages import config_uses_split_field, model_window, multislice_plan
 
     sc = config.stages[stage]
-    envelope = sc.factor > 1 and coarse_model == "envelope"
+    spec = stage_spec(config, stage, coarse_model, {*parts, *(("pixel_integration",) if pixel_integration else ())},
+                      CameraModel(pupil_edge, pixel_integration))
+    envelope = spec.envelope
     split = False
     if envelope:
         shape = envelope_padded_shape(optics, image_shape, sc.factor)
@@ -299,11 +302,10 @@ def stage_phase(config: SolverConfig, optics: Optics, image_shape: tuple[int, in
     model = "envelope" if envelope else "multislice"
     dev = "cuda" if device_type == "cuda" else "cpu"
     batch = 2 * PILOT_BATCH if pilot else config.stage_batch(stage)
-    screens = optics.n_slices * (1 if envelope else stage_sub_slices(config.sub_slices, "sub_slices" in parts, sc.factor))
+    screens = optics.n_slices * spec.screens_per_slice
     if pilot and split:
         screens = 0
-    fine = stage_field_oversampling(config.field_oversampling, "field_grid" in parts)
-    if not envelope and fine_field_grid(fine, sc.factor):  # the field on a grid twice as fine
+    if spec.fine_grid:  # the field on a grid twice as fine
         shape = (2 * shape[0], 2 * shape[1])
     source_pixels = camera_points = 0
     if split:
@@ -384,7 +386,7 @@ def plan_for(acquisition, config: SolverConfig, device_type: str, sources_um: np
     ``sources_um``, else the acquisition's, else the 2D-Gaussian fit of the images (a few seconds)."""
     from napari_fdt.recon.assess.validation import holdout_indices
     from napari_fdt.recon.loop.regularisation import tv_is_auto
-    from napari_fdt.recon.problem.stages import camera_model_options
+    from napari_fdt.recon.problem.stages import camera_model
     from napari_fdt.recon.settings.config import resolve_coarse_model, resolve_stage_lengths
 
     cfg = resolve_stage_lengths(config, acquisition.n_images)
@@ -407,7 +409,7 @@ def plan_for(acquisition, config: SolverConfig, device_type: str, sources_um: np
     plan = make_plan(cfg, acquisition.optics, acquisition.image_shape, src, resolve_coarse_model(cfg.coarse_model, device_type),
                      device_type, choose_tv_at, pixel_integration=requested["pixel_integration"],
                      parts_to_choose=split and any(v is None for v in requested.values()),
-                     pupil_edge=camera_model_options(cfg, acquisition)["pupil_edge"],
+                     pupil_edge=camera_model(cfg, acquisition).pupil_edge,
                      finest_parts=tuple(p for p in FINEST_ONLY_PARTS if requested[p] is None),
                      pupil_pilot=pupil_pilot_wanted(cfg, n_held, requested["pupil"] is None), early_test_stage=early)
     return plan, src

@@ -18,6 +18,7 @@ from napari_fdt.data.acquisition import Acquisition
 from napari_fdt.data.mapped import chunks
 from napari_fdt.errors import FDTInputError, FDTWarning
 from napari_fdt.physics.grid import plan_for_sources
+from napari_fdt.recon.problem.stage_images import stays_on_host
 from napari_fdt.recon.settings.config import SolverConfig
 
 #: Share of the device's free memory a run may plan to use (the rest: allocator slack, other tensors).
@@ -58,7 +59,7 @@ def images_on_device(acquisition: Acquisition, device_type: str) -> int:
     """Bytes the measured images take on the device: on a GPU the whole stack as float32; on the CPU none beyond a batch
     (they are read from the acquisition's array, :mod:`napari_fdt.recon.problem.stage_images`)."""
     h, w = acquisition.image_shape
-    return 4 * acquisition.n_images * h * w if device_type != "cpu" else 0
+    return 0 if stays_on_host(device_type) else 4 * acquisition.n_images * h * w
 
 
 def finest_stage_bytes(acquisition: Acquisition, config: SolverConfig, sources_um: np.ndarray, n_wavelengths: int = 1,
@@ -70,26 +71,28 @@ def finest_stage_bytes(acquisition: Acquisition, config: SolverConfig, sources_u
     from napari_fdt.model.memory import grid_is_unitary, leanest_mode, split_training_bytes, training_bytes
     from napari_fdt.model.oversampled import fine_plan
     from napari_fdt.model.split_field import split_plan
-    from napari_fdt.recon.problem.stages import camera_model_options, config_uses_split_field, fine_field_grid, multislice_plan, stage_sub_slices
+    from napari_fdt.recon.problem.stage_spec import stage_spec
+    from napari_fdt.recon.problem.stages import camera_model, config_uses_split_field, multislice_plan
 
     cfg, o, full_shape = config, acquisition.optics, acquisition.image_shape
     finest_index = min(range(len(cfg.stages)), key=lambda i: cfg.stages[i].factor)
-    factor = cfg.stages[finest_index].factor
+    camera = camera_model(cfg, acquisition)
+    spec = stage_spec(cfg, finest_index, "multislice", camera.parts_on(), camera)  # as the first pass runs it (no part chosen)
+    factor = spec.factor
     _, opt, _, plan = multislice_plan(o, factor, full_shape, sources_um)
     if batch is None:
         batch = min(cfg.stage_batch(finest_index), acquisition.n_images)
     images = images_on_device(acquisition, device_type)
-    screens = o.n_slices * stage_sub_slices(cfg.sub_slices, False, factor)  # as the first pass runs ("auto": one screen)
-    options = camera_model_options(cfg, acquisition)
-    if config_uses_split_field(cfg, device_type, factor, plan, opt, options["pupil_edge"]):
+    screens = o.n_slices * spec.screens_per_slice  # ("auto" sub-slices: one screen)
+    if config_uses_split_field(cfg, device_type, factor, plan, opt, spec.pupil_edge):
         plan = split_plan(plan, opt)  # the split model's loop runs on plain autograd
         need = split_training_bytes(plan.padded_shape, plan.image_shape, screens, batch, n_wavelengths,
-                                    options["pixel_integration"])
+                                    spec.pixel_integration)
         return need + images, plan, batch, "autograd (split field)"
     mode = cfg.backward_mode
     if mode == "auto":  # auto falls back to the leanest mode when one field per slice does not fit
         mode = leanest_mode(grid_is_unitary(opt.pixel_size_um, o.n_background, o.wavelength_um))
-    if fine_field_grid(cfg.field_oversampling, factor):  # the field on a grid twice as fine
+    if spec.fine_grid:  # the field on a grid twice as fine
         plan = fine_plan(plan)
     return training_bytes(plan.padded_shape, screens, batch, n_wavelengths, mode) + images, plan, batch, mode
 

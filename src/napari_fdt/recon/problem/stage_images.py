@@ -18,7 +18,7 @@ import torch.nn.functional as F
 
 from napari_fdt.data.mapped import chunks, scaled_float32
 
-__all__ = ["LazyImages", "stage_images", "block_average"]
+__all__ = ["LazyImages", "stage_images", "block_average", "stays_on_host"]
 
 
 def block_average(images: torch.Tensor, factor: int) -> torch.Tensor:
@@ -80,7 +80,13 @@ class LazyImages:
 
     def to(self, device: torch.device | str) -> "LazyImages | torch.Tensor":
         """Itself on the CPU; the whole stack as a tensor on another device."""
-        return self if torch.device(device).type == "cpu" else self.materialize(device)
+        return self if stays_on_host(torch.device(device).type) else self.materialize(device)
+
+
+def stays_on_host(device_type: str) -> bool:
+    """Where the measured images live: on the CPU they stay in the acquisition's array (read batch by batch, lazily);
+    on another device the whole stack is copied there as float32."""
+    return device_type == "cpu"
 
 
 def stage_images(images: torch.Tensor | LazyImages, height: int, width: int, factor: int,

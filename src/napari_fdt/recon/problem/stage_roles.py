@@ -6,6 +6,7 @@ reads them as sets of stage indices).
 from __future__ import annotations
 
 from napari_fdt.recon.calibration.calibration import Calibration
+from napari_fdt.recon.problem.stage_spec import runs_envelope
 from napari_fdt.recon.settings.config import SolverConfig
 
 __all__ = ["envelope_stages", "position_frozen_stages", "depth_frozen_stages", "set_stage_roles"]
@@ -13,9 +14,7 @@ __all__ = ["envelope_stages", "position_frozen_stages", "depth_frozen_stages", "
 
 def envelope_stages(config: SolverConfig, coarse_model: str) -> frozenset[int]:
     """Stages that run the envelope model: factor > 1 with ``coarse_model`` ``"envelope"`` (as :func:`~napari_fdt.recon.problem.stages.build_stage`)."""
-    if coarse_model != "envelope":
-        return frozenset()
-    return frozenset(i for i, s in enumerate(config.stages) if s.factor > 1)
+    return frozenset(i for i, s in enumerate(config.stages) if runs_envelope(s.factor, coarse_model))
 
 
 def _envelope_stages_before_multislice(config: SolverConfig, coarse_model: str) -> frozenset[int]:

@@ -31,13 +31,14 @@ from napari_fdt.model.split_field import SplitFieldModel, split_plan
 from napari_fdt.physics.grid import DEFAULT_PUPIL_TAPER, GridPlan, plan_grid
 from napari_fdt.physics.optics import Optics
 from napari_fdt.recon.problem.stage_images import LazyImages, block_average, stage_images
+from napari_fdt.recon.problem.stage_spec import CameraModel, fine_field_grid, runs_envelope, stage_field_oversampling
 from napari_fdt.recon.problem.volume import upsample_to
 
-__all__ = ["Stage", "build_stage", "fine_field_grid", "stage_sub_slices", "thick_slices", "AUTO_SUB_SLICES", "SUB_SLICE_MIN_DOF_RATIO",
-           "camera_grid_drops_band", "stage_field_oversampling",
+__all__ = ["Stage", "build_stage", "thick_slices", "SUB_SLICE_MIN_DOF_RATIO",
+           "camera_grid_drops_band",
            "uses_split_field", "config_uses_split_field", "split_window_fraction",
            "model_window", "block_average", "stage_optics", "field_factor", "multislice_plan", "camera_model_options",
-           "stated_pixel_integration"]
+           "camera_model", "stated_pixel_integration"]
 
 #: Fraction of the coarse grid's Nyquist frequency the stage pupil's outer edge may reach.
 NYQUIST_FILL = 0.95
@@ -135,9 +136,6 @@ def multislice_plan(
     return g, opt, shift, plan
 
 
-#: Screens per slice of the ``"auto"`` sub-slices part where it is on (docs/physics.md, "Sub-slices": 2 take the thin
-#: screen's image error from 1.1-6.6 % to 0.2-1.4 % on the suite at 1.3-1.9x the forward pass; 4 leave 0.05-0.3 % at 1.7-2.8x).
-AUTO_SUB_SLICES = 2
 #: The physics' criterion of the ``"auto"`` sub-slices part: it is tried only where a slice is at least this fraction of the
 #: depth of field (:attr:`~napari_fdt.physics.optics.Optics.depth_of_field_um`); below, a thin screen's error, growing as
 #: (slice / depth of field)², is under about a quarter of the 1-7 % measured at 0.84 and the part is not worth a trial.
@@ -150,34 +148,10 @@ def thick_slices(optics: Optics) -> bool:
     return optics.slice_spacing_um / optics.depth_of_field_um >= SUB_SLICE_MIN_DOF_RATIO
 
 
-def stage_sub_slices(setting: int | str, part_on: bool, factor: int) -> int:
-    """Screens per slice of a multi-slice stage of ``factor``: the ``sub_slices`` setting when a number (every multi-slice
-    stage); for ``"auto"``, :data:`AUTO_SUB_SLICES` in factor-1 stages where the part is on (coarse stages keep one screen
-    per slice, as they keep the camera grid under ``field_oversampling``), else 1."""
-    if setting != "auto":
-        return int(setting)
-    return AUTO_SUB_SLICES if part_on and factor == 1 else 1
-
-
 def camera_grid_drops_band(optics: Optics) -> bool:
     """Whether the camera grid's Nyquist frequency ``1/(2·pixel_size_um)`` lies below the medium's ``n_b/λ`` (cycles/µm):
     waves scattered between the two are aliased on the camera grid, and the ``"auto"`` 2x field grid is worth trying."""
     return 0.5 / optics.pixel_size_um < optics.n_background / optics.wavelength_um
-
-
-def stage_field_oversampling(setting: int | str, part_on: bool) -> int:
-    """The field grid's factor over the camera's for the ``field_oversampling`` setting: the number when given; for
-    ``"auto"`` 2 where the part (``field_grid``) is on, else 1 (it applies to factor-1 stages: :func:`fine_field_grid`)."""
-    if setting != "auto":
-        return int(setting)
-    return 2 if part_on else 1
-
-
-def fine_field_grid(field_oversampling: int | str, factor: int) -> bool:
-    """Whether a multi-slice stage of ``factor`` runs its field on the 2× grid (:class:`OversampledModel`):
-    ``field_oversampling`` 2 applies to factor-1 stages only (coarse stages keep their grids); ``"auto"`` is 1 until the
-    part is chosen (:func:`stage_field_oversampling`)."""
-    return field_oversampling == 2 and factor == 1
 
 
 #: ``field_window = "auto"`` runs the split-field model where its window has at most this fraction of the full window's
@@ -257,7 +231,7 @@ def build_stage(
     """
     _, big_h, big_w = images_normalised.shape
     dx = optics.pixel_size_um
-    if factor > 1 and coarse_model == "envelope":
+    if runs_envelope(factor, coarse_model):
         h, w = big_h // factor, big_w // factor
         shift = (_shift_um(big_w, factor, dx), _shift_um(big_h, factor, dx))
         env = EnvelopeModel(optics, (h, w), factor, (0.0, 0.0), device=device)
@@ -303,6 +277,11 @@ def camera_model_options(config, acquisition) -> dict:
     stated = stated_pixel_integration(config, acquisition)
     integrate = needs_pixel_integration(optics.na, optics.wavelength_um, optics.pixel_size_um) if stated is None else stated
     return {"pupil_edge": edge, "pixel_integration": integrate}
+
+
+def camera_model(config, acquisition) -> CameraModel:
+    """The run's :class:`~napari_fdt.recon.problem.stage_spec.CameraModel` (:func:`camera_model_options`), resolved once."""
+    return CameraModel(**camera_model_options(config, acquisition))
 
 
 def stated_pixel_integration(config, acquisition) -> bool | None:

@@ -32,7 +32,7 @@ from napari_fdt.physics.band import band_limit_per_um
 from napari_fdt.recon.assess.fsc import HALF_SET_THRESHOLD, FscCurve, Resolution, fsc_curves, resolution
 from napari_fdt.recon.assess.validation import split_halves
 from napari_fdt.recon.loop.model_parts import SETTING_OF
-from napari_fdt.recon.problem.stages import AUTO_SUB_SLICES
+from napari_fdt.recon.problem.stage_spec import AUTO_SUB_SLICES
 from napari_fdt.recon.settings.config import AUTO, SolverConfig
 
 if TYPE_CHECKING:

@@ -70,7 +70,8 @@ from napari_fdt.recon.problem.losses import BatchShare, LossWeights, total_loss
 from napari_fdt.recon.problem.preflight import check_memory, warn_about_images, warn_about_sampling
 from napari_fdt.recon.problem.stage_images import LazyImages
 from napari_fdt.recon.problem.stage_roles import depth_frozen_stages, envelope_stages, position_frozen_stages, set_stage_roles
-from napari_fdt.recon.problem.stages import Stage, build_stage, camera_model_options, stage_field_oversampling, stage_sub_slices
+from napari_fdt.recon.problem.stage_spec import StageSpec, stage_spec
+from napari_fdt.recon.problem.stages import Stage, build_stage, camera_model
 from napari_fdt.recon.problem.volume import RIVolume
 from napari_fdt.recon.settings.config import SolverConfig, resolve_coarse_model, resolve_stage_lengths
 from napari_fdt.recon.settings.schedule import final_step_scale
@@ -126,6 +127,8 @@ class Reconstructor:
         cfg = self.config
         #: the coarse stages' model after resolving "auto" for this device
         self.coarse_model = resolve_coarse_model(cfg.coarse_model, self.device.type)
+        #: the stage models' pupil edge and pixel integration as stated or needed, resolved once (the parts may add the latter)
+        self.camera = camera_model(cfg, acquisition)
         n_img = acquisition.n_images
         if initial_sources_um is None:
             if acquisition.sources_um is not None:
@@ -204,7 +207,7 @@ class Reconstructor:
 
     def _pupil_edge(self) -> float:
         """The stage models' pupil edge (the setting, else the acquisition's statement, else the default)."""
-        return camera_model_options(self.config, self.acquisition)["pupil_edge"]
+        return self.camera.pupil_edge
 
     def _revise_plan(self, plan: Plan) -> None:
         """Take a revised plan (phases appended or shortened); the measured times so far stay."""
@@ -272,7 +275,7 @@ class Reconstructor:
     def _new_calibration(self) -> Calibration:
         """The calibration parameters at their start (the initial sources, the acquisition's optics)."""
         cal = Calibration(self.initial_sources_um, self.config, self.acquisition.optics, device=self.device, dtype=self.dtype,
-                          pupil_edge=camera_model_options(self.config, self.acquisition)["pupil_edge"])
+                          pupil_edge=self.camera.pupil_edge)
         if getattr(self, "parts", None):
             cal.fit_pupil, cal.fit_aberrations = self.parts["pupil"], self.parts["aberrations"]
         set_stage_roles(cal, self.config, self.coarse_model)
@@ -353,17 +356,12 @@ class Reconstructor:
         sc = self.config.stages[stage_index]
         return build_stage(stage_index, sc.factor, sc.iterations, self.acquisition.optics, self.images,
                            self.calibration.sources_um(), device=self.device, coarse_model=self.coarse_model,
-                           **self._model_options(sc.factor))
+                           **self.stage_spec(stage_index).model_options())
 
-    def _model_options(self, factor: int = 1) -> dict[str, Any]:
-        """The multi-slice model's options as the run has them for a stage of ``factor``: backward mode, sub-slices, field
-        grid and window, obliquity, pupil edge and pixel integration (the parts as switched)."""
-        cfg = self.config
-        return dict(backward_mode=cfg.backward_mode, sub_slices=stage_sub_slices(cfg.sub_slices, self.parts["sub_slices"], factor),
-                    field_oversampling=stage_field_oversampling(cfg.field_oversampling, self.parts["field_grid"]),
-                    field_window=cfg.field_window,
-                    obliquity="per_source" if self.parts["obliquity"] else "none",
-                    **{**camera_model_options(cfg, self.acquisition), "pixel_integration": self.parts["pixel_integration"]})
+    def stage_spec(self, stage_index: int, factor: int | None = None) -> StageSpec:
+        """Stage ``stage_index``'s model with the parts as switched (:func:`~napari_fdt.recon.problem.stage_spec.stage_spec`;
+        ``stage_index`` −1 with ``factor``: a stage off the schedule)."""
+        return stage_spec(self.config, stage_index, self.coarse_model, {p for p, on in self.parts.items() if on}, self.camera, factor)
 
     def _carry_volume_to(self, stage: Stage) -> None:
         """Make the RI grid on the stage's grid (first stage) or resample it there from the previous stage's."""
@@ -552,7 +550,7 @@ class Reconstructor:
     def evaluation_stage(self) -> Stage:
         """The multi-slice model on the acquisition grid (factor 1) for the current calibrated sources, with the run's model
         options (its camera, pupil edge, obliquity and sub-slices: the images the run fitted), for :meth:`predict`."""
-        options = {**self._model_options(), "backward_mode": "auto"}
+        options = {**self.stage_spec(-1, factor=1).model_options(), "backward_mode": "auto"}
         return build_stage(-1, 1, 0, self.acquisition.optics, self.images, self.sources_um(), device=self.device, **options)
 
     def predict(self, indices: Sequence[int] | np.ndarray | torch.Tensor, stage: Stage | None = None) -> np.ndarray:
