@@ -16,6 +16,7 @@ import torch
 
 from napari_fdt.physics.aberrations import ZERNIKE_MODES
 from napari_fdt.physics.optics import Optics
+from napari_fdt.recon.calibration.adam import Adam
 from napari_fdt.recon.settings.config import SolverConfig
 
 __all__ = ["Calibration"]
@@ -339,7 +340,7 @@ class CalibrationOptimiser:
         else:
             self.rows = RowAdam([sources], lr=config.lr_sources_um, betas=(0.9, 0.99),
                                 moment="matrix" if config.source_step == "whitened" else "isotropic")
-        self.adam = torch.optim.Adam(groups, betas=(0.9, 0.99))
+        self.adam = Adam(groups, betas=(0.9, 0.99))
 
     def set_visit_interval(self, interval: float, max_step_um: float, scale: float = 1.0) -> None:
         """Set the rows' step per visit from the iterations between two visits (``N / B``, at least 1), at most

@@ -16,6 +16,7 @@ import torch
 from napari_fdt.model.gain import least_squares_gain
 from napari_fdt.model.render import iter_batches
 from napari_fdt.physics.aberrations import ZERNIKE_MODES
+from napari_fdt.recon.calibration.adam import Adam
 from napari_fdt.recon.choices.parts_switch import parts_chosen_by, set_parts
 from napari_fdt.recon.loop.model_parts import BINARY_PARTS, FIT_IMAGES, FIT_ITERATIONS, FIT_RATES, FITTED_PARTS, MIN_IMPROVEMENT, PartsChoice, decide, next_pass
 from napari_fdt.recon.loop.run_validation import image_errors, validation
@@ -246,7 +247,7 @@ def fit_pupil_parts(rec: Run, stage: Stage, cache: ExitCache, parts: list[str], 
         groups += [{"params": [na], "lr": FIT_RATES["na_scale"]}, {"params": [edge], "lr": FIT_RATES["pupil_edge"]}]
     if "aberrations" in parts:
         groups.append({"params": [zern], "lr": FIT_RATES["zernike"]})
-    opt = torch.optim.Adam(groups, betas=(0.9, 0.99))
+    opt = Adam(groups, betas=(0.9, 0.99))
     on_pupil = "pupil" in parts or rec.parts["pupil"]
     on_aber = "aberrations" in parts or rec.parts["aberrations"]
     for _ in range(FIT_ITERATIONS):

@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING, Any, Callable, Generator, Protocol, Sequence
 import torch
 
 from napari_fdt.recon.assess.validation import BestIterate
+from napari_fdt.recon.calibration.adam import Adam
 from napari_fdt.recon.loop.run_validation import end_on_best, track_validation
 from napari_fdt.recon.loop.snapshot import Snapshot, StageRecord, take_snapshot
 from napari_fdt.recon.problem.stages import Stage
@@ -40,7 +41,7 @@ class Verdict(enum.Enum):
 
 def new_optimiser(rec: Run) -> torch.optim.Optimizer:
     """The RI grid's Adam optimiser (new at every stage: its moments belong to the voxels the resampling replaces)."""
-    return torch.optim.Adam([rec.volume.x], lr=rec.config.lr_ri, betas=(0.9, 0.99))
+    return Adam([rec.volume.x], lr=rec.config.lr_ri, betas=(0.9, 0.99))
 
 
 @dataclass
