@@ -2,7 +2,7 @@
 "The finest step against the naive step on the CPU").
 
     python -m benchmarks run step_profile_cpu [--acquisition DIR] [--pixel-integration] [--field-window full|split]
-                                              [--frozen-sources] [--repeats 10] [--profile]
+                                              [--frozen-sources] [--repeats 10] [--profile] [--parts] [--loop 60]
 
 Times ``Reconstructor._step`` on an acquisition's (default the bundled sample's) finest stage (factor 1, TV 1/0.5,
 parts off, the default validation split: held-out images in a batch run through the model separately; the sources'
@@ -23,6 +23,7 @@ import torch
 
 from benchmarks.naive_step import naive_step  # noqa: E402
 from napari_fdt.data.io import read_acquisition  # noqa: E402
+from napari_fdt.recon.calibration.adam import Adam  # noqa: E402
 from napari_fdt.recon.run.solver import Reconstructor  # noqa: E402
 from napari_fdt.recon.settings.config import SolverConfig  # noqa: E402
 
@@ -43,18 +44,90 @@ def finest_stage_step(acquisition, **settings):
     mask = rec._loss_mask(stage)
     rec._init_gains(stage, mask)
     rec.calibration.set_trainable(0)
-    opt = torch.optim.Adam([rec.volume.x], lr=cfg.lr_ri)
+    opt = Adam([rec.volume.x], lr=cfg.lr_ri, betas=(0.9, 0.99))  # the stage loop's (recon/loop/stage_loop.new_optimiser)
 
     def step() -> None:
         rec._step(stage, mask, opt, cfg.batch_size, 1.0, 0.5)
 
+    step.optimiser = opt  # (the RI grid's, for --parts)
     return step, rec, stage
+
+
+def print_loop(acq, config: SolverConfig, iterations: int) -> None:
+    """The same finest stage run by the solver's loop (``Reconstructor.run``, sub-slices and the 2x grid off so that no
+    part's test reruns it): its steps' seconds against the stage's wall time; the rest is the loop's (the validation
+    error at each snapshot, early stopping's best iterate, the snapshots, set-up)."""
+    cfg = SolverConfig.from_dict({**config.to_dict(), "stages": [{"factor": 1, "iterations": iterations, "batch_size": None}],
+                                  "early_stopping": "best", "sub_slices": 1, "field_oversampling": 1})
+    rec = Reconstructor(acq, cfg, device="cpu")
+    spent: list[float] = []
+    inner = rec._step
+
+    def timed(*a, **k):
+        t0 = time.perf_counter()
+        try:
+            return inner(*a, **k)
+        finally:
+            spent.append(time.perf_counter() - t0)
+
+    rec._step = timed
+    t0 = time.perf_counter()
+    snaps = list(rec.run())
+    wall = time.perf_counter() - t0
+    print(f"the solver's loop, {len(spent)} iterations, {len(snaps)} snapshots: {1e3 * wall / len(spent):.1f} ms per iteration, "
+          f"of which the step {1e3 * sum(spent) / len(spent):.1f} ms; outside the steps {wall - sum(spent):.2f} s "
+          f"({100 * (wall - sum(spent)) / wall:.0f} % of the stage's {wall:.2f} s)")
+
+
+def print_parts(step, rec, repeats: int) -> None:
+    """The step's time by part, each part's calls timed with the host clock (the CPU runs them in order): the model's
+    images (train and held-out passes), the loss terms (data and TV), the backward pass (the model's adjoint, TV's and
+    the loss's gradients), the RI grid's Adam, the calibration's optimisers, and the rest (batch draw, index copies,
+    Δn from the grid, the split of held-out images). Prints a table of ms and % per step."""
+    import napari_fdt.recon.run.solver as solver
+
+    spent: dict[str, float] = {}
+
+    def timed(name, fn):
+        def run(*a, **k):
+            t0 = time.perf_counter()
+            try:
+                return fn(*a, **k)
+            finally:
+                spent[name] = spent.get(name, 0.0) + time.perf_counter() - t0
+        return run
+
+    patches = [(solver, "spectral_images", "model's images (forward)"), (solver, "total_loss", "loss terms (data, TV)"),
+               (torch.Tensor, "backward", "backward (model adjoint, TV, loss)"),
+               (step.optimiser, "step", "RI grid's Adam"), (rec.calibration.optimiser, "step", "calibration's optimisers")]
+    saved = [(obj, name, getattr(obj, name)) for obj, name, _ in patches]
+    for obj, name, label in patches:
+        setattr(obj, name, timed(label, getattr(obj, name)))
+    try:
+        for _ in range(3):
+            step()
+        spent.clear()
+        t0 = time.perf_counter()
+        for _ in range(repeats):
+            step()
+        total = time.perf_counter() - t0
+    finally:
+        for obj, name, fn in saved:
+            setattr(obj, name, fn)
+    rows = [(k, v) for k, v in spent.items()] + [("rest (batch, indices, delta_n, split)", total - sum(spent.values()))]
+    print("| part | ms per step | % |\n|---|---|---|")
+    for name, s in rows:
+        print(f"| {name} | {1e3 * s / repeats:.1f} | {100 * s / total:.0f} |")
+    print(f"| whole step | {1e3 * total / repeats:.1f} | 100 |")
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeats", type=int, default=10)
     ap.add_argument("--profile", action="store_true")
+    ap.add_argument("--loop", type=int, default=0, help="also run the same stage through the solver's loop for LOOP iterations "
+                    "and report the share of its wall time outside the steps (validation, snapshots, bookkeeping)")
+    ap.add_argument("--parts", action="store_true", help="the step's milliseconds by part (forward, loss, backward, optimisers, rest)")
     ap.add_argument("--acquisition", default=str(ROOT / "sample_data" / "letters"), help="default: the bundled sample")
     ap.add_argument("--pixel-integration", action="store_true", help="the camera's pixel integration on")
     ap.add_argument("--field-window", default="auto", choices=["auto", "full", "split"], help="the solver setting (auto: split on CPU)")
@@ -88,6 +161,10 @@ def main() -> None:
     print(f"package's window {stage.window[0]}x{stage.window[1]}, naive's (the planned full window) {h}x{w}, {n} slices, "
           f"batch {b}, {torch.get_num_threads()} threads: package {1e3 * times['package']:.1f} ms, "
           f"naive {1e3 * times['naive']:.1f} ms, package {times['naive'] / times['package']:.2f}x faster")
+    if args.parts:
+        print_parts(step, rec, args.repeats)
+    if args.loop:
+        print_loop(acq, rec.config, args.loop)
     if args.profile:
         from torch.profiler import ProfilerActivity, profile
 
