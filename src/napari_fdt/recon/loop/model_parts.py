@@ -41,8 +41,7 @@ from typing import Any
 
 import numpy as np
 
-from napari_fdt.physics.camera import needs_pixel_integration
-from napari_fdt.recon.problem.stages import camera_grid_drops_band, stated_pixel_integration, thick_slices
+from napari_fdt.recon.problem.stages import camera_grid_drops_band, resolved_pixel_integration, stated_pixel_integration, thick_slices
 from napari_fdt.recon.settings.config import AUTO, SolverConfig
 
 __all__ = ["PARTS", "BINARY_PARTS", "FITTED_PARTS", "SETTING_OF", "STANDARD_ERRORS_LEVEL", "standard_errors", "MIN_IMPROVEMENT", "FIT_ITERATIONS",
@@ -241,8 +240,7 @@ def requested_for(cfg, acquisition) -> tuple[dict[str, bool | None], dict[str, s
         # where that shows in the images. The data cannot choose it: at Δn = 0 the sources' smooth light does not show
         # it (the pilot), and at the finest stage's end, through a volume trained without it, it made the held-out
         # images worse on cells_pupil's images (+3.5 %) that have it (docs/decisions/model-parts.md)
-        o = acquisition.optics
-        stated = needs_pixel_integration(o.na, o.wavelength_um, o.pixel_size_um)
+        stated = resolved_pixel_integration(cfg, acquisition)
         chosen_by["pixel_integration"] = "physics: " + ("the intensity's band 2·NA/λ exceeds the camera's Nyquist" if stated
                                                         else "the camera's Nyquist holds the intensity's band 2·NA/λ")
     requested["pixel_integration"] = stated

@@ -38,7 +38,7 @@ __all__ = ["Stage", "build_stage", "thick_slices", "SUB_SLICE_MIN_DOF_RATIO",
            "camera_grid_drops_band",
            "uses_split_field", "config_uses_split_field", "split_window_fraction",
            "model_window", "block_average", "stage_optics", "field_factor", "multislice_plan", "camera_model_options",
-           "camera_model", "stated_pixel_integration"]
+           "camera_model", "stated_pixel_integration", "resolved_pixel_integration"]
 
 #: Fraction of the coarse grid's Nyquist frequency the stage pupil's outer edge may reach.
 NYQUIST_FILL = 0.95
@@ -263,10 +263,7 @@ def camera_model_options(config, acquisition) -> dict:
     :func:`napari_fdt.physics.camera.needs_pixel_integration`. Integration over the acquisition's pixels carries
     to coarse stages: the block average of pixel means is the mean over the larger pixel.
     """
-    from napari_fdt.physics.camera import needs_pixel_integration
-
     extra = getattr(acquisition, "extra", None) or {}
-    optics = acquisition.optics
     edge = config.pupil_edge
     if edge is None:
         edge = extra.get("pupil_edge", DEFAULT_PUPIL_TAPER)
@@ -274,9 +271,19 @@ def camera_model_options(config, acquisition) -> dict:
             raise FDTInputError("pupil_edge", f"acquisition.json's pupil_edge must be a number in [0, 0.5), got {edge!r}",
                                 "0 for a hard pupil, 0.03 the default soft edge, or remove the key")
         edge = float(edge)
+    return {"pupil_edge": edge, "pixel_integration": resolved_pixel_integration(config, acquisition)}
+
+
+def resolved_pixel_integration(config, acquisition) -> bool:
+    """Pixel integration as stated (:func:`stated_pixel_integration`), else the physical rule
+    (:func:`napari_fdt.physics.camera.needs_pixel_integration`: the intensity's band 2·NA/λ beyond the camera's Nyquist)."""
+    from napari_fdt.physics.camera import needs_pixel_integration
+
     stated = stated_pixel_integration(config, acquisition)
-    integrate = needs_pixel_integration(optics.na, optics.wavelength_um, optics.pixel_size_um) if stated is None else stated
-    return {"pupil_edge": edge, "pixel_integration": integrate}
+    if stated is not None:
+        return stated
+    o = acquisition.optics
+    return needs_pixel_integration(o.na, o.wavelength_um, o.pixel_size_um)
 
 
 def camera_model(config, acquisition) -> CameraModel:
