@@ -12,7 +12,8 @@ cost. Here:
 - :func:`optimisers_without_compiler` gives the wrapped methods of every ``torch.optim.Optimizer`` (this package's
   :class:`~napari_fdt.recon.calibration.calibration.RowAdam` too) their plain form as the compiler-excluded one that
   ``torch._disable_dynamo`` caches, while ``torch._dynamo`` is not imported; where it is (a caller's compiled code),
-  nothing changes.
+  nothing changes. A process that imports the package first and compiles its own code later would have dynamo trace
+  these four methods where it skipped them (they are plain Python over tensors' ``grad`` and dicts).
 
 Both reach into torch's private functions (``torch.optim.adam._single_tensor_adam`` and ``_multi_tensor_adam``,
 ``torch.optim.optimizer._default_to_fused_or_foreach``, the ``__dynamo_disable`` cache of ``torch._compile``), checked
