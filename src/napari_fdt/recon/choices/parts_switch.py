@@ -11,6 +11,7 @@ from napari_fdt.model.coherence import emission_spectrum
 from napari_fdt.recon.calibration.calibration import PUPIL_PARAMETERS
 from napari_fdt.recon.loop.model_parts import PARTS, PartsChoice, requested_for
 from napari_fdt.recon.problem.stage_roles import set_stage_roles
+from napari_fdt.recon.problem.stage_spec import rerun_coarse_model
 
 if TYPE_CHECKING:
     from napari_fdt.recon.loop.interface import Run
@@ -103,9 +104,8 @@ def apply_parts_choice(rec: Run, choice: PartsChoice) -> None:
 def use_rerun_coarse_model(rec: Run) -> None:
     """The coarse stages of a run that holds the kept parts: multi-slice when ``coarse_model`` is ``"auto"`` (the
     envelope model holds none of the parts; a coarse model given by name is kept)."""
-    if rec.config.coarse_model == "auto":
-        rec.coarse_model = "multislice"
-        set_stage_roles(rec.calibration, rec.config, rec.coarse_model)
+    rec.coarse_model = rerun_coarse_model(rec.config.coarse_model, rec.coarse_model)
+    set_stage_roles(rec.calibration, rec.config, rec.coarse_model)
 
 
 def restart_with_parts(rec: Run) -> None:

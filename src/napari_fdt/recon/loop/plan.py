@@ -27,6 +27,7 @@ from napari_fdt.physics.optics import Optics
 from napari_fdt.recon.loop.model_parts import PILOT_BATCH, PILOT_ITERATIONS
 from napari_fdt.recon.loop.phases import PUPIL_PILOT, RERUN, RUN, TV_CHOICE, probe_iterations
 from napari_fdt.recon.loop.regularisation import TV_PATH, selection_stages
+from napari_fdt.recon.problem.stage_spec import rerun_coarse_model
 from napari_fdt.recon.settings.config import SolverConfig
 
 __all__ = ["SECONDS_PER_UNIT", "OVERHEAD_S", "SOURCE_FIELD_UNITS", "Phase", "Plan", "Pace", "iteration_units", "envelope_padded_shape", "stage_phase",
@@ -351,7 +352,7 @@ def make_plan(config: SolverConfig, optics: Optics, image_shape: tuple[int, int]
     phases += stages
     extra = None
     if parts_to_choose and config.parts_rerun == "stages":
-        again = "multislice" if config.coarse_model == "auto" else coarse_model
+        again = rerun_coarse_model(config.coarse_model, coarse_model)
         extra = sum(stage_phase(config, optics, image_shape, src, i, again, device_type, RERUN,
                                 pixel_integration=pixel_integration, pupil_edge=pupil_edge).predicted_s for i in range(len(config.stages)))
     elif parts_to_choose:  # parts_rerun "finest": the finest stage again

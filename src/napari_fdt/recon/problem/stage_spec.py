@@ -15,7 +15,7 @@ from typing import Any, Collection
 
 from napari_fdt.recon.settings.config import SolverConfig
 
-__all__ = ["AUTO_SUB_SLICES", "CameraModel", "StageSpec", "runs_envelope", "stage_sub_slices", "stage_field_oversampling", "fine_field_grid",
+__all__ = ["AUTO_SUB_SLICES", "CameraModel", "StageSpec", "runs_envelope", "rerun_coarse_model", "stage_sub_slices", "stage_field_oversampling", "fine_field_grid",
            "stage_spec"]
 
 #: Screens per slice of the ``"auto"`` sub-slices part where it is on (docs/physics.md, "Sub-slices": 2 take the thin
@@ -40,6 +40,13 @@ def runs_envelope(factor: int, coarse_model: str) -> bool:
     """Whether a stage of ``factor`` runs the envelope model: a coarse stage (factor > 1) where the run's resolved
     ``coarse_model`` is ``"envelope"``."""
     return factor > 1 and coarse_model == "envelope"
+
+
+def rerun_coarse_model(setting: str, resolved: str) -> str:
+    """The coarse stages' model when every stage runs again with kept model parts: multi-slice where the setting
+    ``coarse_model`` is ``"auto"`` (the envelope model holds none of the parts), else ``resolved``, the run's (a coarse
+    model given by name is kept)."""
+    return "multislice" if setting == "auto" else resolved
 
 
 def stage_sub_slices(setting: int | str, part_on: bool, factor: int) -> int:
