@@ -114,7 +114,7 @@ def print_parts(step, rec, repeats: int) -> None:
     finally:
         for obj, name, fn in saved:
             setattr(obj, name, fn)
-    rows = [(k, v) for k, v in spent.items()] + [("rest (batch, indices, delta_n, split)", total - sum(spent.values()))]
+    rows = list(spent.items()) + [("rest (batch, indices, delta_n, split)", total - sum(spent.values()))]
     print("| part | ms per step | % |\n|---|---|---|")
     for name, s in rows:
         print(f"| {name} | {1e3 * s / repeats:.1f} | {100 * s / total:.0f} |")

@@ -9,7 +9,7 @@ every member a helper reads or writes is listed here and that the solver has eac
 The members, by what they are for:
 
 - the run's settings and data: ``config`` (as run), ``requested_config`` (as given), ``acquisition``, ``device``,
-  ``dtype``, ``full_shape`` (n_slices' image shape (H, W) of the acquisition), ``initial_sources_um`` (N, 3) µm,
+  ``dtype``, ``full_shape`` (the acquisition's image shape (H, W)), ``initial_sources_um`` (N, 3) µm,
   ``coarse_model``, ``validation_indices`` (V,) held-out images, ``group`` (a distributed run's rank, else None);
 - the state (:class:`~napari_fdt.recon.loop.run_state.RunState`, read and written as attributes): ``state``,
   ``volume``, ``volume_factor``, ``calibration``, ``batches``, ``completed_stages``, ``stages``, ``history``,

@@ -289,8 +289,8 @@ def stage_phase(config: SolverConfig, optics: Optics, image_shape: tuple[int, in
     from napari_fdt.recon.problem.stages import config_uses_split_field, model_window, multislice_plan
 
     sc = config.stages[stage]
-    spec = stage_spec(config, stage, coarse_model, {*parts, *(("pixel_integration",) if pixel_integration else ())},
-                      CameraModel(pupil_edge, pixel_integration))
+    camera = CameraModel(pupil_edge, pixel_integration)
+    spec = stage_spec(config, stage, coarse_model, {*parts, *camera.parts_on()}, camera)
     envelope = spec.envelope
     split = False
     if envelope:

@@ -195,7 +195,7 @@ class Reconstructor:
         #: the phases of the run, known before its first iteration (revised when a choice adds or shortens phases)
         self.plan = make_plan(self.config, self.acquisition.optics, self.full_shape, self.initial_sources_um, self.coarse_model,
                               self.device.type, choose_tv_at, pixel_integration=self.parts["pixel_integration"],
-                              parts_to_choose=self.parts_choice is None, pupil_edge=self._pupil_edge(),
+                              parts_to_choose=self.parts_choice is None, pupil_edge=self.camera.pupil_edge,
                               finest_parts=tuple(p for p in FINEST_ONLY_PARTS if p in self._auto_parts), pupil_pilot=self.completed_stages == 0 and pilot_due(self),
                               early_test_stage=early_test_stage(self))
         #: the time-left estimate from the plan and the measured times
@@ -205,10 +205,6 @@ class Reconstructor:
         if rerun_parts(self):  # (resumed in the stages run again with kept parts)
             self._add_rerun_phases()
 
-    def _pupil_edge(self) -> float:
-        """The stage models' pupil edge (the setting, else the acquisition's statement, else the default)."""
-        return self.camera.pupil_edge
-
     def _revise_plan(self, plan: Plan) -> None:
         """Take a revised plan (phases appended or shortened); the measured times so far stay."""
         self.plan = plan
@@ -217,7 +213,7 @@ class Reconstructor:
     def _stage_phase(self, stage: int, pass_name: str, parts: tuple[str, ...]) -> Phase:
         """The plan's phase of stage ``stage`` as this run makes it, with the model ``parts`` on."""
         return stage_phase(self.config, self.acquisition.optics, self.full_shape, self.initial_sources_um, stage, self.coarse_model,
-                           self.device.type, pass_name, parts, self.parts["pixel_integration"], self._pupil_edge())
+                           self.device.type, pass_name, parts, self.parts["pixel_integration"], self.camera.pupil_edge)
 
     def _add_rerun_phases(self) -> None:
         """Append every stage again, as the kept parts make them run (with their coarse model); once."""
