@@ -347,6 +347,34 @@ def test_the_widget_estimates_the_resolution_when_asked(make_napari_viewer, qtbo
     assert "resolution (half-set FSC): lateral" in w.results.value
 
 
+def test_the_widget_adds_the_error_bound_and_the_doubtful_structure(make_napari_viewer, qtbot, tmp_path) -> None:
+    """"error bound" checked: after the run the replicates run in the worker process, and the viewer gets the bound (RI
+    units, the volume's grid) and a labels layer marking exactly the structure within its bound (issue 50)."""
+    from napari_fdt.napari.result_view import STRUCTURE_DN
+
+    sim = tiny_scene(grid=3, seed=1)
+    folder = write_acquisition(sim.acquisition, tmp_path / "nine")
+    viewer = make_napari_viewer()
+    _open(viewer, folder)
+    w = _docked(viewer, ReconstructionWidget(viewer))
+    _settings(w, "2x6, 1x8")
+    w.error_bounds.value = True
+    assert w.config().error_bounds is True
+    w.run_button.clicked.emit()
+    _wait_done(qtbot, w)
+    assert w.feedback.last_error is None
+    section = w._report["error_bounds"]
+    bound_layer = next(la for la in viewer.layers if la.name.endswith("error bound"))
+    doubt = next(la for la in viewer.layers if la.name.endswith("structure within its bound"))
+    ri = np.asarray(w._ri_layer.data)
+    bound = np.asarray(bound_layer.data)
+    assert bound.shape == ri.shape and np.allclose(bound_layer.scale, w._ri_layer.scale)
+    assert float(bound.mean()) == pytest.approx(section["mean_bound"], rel=1e-5)
+    dn = np.abs(ri - sim.acquisition.optics.n_background)
+    np.testing.assert_array_equal(np.asarray(doubt.data) == 1, (dn > STRUCTURE_DN) & (dn <= bound))
+    assert "error bound: mean" in w.results.value
+
+
 # -- issue 14/15: nothing a user made is lost, the hand-off to the command line, the screen ---------------------------
 
 

@@ -444,7 +444,17 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
             protected.add(Path(given).resolve())
     if out.resolve() in protected or json_out.resolve() in protected:
         raise FDTInputError("out", f"{out} (or its report {json_out.name}) would overwrite an input", "write the result somewhere else")
-    for p in (out, json_out):
+    outputs = [out, json_out]
+    if config.error_bounds:
+        from napari_fdt.cli.bounds import bounds_path
+
+        outputs.append(bounds_path(out))
+        if bounds_path(out).resolve() in protected:
+            raise FDTInputError("out", f"the error bound {bounds_path(out)} would overwrite an input", "write the result somewhere else")
+        if config.tv_family:
+            raise FDTInputError("error_bounds", "and tv_family together are not built: the bound is made for one run",
+                                "drop --tv-family, or make the bound of the member you pick with --config its RI.json")
+    for p in outputs:
         if p.exists() and not args.overwrite:
             raise FDTInputError("out", f"{p} exists", "choose another --out or pass --overwrite")
     check_report_free(out)  # RI.tif and RI.ome.tif share RI.json: refuse before the run, not after it
@@ -480,7 +490,7 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
 def _run_and_write(args, config, acq, out: Path, json_out: Path, truth, truth_src, group) -> int:
     from napari_fdt.cli.resolution import add_resolution_and_write
     from napari_fdt.recon.run.report import describe_parts, describe_plan, write_result
-    from napari_fdt.recon.run.session import finish_run, open_run, resolution_due
+    from napari_fdt.recon.run.session import bounds_due, finish_run, open_run, resolution_due
 
     device = args.device if group is None else group.device
     rec = open_run(acq, config, device=device, resume=args.resume, group=group)
@@ -542,7 +552,11 @@ def _run_and_write(args, config, acq, out: Path, json_out: Path, truth, truth_sr
     if "sources" in m:
         print(f"sources: lateral RMS error {m['sources']['lateral_rms_um']:.3f} µm (initial {m['sources_initial']['lateral_rms_um']:.3f} µm)")
     if resolution_due(rec, cancelled):
-        add_resolution_and_write(rec, report, json_out, args.quiet)
+        report = add_resolution_and_write(rec, report, json_out, args.quiet)
+    if bounds_due(rec, cancelled):
+        from napari_fdt.cli.bounds import add_bounds_and_write
+
+        add_bounds_and_write(rec, report, out, json_out, args.quiet, args.overwrite)
     return 130 if cancelled else 0
 
 

@@ -13,14 +13,11 @@ from napari_fdt.recon.settings.config import AUTO, SolverConfig
 
 __all__ = ["member_path", "check_family_request", "run_family_and_write", "planned_config", "family_summary", "family_json"]
 
-_SUFFIXES = (".ome.tiff", ".ome.tif", ".ome.zarr", ".tiff", ".tif", ".zarr")
-
-
 def member_path(out: Path, tau: float) -> Path:
     """Where member ``tau`` goes beside ``out``: ``RI.tif`` → ``RI_tv3.tif`` (``RI.ome.zarr`` → ``RI_tv3.ome.zarr``)."""
-    name = out.name
-    suffix = next((s for s in _SUFFIXES if name.lower().endswith(s)), out.suffix)
-    return out.with_name(f"{name[: len(name) - len(suffix)]}_tv{tau:g}{suffix}")
+    from napari_fdt.data.io import beside
+
+    return beside(out, f"tv{tau:g}")
 
 
 def planned_config(config: SolverConfig) -> SolverConfig:

@@ -42,6 +42,7 @@ __all__ = [
     "write_stack_tiff",
     "read_volume_tiff",
     "report_path",
+    "beside",
     "check_report_free",
     "VOLUME_SUFFIXES",
     "read_image_stack",
@@ -173,6 +174,15 @@ def _atomic_output(
 
 #: Endings of volume files and folders that :func:`report_path` replaces by ``.json`` (longest first).
 VOLUME_SUFFIXES = (".ome.tiff", ".ome.tif", ".ome.zarr", ".tiff", ".tif", ".zarr")
+
+
+def beside(volume_path: PathLike, tag: str) -> Path:
+    """A companion volume's name: ``_tag`` before the volume ending (``RI.tif`` → ``RI_bounds.tif``, ``RI.ome.zarr``
+    → ``RI_tv3.ome.zarr``); a name without a volume ending keeps its last suffix."""
+    p = Path(volume_path)
+    name = p.name
+    suffix = next((s for s in VOLUME_SUFFIXES if name.lower().endswith(s) and len(name) > len(s)), p.suffix)
+    return p.with_name(f"{name[: len(name) - len(suffix)]}_{tag}{suffix}")
 
 
 def report_path(volume_path: PathLike) -> Path:

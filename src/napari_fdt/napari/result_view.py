@@ -17,7 +17,7 @@ import numpy as np
 from napari_fdt.napari.layers import META_ID, META_KIND, META_OWNER
 
 __all__ = ["ri_contrast_limits", "CONTRAST_SAMPLE", "content_slice", "show_slice", "z_inside", "keep_view", "truth_layer",
-           "truth_error", "results_line", "OBLIQUE_ANGLES", "oblique_camera", "camera"]
+           "truth_error", "results_line", "OBLIQUE_ANGLES", "oblique_camera", "camera", "STRUCTURE_DN", "show_bounds"]
 
 #: napari camera angles (degrees) of the first 3D view: the volume seen from above and aside, so that slices do not
 #: overlap into one block (napari's default, (0, 0, 90), looks straight down the z axis).
@@ -122,7 +122,7 @@ def truth_error(viewer, acq_layer, ri: np.ndarray, n_background: float) -> float
 
 def results_line(report: dict[str, Any] | None, truth_err: float | None = None) -> str:
     """The run's key numbers in two short lines: image fit and validation error (relative, 0 is perfect); the error
-    against a loaded truth and the TV weight chosen; the half-set resolution where the run estimated it."""
+    against a loaded truth and the TV weight chosen; the half-set resolution and the error bound where the run made them."""
     report = report or {}
     first, second = [], []
     fit = report.get("image_fit") or {}
@@ -144,7 +144,37 @@ def results_line(report: dict[str, Any] | None, truth_err: float | None = None) 
         from napari_fdt.recon.run.half_sets import describe_bounds
 
         lines.append(f"resolution (half-set FSC): {describe_bounds(res)}")
+    eb = report.get("error_bounds")
+    if eb:
+        lines.append(f"error bound: mean {eb['mean_bound']:.1e} RI (holds on ~{100 * eb['level']:.0f} % of voxels of simulated "
+                     "scenes); red: structure within its bound")
     return "\n".join(lines)
+
+
+#: |Δn| (RI units) from which a voxel counts as structure in the "cannot believe" view (the bound's benchmark's support)
+STRUCTURE_DN = 1e-3
+
+
+def show_bounds(viewer, bound: np.ndarray, ri: np.ndarray, ri_layer, n_background: float) -> tuple[Any, Any]:
+    """Add the error bound (RI units, the volume's grid) beside ``ri_layer`` as two layers: the bound itself, and a
+    labels layer marking the structure one cannot believe (|Δn| above :data:`STRUCTURE_DN` but not above the bound).
+    Returns both layers (replaced where this RI layer's were shown before)."""
+    delta_n = np.abs(np.asarray(ri, dtype=np.float32) - np.float32(n_background))
+    bound = np.asarray(bound, dtype=np.float32)
+    doubtful = ((delta_n > STRUCTURE_DN) & (delta_n <= bound)).astype(np.uint8)
+    names = (f"{ri_layer.name} error bound", f"{ri_layer.name} structure within its bound")
+    for name in names:
+        if name in viewer.layers:
+            viewer.layers.remove(name)
+    common = dict(scale=ri_layer.scale, translate=ri_layer.translate,
+                  metadata={META_KIND: "bound", META_OWNER: ri_layer.metadata.get(META_OWNER)})
+    high = float(np.quantile(bound, 0.999)) if bound.size else 1.0
+    with keep_view(viewer):
+        bound_layer = viewer.add_image(bound, name=names[0], colormap="viridis", contrast_limits=(0.0, max(high, 1e-6)),
+                                       visible=False, **common)
+        doubt_layer = viewer.add_labels(doubtful, name=names[1], opacity=0.5, **common)
+    viewer.layers.selection.active = ri_layer
+    return bound_layer, doubt_layer
 
 
 def camera(viewer):

@@ -28,7 +28,8 @@ __all__ = ["Update", "JobResult", "reconstruction_job"]
 @dataclass
 class Update:
     """One step of the job: ``kind`` is ``"started"`` (``rec`` set), ``"snapshot"``, ``"evaluating"`` or
-    ``"resolution"`` (the half-set resolution's two runs begin, ``half_set_resolution``).
+    ``"resolution"`` (the half-set resolution's two runs begin, ``half_set_resolution``) or ``"bounds"`` (the error
+    bound's re-simulated runs begin, ``error_bounds``).
 
     ``ri`` (n_slices, H, W) absolute RI, or None when this snapshot is throttled away.
     """
@@ -42,7 +43,8 @@ class Update:
 @dataclass
 class JobResult:
     """What the job ended with. ``ri`` is None when nothing is kept (cancelled before the first stage ended,
-    or stopped because the viewer closed); ``report`` is the content of ``RI.json``."""
+    or stopped because the viewer closed); ``report`` is the content of ``RI.json``; ``extra["error_bounds"]`` the
+    bound (n_slices, H, W) in RI units where ``error_bounds`` made one."""
 
     rec: Any
     cancelled: bool
@@ -76,7 +78,8 @@ def reconstruction_job(
     cancelled one keeps them, to be resumed.
     """
     from napari_fdt.napari.jobs.resume import clear
-    from napari_fdt.recon.run.session import add_resolution, finish_run, open_run, resolution_due
+    from napari_fdt.recon.run.error_bounds import error_bounds
+    from napari_fdt.recon.run.session import add_resolution, bounds_due, finish_run, open_run, resolution_due
 
     try:
         folder = None if checkpoint_dir is None else Path(checkpoint_dir)
@@ -108,8 +111,15 @@ def reconstruction_job(
         if resolution_due(rec, cancelled):  # a cancel now stops only the halves: the run's result is kept as it is
             yield Update("resolution")
             report = add_resolution(rec, report, should_stop=stop.is_set) or report
+        extra: dict[str, Any] = {}
+        if bounds_due(rec, cancelled) and not stop.is_set():  # a cancel stops only the bound's runs: the result stays
+            yield Update("bounds")
+            made = error_bounds(rec, should_stop=stop.is_set)
+            if made is not None:
+                report = {**report, "error_bounds": made.to_dict()}
+                extra["error_bounds"] = made.bound
         sources = rec.sources_um()
-        return JobResult(rec, cancelled, rec.completed_stages, ri=rec.ri_full(), sources_um=sources, report=report)
+        return JobResult(rec, cancelled, rec.completed_stages, ri=rec.ri_full(), sources_um=sources, report=report, extra=extra)
     finally:
         if done is not None:
             done.set()

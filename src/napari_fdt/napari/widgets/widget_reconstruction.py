@@ -34,7 +34,7 @@ from napari_fdt.napari.layers import (
     META_REPORT,
     ri_layer,
 )
-from napari_fdt.napari.result_view import content_slice, keep_view, results_line, ri_contrast_limits, show_slice, truth_error
+from napari_fdt.napari.result_view import content_slice, keep_view, results_line, ri_contrast_limits, show_bounds, show_slice, truth_error
 from napari_fdt.napari.settings import format_stages, merge_config
 from napari_fdt.napari.widgets.schema_widgets import schema_widget
 from napari_fdt.napari.widgets.widget_curve import ErrorCurveWidget
@@ -69,7 +69,7 @@ _FIELDS = ("stages", "coarse_model", "batch_size", "l1_l2_total", "ssim_weight",
            "calibrate_sources", "calibrate_gain", "calibrate_source_depth", "calibrate_pixel_size",
            "calibrate_slice_spacing", "calibration_from_stage", "coherence", "mask_threshold", "seed", "snapshot_every",
            "validation_fraction", "early_stopping", "pixel_integration", "obliquity_correction", "calibrate_pupil",
-           "calibrate_aberrations", "sub_slices", "half_set_resolution")  # (no experimental setting: a loaded settings file keeps them)
+           "calibrate_aberrations", "sub_slices", "half_set_resolution", "error_bounds")  # (no experimental setting: a loaded settings file keeps them)
 #: Settings the widget numbers from 1 (as the status line does) while the configuration counts from 0.
 _ONE_BASED = ("calibration_from_stage",)
 
@@ -125,6 +125,7 @@ class ReconstructionWidget(ResultActions, Container):
         self.validation_fraction = f("validation_fraction", "validation share", step=0.05)
         self.early_stopping = f("early_stopping", "early stopping")
         self.half_set_resolution = f("half_set_resolution", "estimate resolution (2 half runs)")
+        self.error_bounds = f("error_bounds", "error bound (2 more runs)")
         self.save_settings_button = PushButton(text="Save settings…")
         self.load_settings_button = PushButton(text="Load settings…")
         self.run_button = PushButton(text="Reconstruct")
@@ -156,7 +157,7 @@ class ReconstructionWidget(ResultActions, Container):
         parts = Container(widgets=[self.sub_slices, self.pixel_integration, self.obliquity_correction, self.calibrate_pupil,
                                    self.calibrate_aberrations, self.parts_info])
         run = Container(widgets=[
-            self.device, self.seed, self.snapshot_every, self.validation_fraction, self.early_stopping, self.half_set_resolution,
+            self.device, self.seed, self.snapshot_every, self.validation_fraction, self.early_stopping, self.half_set_resolution, self.error_bounds,
             Container(widgets=[self.save_settings_button, self.load_settings_button], layout="horizontal", labels=False)])
         self.details = Container(widgets=[self.losses, self.curve_caption])
         results = Container(widgets=[self.compare_index, self.compare_button, self.coverage_button])
@@ -442,9 +443,10 @@ class ReconstructionWidget(ResultActions, Container):
             return
         if update.kind == "started":
             return
-        if update.kind in ("evaluating", "resolution"):
-            self.status.value = ("evaluating the fit of every image…" if update.kind == "evaluating" else
-                                 "estimating the resolution: each half of the images reconstructed again (Cancel keeps the result)…")
+        if update.kind in ("evaluating", "resolution", "bounds"):
+            self.status.value = {"evaluating": "evaluating the fit of every image…",
+                                 "resolution": "estimating the resolution: each half of the images reconstructed again (Cancel keeps the result)…",
+                                 "bounds": "error bound: the result re-simulated and reconstructed again (Cancel keeps the result)…"}[update.kind]
             return
         snap = update.snapshot
         # one bar for the whole plan (the stages, the TV trials, the stages run again with kept parts): it never restarts
@@ -530,6 +532,9 @@ class ReconstructionWidget(ResultActions, Container):
         self._show_ri(result.ri, focus=True)
         self._ri_layer.metadata[META_REPORT] = result.report
         self._put_sources(result.sources_um)
+        if result.extra.get("error_bounds") is not None:
+            show_bounds(self._viewer, result.extra["error_bounds"], result.ri, self._ri_layer,
+                        float(result.rec.acquisition.optics.n_background))
         n = len(result.rec.config.stages)
         n_b = float(result.rec.acquisition.optics.n_background)
         self.results.value = results_line(result.report, truth_error(self._viewer, self._acq_layer, result.ri, n_b))

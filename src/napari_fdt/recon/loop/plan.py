@@ -165,6 +165,9 @@ class Plan:
     #: seconds of the half-set resolution after the run (``half_set_resolution``: each half of the images run again, no
     #: trials); None where it is not asked for
     half_sets_s: float | None = None
+    #: seconds of the error bound after the run (``error_bounds``: the stages again per re-simulated replicate, no
+    #: trials); None where it is not asked for
+    bounds_s: float | None = None
 
     @property
     def pupil_pilot(self) -> bool:
@@ -231,7 +234,8 @@ class Plan:
         if choice_to_come:
             return replace(self, phases=phases, if_finest_parts_kept_s=None, finest_parts=(), if_part_kept_early_s=None,
                            early_test_stage=None)
-        return Plan(phases, self.device_type, half_sets_s=self.half_sets_s, if_part_dropped_s=self.if_part_dropped_s)
+        return Plan(phases, self.device_type, half_sets_s=self.half_sets_s, if_part_dropped_s=self.if_part_dropped_s,
+                    bounds_s=self.bounds_s)
 
     def to_dict(self) -> dict[str, Any]:
         return {"device": self.device_type, "phases": [p.to_dict() for p in self.phases],
@@ -240,7 +244,7 @@ class Plan:
                 "predicted_extra_s_if_a_part_is_kept_before_the_finest_stage": self.if_part_kept_early_s,
                 "predicted_extra_s_if_finest_parts_are_kept": self.if_finest_parts_kept_s, "finest_parts": list(self.finest_parts),
                 "pupil_pilot": self.pupil_pilot, "predicted_extra_s_if_a_part_is_dropped_at_the_end": self.if_part_dropped_s,
-                "predicted_extra_s_half_set_resolution": self.half_sets_s}
+                "predicted_extra_s_half_set_resolution": self.half_sets_s, "predicted_extra_s_error_bounds": self.bounds_s}
 
     def summary(self) -> str:
         """One line per phase with its iterations and predicted seconds, and the total."""
@@ -261,6 +265,9 @@ class Plan:
         if self.half_sets_s is not None:
             lines.append(f"  then the half-set resolution: each half of the images run again with the run's choices, "
                          f"~{_seconds(self.half_sets_s)} more")
+        if self.bounds_s is not None:
+            lines.append(f"  then the error bound: the result re-simulated and run again with the run's choices, "
+                         f"~{_seconds(self.bounds_s)} more")
         return "\n".join([f"plan ({self.device_type}): {len(self.phases)} phases, {self.iterations} iterations, "
                           f"about {_seconds(self.predicted_s)}", *lines])
 
@@ -376,9 +383,16 @@ def make_plan(config: SolverConfig, optics: Optics, image_shape: tuple[int, int]
         halves = sum(stage_phase(config, optics, image_shape, src[idx], i, coarse_model, device_type, pixel_integration=pixel_integration,
                                  pupil_edge=pupil_edge).predicted_s
                      for idx in split_halves(src, config.seed) for i in range(len(config.stages)))
+    bounds = None
+    if config.error_bounds:  # the stages again per replicate, as given (the parts the run keeps are not known yet)
+        from napari_fdt.recon.assess.bounds import REPLICATES
+
+        bounds = REPLICATES * sum(stage_phase(config, optics, image_shape, src, i, coarse_model, device_type,
+                                              pixel_integration=pixel_integration, pupil_edge=pupil_edge).predicted_s
+                                  for i in range(len(config.stages)))
     dropped = stages[-1].predicted_s if parts_to_choose and config.parts_backward else None
     return Plan(tuple(phases), "cuda" if device_type == "cuda" else "cpu", extra, early, early_test_stage if early is not None else None,
-                finest_again, finest_parts, dropped, halves)
+                finest_again, finest_parts, dropped, halves, bounds)
 
 
 def plan_for(acquisition, config: SolverConfig, device_type: str, sources_um: np.ndarray | None = None) -> tuple[Plan, np.ndarray]:

@@ -4,7 +4,8 @@
 :func:`finish_run` ends it: after a cancel it goes back to the last complete stage (nothing to keep before the first
 stage completed) and builds the report (``RI.json``'s content) of what is kept. :func:`add_resolution` then adds the
 half-set resolution where ``half_set_resolution`` asks for it (:mod:`napari_fdt.recon.run.half_sets`), after the front end
-has written the result: stopping it loses nothing but the figure. What each front end then does with
+has written the result: stopping it loses nothing but the figure. :func:`bounds_due` says the same of the error bound
+(:mod:`napari_fdt.recon.run.error_bounds`). What each front end then does with
 the result (write files, show layers) stays its own.
 """
 
@@ -25,7 +26,7 @@ if TYPE_CHECKING:
     from napari_fdt.recon.problem.distributed import Group
     from napari_fdt.recon.run.solver import Reconstructor
 
-__all__ = ["open_run", "finish_run", "resolution_due", "add_resolution", "MIN_HALF_SET_IMAGES"]
+__all__ = ["open_run", "finish_run", "resolution_due", "add_resolution", "bounds_due", "MIN_HALF_SET_IMAGES"]
 
 #: Fewest images the half-set resolution takes: each half a reconstruction of its own.
 MIN_HALF_SET_IMAGES = 8
@@ -64,6 +65,13 @@ def resolution_due(rec: Reconstructor, cancelled: bool) -> bool:
     """Whether the half-set resolution is to be estimated: asked for (``half_set_resolution``), the run ended, and one
     process ran it (a data-parallel run's halves are not estimated: rerun the result's settings in one process)."""
     return (bool(rec.config.half_set_resolution) and not cancelled and rec.group is None
+            and rec.completed_stages == len(rec.config.stages))
+
+
+def bounds_due(rec: Reconstructor, cancelled: bool) -> bool:
+    """Whether the per-voxel error bound is to be made (``error_bounds``; :mod:`napari_fdt.recon.run.error_bounds`):
+    asked for, the run ended, and one process ran it."""
+    return (bool(rec.config.error_bounds) and not cancelled and rec.group is None
             and rec.completed_stages == len(rec.config.stages))
 
 

@@ -208,6 +208,12 @@ class SolverConfig:
         "RI.json. Two runs on half of the images (1.1-1.7 runs' time on the suite); an error both halves share is not seen, "
         "so the figure is a best case (docs/guide.md, \"What size of structure can I believe?\")",
         fix="true or false")
+    error_bounds: bool = setting(
+        False, description="after the run, a per-voxel error bound in RI units beside the volume (RI_bounds.tif; |Δn − "
+        "Δn_true| ≤ bound on about 90 % of the voxels of simulated scenes like the calibration's): the result re-simulated "
+        "with fresh noise and reconstructed with the run's choices, twice; their bias and spread, calibrated on simulated "
+        "scenes (docs/guide.md, \"Can I believe this structure?\")",
+        fix="true or false")
     tv_family: bool = setting(
         False, description="reconstruct a family of volumes, one whole run per TV weight (τ_xy 1, 3 and 10, τ_z half of it), "
         "instead of choosing the weight by trials: each member's held-out error against the best member's (paired, with its "
