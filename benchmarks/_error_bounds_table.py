@@ -11,7 +11,9 @@ calibration scenes alone, by the smallest mean width there):
 * ``bias+spread``: |mean_k R_k − R| + std_k R_k, the parametric bootstrap's bias and spread, over a neighbourhood;
 * ``bias+spread+contrast``: that plus α·(the neighbourhood's max |R|);
 * ``deflated`` and ``deflated+contrast``: the same with bias and spread divided by the contrast the replicates keep
-  (:func:`napari_fdt.recon.assess.bounds.retention`).
+  (:func:`napari_fdt.recon.assess.bounds.retention`);
+* ``halves`` (a control, never shipped): the difference of two half-set reconstructions, as the half-set resolution
+  makes them, over a neighbourhood (where every scene has them: ``error_bounds halves``).
 
 Regions (over the support: voxels where the truth or the result is more than ``SUPPORT_DN`` from the background):
 objects' interiors, lateral edges, axial caps, background within 2 µm of an object, background farther away.
@@ -56,6 +58,11 @@ def _neigh_max(a: np.ndarray, size: tuple[int, int]) -> np.ndarray:
 
 
 def scores(result: np.ndarray, reps: np.ndarray, kind: str, size: tuple[int, int], alpha: float) -> np.ndarray:
+    """(``reps`` holds the two half-set volumes for the kind ``halves``.)"""
+    return _scores(result, reps, kind, size, alpha)
+
+
+def _scores(result: np.ndarray, reps: np.ndarray, kind: str, size: tuple[int, int], alpha: float) -> np.ndarray:
     """The raw score ``kind`` (module docstring) of one scene; float64, the volume's shape. The bootstrap's kinds are
     the product's :func:`napari_fdt.recon.assess.bounds.raw_score`."""
     from napari_fdt.recon.assess.bounds import raw_score
@@ -66,12 +73,17 @@ def scores(result: np.ndarray, reps: np.ndarray, kind: str, size: tuple[int, int
         return _neigh_max(np.abs(result), size) + 1e-4
     if kind == "spread":
         return _neigh_max(reps.std(axis=0, ddof=1), size) + 1e-6
+    if kind == "halves":
+        return _neigh_max(np.abs(reps[0] - reps[1]), size) + 1e-6
     return raw_score(result, reps, slices=size[0], pixels=size[1], alpha=alpha, deflate=kind.startswith("deflated"))
 
 
 KINDS = {"constant": [((1, 1), 0.0)], "contrast": [(s, 0.0) for s in SIZES], "spread": [(s, 0.0) for s in SIZES],
          "bias+spread": [(s, 0.0) for s in SIZES], "bias+spread+contrast": [(s, a) for s in SIZES for a in ALPHAS],
-         "deflated": [(s, 0.0) for s in SIZES], "deflated+contrast": [(s, a) for s in SIZES for a in ALPHAS]}
+         "deflated": [(s, 0.0) for s in SIZES], "deflated+contrast": [(s, a) for s in SIZES for a in ALPHAS],
+         "halves": [(s, 0.0) for s in SIZES]}
+#: controls, reported but never shipped
+CONTROLS = ("halves",)
 
 
 class Scene:
@@ -79,10 +91,15 @@ class Scene:
         self.name, self.family, self.seed, self.sites = row["scene"], row["family"], row["seed"], row["sites"]
         arrays = np.load(OUT / self.name / "arrays.npz")
         self.truth, self.result, self.reps = arrays["truth"], arrays["result"], arrays["replicates"]
+        self.halves = arrays["halves"] if "halves" in arrays.files else None
         o = _optics(self.family)
         self.regions = regions(self.truth, (o.slice_spacing_um, o.pixel_size_um, o.pixel_size_um))
         self.error = np.abs(self.result - self.truth).astype(np.float64)
         self.support = (np.abs(self.truth) > SUPPORT_DN) | (np.abs(self.result) > SUPPORT_DN)
+
+    def inputs(self, kind: str) -> np.ndarray:
+        """The volumes the score ``kind`` reads: the two halves for ``halves``, else the replicates."""
+        return self.halves if kind == "halves" else self.reps
 
 
 def conformal_q(ratios: np.ndarray, level: float = LEVEL) -> float:
@@ -98,7 +115,7 @@ def evaluate(scenes: list[Scene], kind: str, size, alpha, q: float) -> dict:
     per_region = {r: [0, 0] for r in scenes[0].regions}
     per_scene, empty_calls, planted = [], [], []
     for sc in scenes:
-        u = q * scores(sc.result, sc.reps, kind, size, alpha)
+        u = q * scores(sc.result, sc.inputs(kind), kind, size, alpha)
         ok = sc.error <= u
         sup = sc.support
         cover.append(ok[sup])
@@ -128,9 +145,9 @@ def calibrate(scenes: list[Scene], kind: str) -> tuple[tuple, float, float]:
     """(size, alpha), q and the calibration width ratio of ``kind``'s setting narrowest on ``scenes``."""
     best = None
     for size, alpha in KINDS[kind]:
-        ratios = np.concatenate([(sc.error / scores(sc.result, sc.reps, kind, size, alpha))[sc.support] for sc in scenes])
+        ratios = np.concatenate([(sc.error / scores(sc.result, sc.inputs(kind), kind, size, alpha))[sc.support] for sc in scenes])
         q = conformal_q(ratios)
-        width = sum(float((q * scores(sc.result, sc.reps, kind, size, alpha))[sc.support].sum()) for sc in scenes)
+        width = sum(float((q * scores(sc.result, sc.inputs(kind), kind, size, alpha))[sc.support].sum()) for sc in scenes)
         width /= sum(float(sc.error[sc.support].sum()) for sc in scenes)
         if best is None or width < best[2]:
             best = ((size, alpha), q, width)
@@ -142,7 +159,7 @@ def select(cal: list[Scene]) -> tuple[str, dict]:
     the calibration scenes, the kind calibrated on the others and tested on it; the kind whose worst left-out coverage
     is highest wins (ties within 0.01: the narrower mean width). Returns the kind and each kind's figures."""
     figures = {}
-    for kind in KINDS:
+    for kind in [k for k in KINDS if k not in CONTROLS]:
         covers, widths = [], []
         for fam in sorted({s.family for s in cal}):
             inner = [s for s in cal if s.family != fam]
@@ -187,7 +204,8 @@ def main(argv: list[str]) -> int:
         print(f"\n## {split}: calibrate on {len(cal)} scenes, test on {len(test)}" + (f" and {len(out_family)} of {left}" if left else ""))
         print(f"{'score':<22} {'setting':<16} {'q':>8} {'cal w':>6} | {'cover':>5} {'min':>5} {'width':>5} "
               f"{'inter':>5} {'edge':>5} {'cap':>5} {'near':>5} {'far':>5} {'false':>5}" + (" | left-out cover, width" if left else ""))
-        for kind in KINDS:
+        have_halves = all(s.halves is not None for s in scenes)
+        for kind in [k for k in KINDS if have_halves or k not in CONTROLS]:
             (size, alpha), q, w = calibrate(cal, kind)
             ev = evaluate(test, kind, size, alpha, q)
             reg = ev["regions"]

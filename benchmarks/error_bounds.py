@@ -13,11 +13,15 @@ are written beside the truth (``sites.json``).
 data's fitted level, each reconstructed from the run's start with its choices fixed). Arrays go to
 ``out/error_bounds/NAME/arrays.npz``, a row per scene to ``benchmarks/results/error_bounds_cpu.jsonl``.
 
+``halves``: the negative control, each scene's images in two halves reconstructed with the run's choices (as the
+half-set resolution does), added to the arrays.
+
 ``table`` (:mod:`benchmarks._error_bounds_table`): raw scores from the arrays, split-conformal calibration on half the
 scenes, coverage by region on the other half and on a family left out, width against error, planted-bead calls.
 
     python -m benchmarks run error_bounds make --families beads,cells,fibres,letters --seeds 0-7
     python -m benchmarks run error_bounds run --families beads,cells,fibres,letters --seeds 0-7 [--replicates 3]
+    python -m benchmarks run error_bounds halves --seeds 0-7
     python -m benchmarks run error_bounds table [--write]
 """
 
@@ -31,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks._results import ROOT, append_row, results_file
+from benchmarks._results import ROOT, append_row, read_rows, results_file
 
 RESULTS = results_file("error_bounds")
 OUT = ROOT / "out" / "error_bounds"
@@ -193,6 +197,48 @@ def run(family: str, seed: int, replicates: int) -> dict:
     return row
 
 
+def halves(family: str, seed: int) -> None:
+    """The negative control: the scene's images in two halves (:func:`napari_fdt.recon.assess.validation.split_halves`,
+    as the half-set resolution splits them), each reconstructed with the run's choices fixed (its TV weights and the
+    parts it kept, from its row) from the acquisition's start; the two Δn volumes added to the scene's arrays."""
+    import dataclasses
+    import warnings
+
+    import torch
+
+    from napari_fdt.data.acquisition import Acquisition
+    from napari_fdt.data.io import read_acquisition
+    from napari_fdt.recon.assess.validation import split_halves
+    from napari_fdt.recon.loop.model_parts import SETTING_OF
+    from napari_fdt.recon.problem.stage_spec import AUTO_SUB_SLICES
+    from napari_fdt.recon.run.family import parts_off
+    from napari_fdt.recon.run.solver import Reconstructor
+    from napari_fdt.recon.settings.config import SolverConfig
+
+    torch.set_num_threads(1)
+    name = scene_name(family, seed)
+    work = OUT / name
+    arrays = dict(np.load(work / "arrays.npz"))
+    if "halves" in arrays:
+        return
+    row = [r for r in read_rows(RESULTS) if r.get("scene") == name and "parts" in r][-1]
+    on = {"sub_slices": AUTO_SUB_SLICES, "field_grid": 2, "obliquity": "true", "spectral": "auto", "pupil": "true",
+          "aberrations": "true"}
+    config = dataclasses.replace(parts_off(SolverConfig(seed=seed, parts_pilot=False)), tv_xy_weight=row["tv_xy_weight"],
+                                 tv_z_weight=row["tv_z_weight"], **{SETTING_OF[p]: on[p] for p in row["parts"]})
+    acq = read_acquisition(work / "scene")
+    vols = []
+    for idx in split_halves(acq.sources_um, seed):
+        sub = Acquisition(images=acq.images[idx], optics=acq.optics, sources_um=acq.sources_um[idx], extra=dict(acq.extra))
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            rec = Reconstructor(sub, config, device="cpu")
+            for _ in rec.run():
+                pass
+        vols.append(rec.delta_n_full())
+    np.savez_compressed(work / "arrays.npz", **arrays, halves=np.stack(vols))
+
+
 def _seeds(text: str) -> list[int]:
     if "-" in text:
         a, b = text.split("-")
@@ -202,21 +248,25 @@ def _seeds(text: str) -> list[int]:
 
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("what", choices=("make", "run", "table"))
+    p.add_argument("what", choices=("make", "run", "halves", "table"))
     p.add_argument("--families", default=",".join(FAMILIES))
     p.add_argument("--seeds", default="0-7", help="e.g. 0-7 or 0,2,5")
-    p.add_argument("--replicates", type=int, default=3)
-    args, rest = p.parse_known_args()
+    p.add_argument("--replicates", type=int, default=2)
+    p.add_argument("--write", action="store_true", help="table: also write benchmarks/results/error_bounds_table_cpu.json")
+    args = p.parse_args()
     if args.what == "table":
         from benchmarks._error_bounds_table import main as table
 
-        return table(rest)
+        return table(["--write"] if args.write else [])
     for seed in _seeds(args.seeds):
         for family in args.families.split(","):
             t0 = time.perf_counter()
             if args.what == "make":
                 make(family, seed)
                 print(f"{scene_name(family, seed)}: made in {time.perf_counter() - t0:.0f} s", flush=True)
+            elif args.what == "halves":
+                halves(family, seed)
+                print(f"{scene_name(family, seed)}: halves in {time.perf_counter() - t0:.0f} s", flush=True)
             else:
                 row = run(family, seed, args.replicates)
                 print(f"{row['scene']}: error {row['relative_error']:.3f}, tv {row['tv_xy_weight']}, parts {row['parts']}, "

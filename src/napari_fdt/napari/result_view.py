@@ -156,9 +156,9 @@ STRUCTURE_DN = 1e-3
 
 
 def show_bounds(viewer, bound: np.ndarray, ri: np.ndarray, ri_layer, n_background: float) -> tuple[Any, Any]:
-    """Add the error bound (RI units, the volume's grid) beside ``ri_layer`` as two layers: the bound itself, and a
-    labels layer marking the structure one cannot believe (|Δn| above :data:`STRUCTURE_DN` but not above the bound).
-    Returns both layers (replaced where this RI layer's were shown before)."""
+    """Add the error bound (RI units, the volume's grid) beside ``ri_layer`` as two image layers: the bound itself
+    (hidden at first), and in red (1 on 0, added over the volume) the structure one cannot believe: |Δn| above
+    :data:`STRUCTURE_DN` but not above the bound. Returns both layers (replaced where this RI layer's were shown before)."""
     delta_n = np.abs(np.asarray(ri, dtype=np.float32) - np.float32(n_background))
     bound = np.asarray(bound, dtype=np.float32)
     doubtful = ((delta_n > STRUCTURE_DN) & (delta_n <= bound)).astype(np.uint8)
@@ -166,13 +166,14 @@ def show_bounds(viewer, bound: np.ndarray, ri: np.ndarray, ri_layer, n_backgroun
     for name in names:
         if name in viewer.layers:
             viewer.layers.remove(name)
-    common = dict(scale=ri_layer.scale, translate=ri_layer.translate,
+    common = dict(scale=ri_layer.scale, translate=ri_layer.translate, units=ri_layer.units,
                   metadata={META_KIND: "bound", META_OWNER: ri_layer.metadata.get(META_OWNER)})
     high = float(np.quantile(bound, 0.999)) if bound.size else 1.0
     with keep_view(viewer):
         bound_layer = viewer.add_image(bound, name=names[0], colormap="viridis", contrast_limits=(0.0, max(high, 1e-6)),
                                        visible=False, **common)
-        doubt_layer = viewer.add_labels(doubtful, name=names[1], opacity=0.5, **common)
+        doubt_layer = viewer.add_image(doubtful, name=names[1], colormap="red", blending="additive", contrast_limits=(0, 1),
+                                       opacity=0.7, **common)
     viewer.layers.selection.active = ri_layer
     return bound_layer, doubt_layer
 
