@@ -58,6 +58,16 @@ def test_noise_model_recovers_shot_noise_and_a_floor() -> None:
     # the replicates' noise has the fitted variance
     again = replicate_images(pred, (fa, fb), rng) - pred
     assert float(np.var(again / np.sqrt(fa * pred + fb))) == pytest.approx(1.0, rel=0.02)
+    # a stack larger than the sample the fit reads gives the same figures from evenly spaced whole images
+    from napari_fdt.recon.run import error_bounds as eb
+
+    small = eb.NOISE_SAMPLE_PIXELS
+    try:
+        eb.NOISE_SAMPLE_PIXELS = 10 * 32 * 32
+        sa, sb = noise_model(images, pred)
+    finally:
+        eb.NOISE_SAMPLE_PIXELS = small
+    assert sa == pytest.approx(a, rel=0.1) and sb == pytest.approx(b, rel=0.3)
     # noise without shot noise: a flat variance, no negative slope
     flat = pred + 5.0 * rng.standard_normal(pred.shape)
     fa, fb = noise_model(flat, pred)

@@ -28,13 +28,22 @@ from napari_fdt.recon.run.half_sets import chosen_settings
 if TYPE_CHECKING:
     from napari_fdt.recon.run.solver import Reconstructor
 
-__all__ = ["REPLICATES", "ErrorBounds", "noise_model", "replicate_images", "replicate_volumes", "error_bounds"]
+__all__ = ["REPLICATES", "NOISE_SAMPLE_PIXELS", "ErrorBounds", "noise_model", "replicate_images", "replicate_volumes", "error_bounds"]
+
+#: Most pixels :func:`noise_model` reads (whole images, evenly spaced through the stack): a full-size stack's
+#: residuals in float64 would take gigabytes for two numbers.
+NOISE_SAMPLE_PIXELS = 1 << 22
+
 
 def noise_model(images: np.ndarray, predictions: np.ndarray, bins: int = 32) -> tuple[float, float]:
     """``(a, b)`` with the residuals' variance ≈ a · prediction + b (shot noise and a floor: read noise and misfit),
-    fitted by least squares over ``bins`` quantile bins of the prediction, both ≥ 0; intensity units."""
-    pred = np.asarray(predictions, dtype=np.float64).ravel()
-    res2 = (np.asarray(images, dtype=np.float64).ravel() - pred) ** 2
+    fitted by least squares over ``bins`` quantile bins of the prediction, both ≥ 0; intensity units. Reads at most
+    :data:`NOISE_SAMPLE_PIXELS` pixels (whole images, evenly spaced)."""
+    n = len(predictions)
+    per_image = max(1, int(np.prod(np.shape(predictions)[1:])))
+    take = np.unique(np.linspace(0, n - 1, max(1, min(n, NOISE_SAMPLE_PIXELS // per_image))).round().astype(int))
+    pred = np.asarray(predictions[take], dtype=np.float64).ravel()
+    res2 = (np.asarray(images[take], dtype=np.float64).ravel() - pred) ** 2
     edges = np.unique(np.quantile(pred, np.linspace(0, 1, bins + 1)))
     which = np.clip(np.searchsorted(edges, pred, side="right") - 1, 0, max(0, len(edges) - 2))
     count = np.bincount(which, minlength=len(edges) - 1).astype(np.float64)
@@ -53,11 +62,14 @@ def noise_model(images: np.ndarray, predictions: np.ndarray, bins: int = 32) -> 
 
 
 def replicate_images(predictions: np.ndarray, noise: tuple[float, float], rng: np.random.Generator) -> np.ndarray:
-    """``predictions`` (N, H, W) plus Gaussian noise of variance ``a·prediction + b``, clipped at 0; float32."""
+    """``predictions`` (N, H, W) plus Gaussian noise of variance ``a·prediction + b``, clipped at 0; float32, made
+    image by image (no float64 copy of the stack)."""
     a, b = noise
-    p = np.asarray(predictions, dtype=np.float64)
-    out = p + np.sqrt(np.clip(a * p, 0, None) + b) * rng.standard_normal(p.shape)
-    return np.clip(out, 0, None).astype(np.float32)
+    out = np.empty(np.shape(predictions), dtype=np.float32)
+    for i in range(len(out)):
+        p = np.asarray(predictions[i], dtype=np.float64)
+        out[i] = np.clip(p + np.sqrt(np.clip(a * p, 0, None) + b) * rng.standard_normal(p.shape), 0, None)
+    return out
 
 
 @dataclass
