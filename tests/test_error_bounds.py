@@ -148,3 +148,17 @@ def test_plan_prices_the_bound_as_its_replicates_stages(tiny_dir: Path) -> None:
     # fixed weights and no parts to choose here: the run's phases are the stages, and each replicate runs them again
     assert plan.bounds_s == pytest.approx(REPLICATES * sum(p.predicted_s for p in without.phases if p.pass_name == RUN), rel=1e-6)
     assert "then the error bound" in plan.summary() and plan.to_dict()["predicted_extra_s_error_bounds"] == plan.bounds_s
+
+
+def test_a_data_parallel_launch_with_the_bound_is_refused_before_the_run(tiny_dir: Path, tmp_path: Path, monkeypatch,
+                                                                          capsys) -> None:
+    """Under torchrun the bound would be skipped (it is made in one process): refused with the fix, nothing written."""
+    from napari_fdt.cli import main
+
+    for name, value in {"WORLD_SIZE": "2", "RANK": "0", "LOCAL_RANK": "0", "LOCAL_WORLD_SIZE": "2"}.items():
+        monkeypatch.setenv(name, value)
+    out = tmp_path / "RI.tif"
+    assert main(["reconstruct", str(tiny_dir), "--out", str(out), "--error-bounds", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "error_bounds: is made in one process" in err and "--config RI.json --error-bounds" in err
+    assert not out.exists() and not out.with_name("RI_bounds.tif").exists()

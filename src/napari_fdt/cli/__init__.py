@@ -454,6 +454,10 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
         if config.tv_family:
             raise FDTInputError("error_bounds", "and tv_family together are not built: the bound is made for one run",
                                 "drop --tv-family, or make the bound of the member you pick with --config its RI.json")
+        if distributed.world_from_env()[0] > 1:
+            raise FDTInputError("error_bounds", "is made in one process: a data-parallel run (torchrun) would skip it",
+                                "drop --error-bounds here, then make the bound in one process: fdt reconstruct ACQ --config "
+                                "RI.json --error-bounds (the result's settings, run again)")
     for p in outputs:
         if p.exists() and not args.overwrite:
             raise FDTInputError("out", f"{p} exists", "choose another --out or pass --overwrite")
