@@ -28,6 +28,7 @@ from scipy import ndimage
 
 from benchmarks._results import read_rows, results_file, write_document
 from benchmarks.error_bounds import FAMILIES, OUT, RESULTS, _optics
+from napari_fdt.recon.assess.bounds import conformal_quantile, neighbourhood_max, raw_score
 
 LEVEL = 0.9
 #: RI units: a voxel belongs to the support where the truth or the result differs from the background by more
@@ -54,19 +55,13 @@ def regions(truth: np.ndarray, spacing: tuple[float, float, float]) -> dict[str,
 
 
 def _neigh_max(a: np.ndarray, size: tuple[int, int]) -> np.ndarray:
-    return a if size == (1, 1) else ndimage.maximum_filter(a, size=(size[0], size[1], size[1]), mode="nearest")
+    return neighbourhood_max(a, size[0], size[1])
 
 
 def scores(result: np.ndarray, reps: np.ndarray, kind: str, size: tuple[int, int], alpha: float) -> np.ndarray:
-    """(``reps`` holds the two half-set volumes for the kind ``halves``.)"""
-    return _scores(result, reps, kind, size, alpha)
-
-
-def _scores(result: np.ndarray, reps: np.ndarray, kind: str, size: tuple[int, int], alpha: float) -> np.ndarray:
     """The raw score ``kind`` (module docstring) of one scene; float64, the volume's shape. The bootstrap's kinds are
-    the product's :func:`napari_fdt.recon.assess.bounds.raw_score`."""
-    from napari_fdt.recon.assess.bounds import raw_score
-
+    the product's :func:`napari_fdt.recon.assess.bounds.raw_score`; ``reps`` holds the two half-set volumes for
+    ``halves``."""
     if kind == "constant":
         return np.ones_like(result, dtype=np.float64)
     if kind == "contrast":
@@ -100,13 +95,6 @@ class Scene:
     def inputs(self, kind: str) -> np.ndarray:
         """The volumes the score ``kind`` reads: the two halves for ``halves``, else the replicates."""
         return self.halves if kind == "halves" else self.reps
-
-
-def conformal_q(ratios: np.ndarray, level: float = LEVEL) -> float:
-    """The split-conformal quantile: the ⌈(n + 1)·level⌉-th smallest of n calibration ratios."""
-    n = ratios.size
-    k = min(n, int(np.ceil((n + 1) * level)))
-    return float(np.partition(ratios, k - 1)[k - 1])
 
 
 def evaluate(scenes: list[Scene], kind: str, size, alpha, q: float) -> dict:
@@ -146,7 +134,7 @@ def calibrate(scenes: list[Scene], kind: str) -> tuple[tuple, float, float]:
     best = None
     for size, alpha in KINDS[kind]:
         ratios = np.concatenate([(sc.error / scores(sc.result, sc.inputs(kind), kind, size, alpha))[sc.support] for sc in scenes])
-        q = conformal_q(ratios)
+        q = conformal_quantile(ratios, LEVEL)
         width = sum(float((q * scores(sc.result, sc.inputs(kind), kind, size, alpha))[sc.support].sum()) for sc in scenes)
         width /= sum(float(sc.error[sc.support].sum()) for sc in scenes)
         if best is None or width < best[2]:

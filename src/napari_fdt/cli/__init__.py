@@ -448,9 +448,10 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
     if config.error_bounds:
         from napari_fdt.cli.bounds import bounds_path
 
-        outputs.append(bounds_path(out))
-        if bounds_path(out).resolve() in protected:
-            raise FDTInputError("out", f"the error bound {bounds_path(out)} would overwrite an input", "write the result somewhere else")
+        bound_out = bounds_path(out)
+        outputs.append(bound_out)
+        if bound_out.resolve() in protected:
+            raise FDTInputError("out", f"the error bound {bound_out} would overwrite an input", "write the result somewhere else")
         if config.tv_family:
             raise FDTInputError("error_bounds", "and tv_family together are not built: the bound is made for one run",
                                 "drop --tv-family, or make the bound of the member you pick with --config its RI.json")

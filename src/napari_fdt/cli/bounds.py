@@ -12,7 +12,7 @@ from napari_fdt.data.io import beside, write_json_atomic
 from napari_fdt.data.volumes import write_volume
 from napari_fdt.recon.run.error_bounds import REPLICATES, error_bounds
 
-__all__ = ["bounds_path", "add_bounds_and_write", "describe_bounds"]
+__all__ = ["bounds_path", "add_bounds_and_write", "describe_error_bounds"]
 
 
 def bounds_path(out: Path) -> Path:
@@ -20,7 +20,7 @@ def bounds_path(out: Path) -> Path:
     return beside(out, "bounds")
 
 
-def describe_bounds(section: dict[str, Any]) -> str:
+def describe_error_bounds(section: dict[str, Any]) -> str:
     """One line for people from the report's ``error_bounds`` section."""
     return (f"error bound: {section['path']} (|Δn − Δn_true| ≤ bound on about {100 * section['level']:.0f} % of the voxels "
             f"of the calibration's simulated scenes; mean {section['mean_bound']:.2e}, max {section['max_bound']:.2e} RI; "
@@ -43,5 +43,5 @@ def add_bounds_and_write(rec, report: dict[str, Any], out: Path, json_out: Path,
     path = write_volume(bounds_path(out), made.bound, (o.slice_spacing_um, o.pixel_size_um, o.pixel_size_um), overwrite=overwrite)
     report = {**report, "error_bounds": made.to_dict(path=str(path))}
     write_json_atomic(json_out, report, overwrite=True)
-    print(describe_bounds(report["error_bounds"]))
+    print(describe_error_bounds(report["error_bounds"]))
     return report

@@ -532,11 +532,10 @@ class ReconstructionWidget(ResultActions, Container):
         self._show_ri(result.ri, focus=True)
         self._ri_layer.metadata[META_REPORT] = result.report
         self._put_sources(result.sources_um)
-        if result.extra.get("error_bounds") is not None:
-            show_bounds(self._viewer, result.extra["error_bounds"], result.ri, self._ri_layer,
-                        float(result.rec.acquisition.optics.n_background))
         n = len(result.rec.config.stages)
         n_b = float(result.rec.acquisition.optics.n_background)
+        if result.extra.get("error_bounds") is not None:
+            show_bounds(self._viewer, result.extra["error_bounds"], result.ri, self._ri_layer, n_b)
         self.results.value = results_line(result.report, truth_error(self._viewer, self._acq_layer, result.ri, n_b))
         if result.cancelled:
             self.progress.value = self._complete_at

@@ -22,7 +22,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-__all__ = ["REPLICATES", "BoundCalibration", "CALIBRATION", "raw_score", "bound", "conformal_quantile", "retention", "MIN_RETENTION"]
+__all__ = ["REPLICATES", "BoundCalibration", "CALIBRATION", "raw_score", "bound", "conformal_quantile", "retention", "MIN_RETENTION",
+           "neighbourhood_max"]
 
 
 #: Re-simulated reconstructions per bound.
@@ -52,7 +53,8 @@ CALIBRATION = BoundCalibration(slices=5, pixels=9, alpha=0.8, deflate=True, q=0.
                                source="benchmarks/error_bounds.py, even seeds 0-6 of beads, cells, fibres, letters (2026-11-28)")
 
 
-def _neighbourhood_max(a: np.ndarray, slices: int, pixels: int) -> np.ndarray:
+def neighbourhood_max(a: np.ndarray, slices: int, pixels: int) -> np.ndarray:
+    """The largest of ``a`` over ``slices`` × ``pixels`` × ``pixels`` voxels around each voxel (edges: nearest)."""
     if slices <= 1 and pixels <= 1:
         return a
     return ndimage.maximum_filter(a, size=(max(1, slices), max(1, pixels), max(1, pixels)), mode="nearest")
@@ -85,9 +87,9 @@ def raw_score(result: np.ndarray, replicates: np.ndarray, *, slices: int, pixels
     local = bias + spread
     if deflate:
         local = local / retention(result, reps, slices, pixels)
-    score = _neighbourhood_max(local, slices, pixels)
+    score = neighbourhood_max(local, slices, pixels)
     if alpha:
-        score = score + alpha * _neighbourhood_max(np.abs(result), slices, pixels)
+        score = score + alpha * neighbourhood_max(np.abs(result), slices, pixels)
     return score + 1e-6
 
 

@@ -348,6 +348,7 @@ def make_plan(config: SolverConfig, optics: Optics, image_shape: tuple[int, int]
     stages = [stage_phase(config, optics, image_shape, src, i, coarse_model, device_type, pixel_integration=pixel_integration,
                           pupil_edge=pupil_edge)
               for i in range(len(config.stages))]
+    stages_s = sum(p.predicted_s for p in stages)  # the stages as given, before the TV trials reshape them
     phases: list[Phase] = []
     if choose_tv_at is not None:
         probe = probe_iterations(config.stages[choose_tv_at].iterations)
@@ -387,9 +388,7 @@ def make_plan(config: SolverConfig, optics: Optics, image_shape: tuple[int, int]
     if config.error_bounds:  # the stages again per replicate, as given (the parts the run keeps are not known yet)
         from napari_fdt.recon.assess.bounds import REPLICATES
 
-        bounds = REPLICATES * sum(stage_phase(config, optics, image_shape, src, i, coarse_model, device_type,
-                                              pixel_integration=pixel_integration, pupil_edge=pupil_edge).predicted_s
-                                  for i in range(len(config.stages)))
+        bounds = REPLICATES * stages_s
     dropped = stages[-1].predicted_s if parts_to_choose and config.parts_backward else None
     return Plan(tuple(phases), "cuda" if device_type == "cuda" else "cpu", extra, early, early_test_stage if early is not None else None,
                 finest_again, finest_parts, dropped, halves, bounds)
