@@ -446,19 +446,9 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
         raise FDTInputError("out", f"{out} (or its report {json_out.name}) would overwrite an input", "write the result somewhere else")
     outputs = [out, json_out]
     if config.error_bounds:
-        from napari_fdt.cli.bounds import bounds_path
+        from napari_fdt.cli.bounds import check_bounds_request
 
-        bound_out = bounds_path(out)
-        outputs.append(bound_out)
-        if bound_out.resolve() in protected:
-            raise FDTInputError("out", f"the error bound {bound_out} would overwrite an input", "write the result somewhere else")
-        if config.tv_family:
-            raise FDTInputError("error_bounds", "and tv_family together are not built: the bound is made for one run",
-                                "drop --tv-family, or make the bound of the member you pick with --config its RI.json")
-        if distributed.world_from_env()[0] > 1:
-            raise FDTInputError("error_bounds", "is made in one process: a data-parallel run (torchrun) would skip it",
-                                "drop --error-bounds here, then make the bound in one process: fdt reconstruct ACQ --config "
-                                "RI.json --error-bounds (the result's settings, run again)")
+        outputs.append(check_bounds_request(config, out, protected, distributed.world_from_env()[0]))
     for p in outputs:
         if p.exists() and not args.overwrite:
             raise FDTInputError("out", f"{p} exists", "choose another --out or pass --overwrite")

@@ -10,14 +10,31 @@ from typing import Any
 
 from napari_fdt.data.io import beside, write_json_atomic
 from napari_fdt.data.volumes import write_volume
+from napari_fdt.errors import FDTInputError
 from napari_fdt.recon.run.error_bounds import REPLICATES, error_bounds
 
-__all__ = ["bounds_path", "add_bounds_and_write", "describe_error_bounds"]
+__all__ = ["bounds_path", "check_bounds_request", "add_bounds_and_write", "describe_error_bounds"]
 
 
 def bounds_path(out: Path) -> Path:
     """Where the bound of ``out`` goes: ``RI.tif`` → ``RI_bounds.tif`` (``RI.ome.zarr`` → ``RI_bounds.ome.zarr``)."""
     return beside(out, "bounds")
+
+
+def check_bounds_request(config, out: Path, protected: set[Path], world_size: int) -> Path:
+    """Refuse, before the run, a bound that would overwrite an input, one asked with a TV family, or one under torchrun
+    (``world_size`` > 1: the bound is made in one process); returns where the bound will go."""
+    bound_out = bounds_path(out)
+    if bound_out.resolve() in protected:
+        raise FDTInputError("out", f"the error bound {bound_out} would overwrite an input", "write the result somewhere else")
+    if config.tv_family:
+        raise FDTInputError("error_bounds", "and tv_family together are not built: the bound is made for one run",
+                            "drop --tv-family, or make the bound of the member you pick with --config its RI.json")
+    if world_size > 1:
+        raise FDTInputError("error_bounds", "is made in one process: a data-parallel run (torchrun) would skip it",
+                            "drop --error-bounds here, then make the bound in one process: fdt reconstruct ACQ --config "
+                            "RI.json --error-bounds (the result's settings, run again)")
+    return bound_out
 
 
 def describe_error_bounds(section: dict[str, Any]) -> str:
