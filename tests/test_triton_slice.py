@@ -41,6 +41,14 @@ def test_adjoint_screen_kernel_matches_torch(write_v: bool) -> None:
     assert _rel(gp_tri, gp_ref) < 1e-6 and _rel(g_tri, g_ref) < 1e-6
     if write_v:
         assert _rel(v_tri, v_ref) < 1e-6
+    # written into a row of a caller's gradient (the slice loop's backward passes grad_phi[k]), the same numbers
+    rows = torch.full((2, 20, 24), 7.0)
+    g_out = g.clone()
+    assert adjoint_screen(g_out, u, phi, None, out=rows[1], interpret=True).data_ptr() == rows[1].data_ptr()
+    assert _rel(rows[1], gp_ref) < 1e-6 and bool((rows[0] == 7.0).all())
+    torch_rows = torch.full((2, 20, 24), 7.0)
+    _adjoint_screen(g.clone(), u, phi, None, torch_rows[1])
+    assert torch.equal(torch_rows[1], gp_ref) and bool((torch_rows[0] == 7.0).all())
 
 
 def test_cpu_model_does_not_import_triton() -> None:

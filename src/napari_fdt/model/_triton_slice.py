@@ -47,10 +47,11 @@ def _kernel(interpret: bool = False):
 
 
 def adjoint_screen(g: torch.Tensor, u: torch.Tensor, phi_k: torch.Tensor, v_out: torch.Tensor | None,
-                   *, interpret: bool = False) -> torch.Tensor:
+                   *, out: torch.Tensor | None = None, interpret: bool = False) -> torch.Tensor:
     """Same contract as ``slice_loop._adjoint_screen``: returns Σ_b Im(g·conj(u)); g ← g·conj(P); v_out ← u·conj(P).
 
-    ``interpret``: run CPU tensors through Triton's interpreter (tests).
+    ``out``: a contiguous float32 tensor of φ's shape to write Σ_b Im(g·conj(u)) into (one allocation less per
+    screen). ``interpret``: run CPU tensors through Triton's interpreter (tests).
     """
     import triton
 
@@ -59,7 +60,9 @@ def adjoint_screen(g: torch.Tensor, u: torch.Tensor, phi_k: torch.Tensor, v_out:
     b = g.shape[0]
     n_pix = g.shape[-1] * g.shape[-2]
     phi = phi_k.contiguous()
-    grad_phi = torch.empty(phi.shape, dtype=torch.float32, device=g.device)
+    if out is not None and not (out.is_contiguous() and out.dtype == torch.float32 and out.shape == phi.shape):
+        raise ValueError("adjoint_screen's out must be a contiguous float32 tensor of phi's shape")
+    grad_phi = torch.empty(phi.shape, dtype=torch.float32, device=g.device) if out is None else out
     gr = torch.view_as_real(g)
     ur = torch.view_as_real(u)
     vr = torch.view_as_real(v_out) if v_out is not None else gr

@@ -38,7 +38,7 @@ from napari_fdt.physics.free_field import (
 from napari_fdt.physics.grid import GridPlan, frequency_grid
 from napari_fdt.physics.optics import Optics
 from napari_fdt.physics.propagation import phase_screen, phasor, propagation_kernel, pupil, screen_phase
-from napari_fdt.physics.sources import band_limit, centering_sign, point_source_spectrum
+from napari_fdt.physics.sources import band_limit, centering_sign, point_source_spectrum, spectrum_terms
 
 __all__ = ["MultiSliceModel", "Kernels", "ray_secant"]
 
@@ -185,6 +185,7 @@ class MultiSliceModel:
         self.dtype = dtype
         self._centering = centering_sign(plan.padded_shape, device=self.device, dtype=dtype)
         self._default = self.kernels()
+        self._default_terms: tuple[torch.Tensor, torch.Tensor] | None = None  # source_spectrum's, made at first use
 
     @property
     def image_shape(self) -> tuple[int, int]:
@@ -250,8 +251,18 @@ class MultiSliceModel:
 
     # -- pieces -------------------------------------------------------------------------------
     def source_spectrum(self, sources_um: torch.Tensor, kernels: Kernels | None = None) -> torch.Tensor:
-        """(B, Hp, Wp) spectrum of the sources at the first screen (half a step above the bottom face)."""
+        """(B, Hp, Wp) spectrum of the sources at the first screen (half a step above the bottom face).
+
+        With the model's own kernels (no optics override) the factors that do not depend on the sources are made once.
+        """
         k = kernels or self._default
+        terms = None
+        if k is self._default:
+            if self._default_terms is None:
+                self._default_terms = spectrum_terms(k.fy, k.fx, n_background=self.optics.n_background,
+                                                     wavelength_um=k.wavelength_um, pixel_size_um=k.pixel_size_um,
+                                                     window=k.window, centering=self._centering)
+            terms = self._default_terms
         return point_source_spectrum(
             k.fy,
             k.fx,
@@ -262,6 +273,7 @@ class MultiSliceModel:
             pixel_size_um=k.pixel_size_um,
             window=k.window,
             centering=self._centering,
+            terms=terms,
         )
 
     def pad_volume(self, delta_n: torch.Tensor) -> torch.Tensor:

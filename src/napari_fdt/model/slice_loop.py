@@ -92,16 +92,18 @@ def _screen(phi_k: torch.Tensor) -> torch.Tensor:
     return phasor(phi_k)
 
 
-def _adjoint_screen(g: torch.Tensor, u: torch.Tensor, phi_k: torch.Tensor, v_out: torch.Tensor | None) -> torch.Tensor:
-    """One screen's adjoint, in place: returns ``Σ_b Im(g·conj(u))`` (the φ_k gradient, (Hp, Wp));
-    sets ``g ← g·conj(P_k)`` and, if ``v_out`` is given, ``v_out ← u·conj(P_k)`` (the field before the screen).
+def _adjoint_screen(g: torch.Tensor, u: torch.Tensor, phi_k: torch.Tensor, v_out: torch.Tensor | None,
+                    grad_out: torch.Tensor | None = None) -> torch.Tensor:
+    """One screen's adjoint, in place: returns ``Σ_b Im(g·conj(u))`` (the φ_k gradient, (Hp, Wp); written into
+    ``grad_out`` when given, a contiguous (Hp, Wp) float tensor); sets ``g ← g·conj(P_k)`` and, if ``v_out`` is given,
+    ``v_out ← u·conj(P_k)`` (the field before the screen).
     """
     if g.is_cuda and g.dtype == torch.complex64:
         from napari_fdt.model import _triton_slice
 
         if _triton_slice.available():
-            return _triton_slice.adjoint_screen(g, u, phi_k, v_out)
-    grad_phi = (g.imag * u.real - g.real * u.imag).sum(0)
+            return _triton_slice.adjoint_screen(g, u, phi_k, v_out, out=grad_out)
+    grad_phi = torch.sum(g.imag * u.real - g.real * u.imag, 0, out=grad_out)
     conj_p = _screen(-phi_k)
     g.mul_(conj_p)
     if v_out is not None:
@@ -123,16 +125,22 @@ def _propagate(u: torch.Tensor, scaled_kernel: torch.Tensor) -> torch.Tensor:
 
 
 def _forward(v0: torch.Tensor, phi: torch.Tensor, kernel: torch.Tensor, keep: list[int] | None) -> tuple[torch.Tensor, dict[int, torch.Tensor]]:
-    """Run the loop; return ``u_{N−1}`` and the fields ``u_k`` for k in ``keep`` (all if keep is None)."""
+    """Run the loop; return ``u_{N−1}`` and the fields ``u_k`` for k in ``keep`` (all if keep is None).
+
+    With every field kept (the stored mode: N fields per image held anyway) the N screens are made in one call, one
+    kernel instead of N on a GPU, where an iteration is bound by its kernel launches; otherwise one at a time, so that
+    the memory-lean modes hold one screen, not N.
+    """
     n = phi.shape[0]
     kept: dict[int, torch.Tensor] = {}
-    u = v0 * _screen(phi[0])
+    screens = _screen(phi) if keep is None else None
+    u = v0 * (screens[0] if screens is not None else _screen(phi[0]))
     if keep is None or 0 in keep:
         kept[0] = u
     scaled = _scaled(kernel)
     for k in range(1, n):
         u = _propagate(u, scaled)
-        u.mul_(_screen(phi[k]))
+        u.mul_(screens[k] if screens is not None else _screen(phi[k]))
         if keep is None or k in keep:
             kept[k] = u
     return u, kept
@@ -169,7 +177,7 @@ class _SliceLoop(torch.autograd.Function):
         n = phi.shape[0]
         npix = kernel.shape[-1] * kernel.shape[-2]
         g = grad_out.clone(memory_format=torch.contiguous_format)  # the Triton kernel needs contiguous fields
-        grad_phi = torch.empty_like(phi) if need_phi else None
+        grad_phi = torch.empty(phi.shape, dtype=phi.dtype, device=phi.device) if need_phi else None  # contiguous: rows are out= targets
         grad_k = torch.zeros_like(kernel) if need_k else None
         conj_k = _scaled(kernel.conj())
         scaled = _scaled(kernel)
@@ -198,9 +206,7 @@ class _SliceLoop(torch.autograd.Function):
         for k in range(n - 1, -1, -1):
             if mode == "reversible":
                 # u holds u_k; write v_k = conj(P_k)·u_k into pair[0] and g·conj(P_k) into pair[1].
-                gp = _adjoint_screen(g, u, phi[k], pair[0])
-                if grad_phi is not None:
-                    grad_phi[k] = gp
+                _adjoint_screen(g, u, phi[k], pair[0], None if grad_phi is None else grad_phi[k])
                 if k == 0:
                     g = pair[1]
                     break
@@ -213,10 +219,8 @@ class _SliceLoop(torch.autograd.Function):
                 u, g = pair[0], pair[1]
                 continue
             u_k = kept[k] if mode == "stored" else _recomputed(k)
-            gp = _adjoint_screen(g, u_k, phi[k], None)
+            _adjoint_screen(g, u_k, phi[k], None, None if grad_phi is None else grad_phi[k])
             del u_k
-            if grad_phi is not None:
-                grad_phi[k] = gp
             if k == 0:
                 break
             spec = torch.fft.fft2(g)

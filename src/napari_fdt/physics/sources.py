@@ -20,7 +20,7 @@ import torch
 
 from napari_fdt.physics.propagation import axial_frequency_offset, raised_cosine
 
-__all__ = ["band_limit", "point_source_spectrum", "centering_sign"]
+__all__ = ["band_limit", "point_source_spectrum", "spectrum_terms", "centering_sign"]
 
 
 #: The source's band limit B(|f|): the same raised cosine as the pupil's soft edge.
@@ -40,6 +40,29 @@ def centering_sign(padded_shape: tuple[int, int], *, device=None, dtype=torch.fl
     return sy.reshape(hp, 1) * sx.reshape(1, wp)
 
 
+def spectrum_terms(
+    fy: torch.Tensor,
+    fx: torch.Tensor,
+    *,
+    n_background: float | torch.Tensor,
+    wavelength_um: float | torch.Tensor,
+    pixel_size_um: float | torch.Tensor,
+    window: torch.Tensor,
+    centering: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The sources' spectrum's factors that do not depend on the sources, each (Hp, Wp) real: the axial frequency
+    offset ``qz − n_b/λ`` (cycles/µm) and the amplitude per µm of depth ``B(|f|)·centering / (qz·dx²)``.
+
+    A model whose optics are fixed computes them once (:meth:`~napari_fdt.model.forward.MultiSliceModel.source_spectrum`);
+    on a GPU every elementwise operation is a kernel launch, and an iteration is bound by those.
+    """
+    f2 = fy * fy + fx * fx
+    offset, propagating = axial_frequency_offset(f2, n_background, wavelength_um)
+    k = n_background / wavelength_um
+    qz = torch.where(propagating, offset + k, torch.ones_like(offset))
+    return offset, window * centering / (qz * pixel_size_um**2)
+
+
 def point_source_spectrum(
     fy: torch.Tensor,
     fx: torch.Tensor,
@@ -51,6 +74,7 @@ def point_source_spectrum(
     pixel_size_um: float | torch.Tensor,
     window: torch.Tensor,
     centering: torch.Tensor,
+    terms: tuple[torch.Tensor, torch.Tensor] | None = None,
 ) -> torch.Tensor:
     """Discrete spectrum of a batch of point sources at the plane ``height_offset_um`` above the bottom face.
 
@@ -63,6 +87,7 @@ def point_source_spectrum(
         sits at half a slice).
     window: band limit ``B(|f|)``, (Hp, Wp) real.
     centering: :func:`centering_sign`, (Hp, Wp) real.
+    terms: :func:`spectrum_terms` of the same arguments, made before (None: made here); the result is the same.
 
     Returns
     -------
@@ -72,12 +97,12 @@ def point_source_spectrum(
     x = sources_um[:, 0].reshape(-1, 1, 1)
     y = sources_um[:, 1].reshape(-1, 1, 1)
     depth = sources_um[:, 2].reshape(-1, 1, 1)
-    f2 = fy * fy + fx * fx
-    offset, propagating = axial_frequency_offset(f2, n_background, wavelength_um)
-    k = n_background / wavelength_um
-    qz = torch.where(propagating, offset + k, torch.ones_like(offset))
+    if terms is None:
+        terms = spectrum_terms(fy, fx, n_background=n_background, wavelength_um=wavelength_um,
+                               pixel_size_um=pixel_size_um, window=window, centering=centering)
+    offset, amplitude_per_um = terms
     # Signed real amplitude times a unit phasor, assembled from real parts (torch.polar's backward
     # assumes a non-negative modulus, and the centering sign is negative on half the grid).
-    amplitude = (window * centering / (qz * pixel_size_um**2)) * depth
+    amplitude = amplitude_per_um * depth
     phase = (2.0 * math.pi) * (offset * (depth + height_offset_um) - fx * x - fy * y) + 0.5 * math.pi  # the factor i
     return torch.complex(amplitude * torch.cos(phase), amplitude * torch.sin(phase))
