@@ -1,4 +1,5 @@
-"""The solver's iteration leaves the GPU's queue alone: at most the two host waits of the sources' whitened steps.
+"""The solver's iteration leaves the GPU's queue alone: no host wait with the sources' step in its CUDA form; on the
+CPU (where a wait costs nothing) at most the two of the rows' own form.
 
 On CUDA every operation whose result the host must read (a Python number from a tensor, a boolean-mask index, a
 ``nonzero``, ``linalg.eigh``'s status check) stops the host from queueing the next kernels. They are counted here on
@@ -24,6 +25,19 @@ def test_the_finest_iteration_waits_for_the_device_at_most_twice() -> None:
     # the two left: the rows of the sources that have a gradient (one nonzero) and eigh's status (whitened steps)
     assert all("recon/calibration/calibration.py" in site for site in sites), counter.sites
     assert counter.total > 0  # the counter sees the operators at all (it would pass vacuously otherwise)
+
+
+def test_the_finest_iteration_in_the_gpus_form_never_waits_for_the_device(monkeypatch) -> None:
+    """On CUDA the sources' step takes every row with the unvisited masked out and the whitening by Newton–Schulz
+    (``RowAdam._masked_step``): forced here on the CPU, the iteration has no operator that waits."""
+    from napari_fdt.recon.calibration.calibration import RowAdam
+
+    monkeypatch.setattr(RowAdam, "sync_free", True)
+    steps = 3
+    counter = count_syncs(finest_step(read_acquisition(SAMPLE), "full"), steps)
+    assert counter.total == 0, counter.sites
+    monkeypatch.setattr(RowAdam, "sync_free", False)  # and the counter does see the rows' form's two
+    assert count_syncs(finest_step(read_acquisition(SAMPLE), "full"), steps).total > 0
 
 
 def test_the_counter_sees_a_boolean_index_and_a_python_number() -> None:

@@ -286,3 +286,50 @@ def test_cosine_schedule_shortens_each_visit_as_half_one_plus_cos() -> None:
         moves.append(float((before - cal.sources.detach())[0, 0]))
     expected = [lr * 0.5 * (1 + np.cos(np.pi * min(v / 4, 1.0))) for v in range(6)]
     assert np.allclose(moves, expected, rtol=1e-6, atol=1e-12)
+
+
+def test_newton_schulz_inverse_square_root_equals_eigh() -> None:
+    """The GPU's sync-free ``A^(-1/2)`` against ``eigh`` on damped second moments like the source step's: a rank-one
+    first visit (two equal eigenvalues), random 3x3 ones, and the worst conditioning the damping allows (κ = C/δ)."""
+    from napari_fdt.recon.calibration.calibration import inverse_sqrt_spd
+
+    gen = torch.Generator().manual_seed(3)
+    g = torch.randn(40, 3, generator=gen, dtype=torch.float64)
+    rank_one = g[:, :, None] * g[:, None, :]
+    mixed = torch.randn(40, 3, 5, generator=gen, dtype=torch.float64)
+    full = mixed @ mixed.transpose(1, 2) * torch.logspace(-6, 6, 40, dtype=torch.float64)[:, None, None]
+    for v, delta in ((rank_one, 0.01), (full, 0.01), (rank_one, 0.001)):
+        tr = torch.diagonal(v, dim1=-2, dim2=-1).sum(-1)
+        a = v + (delta * tr / 3)[:, None, None] * torch.eye(3, dtype=torch.float64)
+        lam, q = torch.linalg.eigh(a)
+        ref = (q * lam.rsqrt()[:, None, :]) @ q.transpose(1, 2)
+        got = inverse_sqrt_spd(a, condition_bound=3 / delta)
+        err = ((got - ref).norm(dim=(1, 2)) / ref.norm(dim=(1, 2))).max()
+        assert float(err) < 1e-11
+
+
+@pytest.mark.parametrize("moment", ["isotropic", "matrix"])
+def test_masked_step_equals_the_rows_step(moment: str) -> None:
+    """The GPU's step over every row with the unvisited masked out gives the visited rows' step of the CPU's form, and
+    leaves the other rows and their moments alone: 12 steps, random visits, the step cap and the cosine decay on."""
+    gen = torch.Generator().manual_seed(5)
+    start = torch.randn(9, 3, generator=gen, dtype=torch.float64)
+    opts, params = [], []
+    for sync_free in (False, True):
+        p = start.clone().requires_grad_(True)
+        opt = RowAdam([p], lr=0.05, moment=moment, max_step=0.08)
+        opt.param_groups[0]["cosine_visits"] = 6.0
+        opt.param_groups[0]["cosine_from"] = torch.arange(9, dtype=torch.float64)[:, None] % 3
+        opt.sync_free = sync_free
+        opts.append(opt)
+        params.append(p)
+    for _ in range(12):
+        g = torch.randn(9, 3, generator=gen, dtype=torch.float64)
+        g[torch.rand(9, generator=gen) < 0.5] = 0.0  # about half the rows not in this batch
+        for p, opt in zip(params, opts):
+            p.grad = g.clone()
+            opt.step()
+    assert torch.allclose(params[1].detach(), params[0].detach(), rtol=1e-10, atol=1e-13)
+    assert not torch.equal(params[0].detach(), start)
+    for key in ("exp_avg", "exp_avg_sq", "visits"):
+        assert torch.allclose(opts[1].state[params[1]][key], opts[0].state[params[0]][key], rtol=1e-12, atol=0)

@@ -17,7 +17,7 @@ difference ``shift_um`` is subtracted from source positions given to the stage m
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -83,6 +83,7 @@ class Stage:
     grid_shape: tuple[int, int]
     window: tuple[int, int]
     coverage: torch.Tensor | None = None
+    _shift: dict = field(default_factory=dict, repr=False, compare=False)  # stage_sources' tensors, per device and dtype
 
     @property
     def image_shape(self) -> tuple[int, int]:
@@ -95,9 +96,15 @@ class Stage:
         return isinstance(self.model, EnvelopeModel)
 
     def stage_sources(self, sources_um: torch.Tensor) -> torch.Tensor:
-        """Sources (B, 3) in the stage model's coordinates."""
-        shift = torch.tensor([self.shift_um[0], self.shift_um[1], 0.0], device=sources_um.device, dtype=sources_um.dtype)
-        return sources_um - shift
+        """Sources (B, 3) in the stage model's coordinates.
+
+        The shift's tensor is made once per device and dtype: on CUDA a tensor made from Python numbers is a copy from
+        host memory, and torch waits for the device's queue to drain before each such copy (twice an iteration).
+        """
+        key = (sources_um.device, sources_um.dtype)
+        if key not in self._shift:
+            self._shift[key] = torch.tensor([self.shift_um[0], self.shift_um[1], 0.0], device=sources_um.device, dtype=sources_um.dtype)
+        return sources_um - self._shift[key]
 
     def to_field_grid(self, delta_n: torch.Tensor) -> torch.Tensor:
         """RI contrast on the stage grid (Z, h, w) → the field grid (Z, h_f, w_f), differentiable."""
