@@ -48,7 +48,7 @@ def test_the_verdict_is_paired_and_the_pick_the_largest_weight_within_the_tolera
 
 def test_member_configs_and_paths() -> None:
     cfg = member_config(SolverConfig(tv_family=True), 3.0)
-    assert (cfg.tv_xy_weight, cfg.tv_z_weight, cfg.tv_family) == (3.0, 1.5, False)
+    assert (cfg.tv_xy_weight, cfg.tv_z_weight, cfg.tv_family) == (3.0, 1.5, "false")
     assert member_path(Path("/x/RI.tif"), 3.0) == Path("/x/RI_tv3.tif")
     assert member_path(Path("/x/RI.ome.tif"), 10.0) == Path("/x/RI_tv10.ome.tif")
     assert member_path(Path("/x/RI.ome.zarr"), 1.0) == Path("/x/RI_tv1.ome.zarr")
@@ -61,6 +61,35 @@ def test_what_a_family_cannot_do_is_refused_before_the_run(tmp_path: Path, tiny_
     code = main(["reconstruct", str(acq), "--out", str(tmp_path / "RI.tif"), "--tv-family", "--device", "cpu", *extra])
     assert code == 2 and f"error: {field}:" in capsys.readouterr().err
     assert not list(tmp_path.glob("RI*"))
+
+
+def test_auto_makes_a_family_on_cuda_unless_the_command_excludes_one(monkeypatch) -> None:
+    """``tv_family`` "auto": a family on a CUDA device (docs/decisions/tv-family.md, "Default, per device"), one run on
+    the CPU, and one run wherever the command asks for what a family cannot do (then nothing is refused)."""
+    import argparse
+
+    import torch
+
+    from napari_fdt.cli import build_parser
+    from napari_fdt.cli.family import family_on
+
+    def args(*extra: str) -> tuple[SolverConfig, argparse.Namespace]:
+        ns = build_parser().parse_args(["reconstruct", "ACQ", "--out", "RI.tif", *extra])
+        from napari_fdt.cli import _config_from_args
+
+        return _config_from_args(ns), ns
+
+    assert SolverConfig().tv_family == "auto"
+    assert not family_on(*args("--device", "cpu"))
+    assert family_on(*args("--device", "cpu", "--tv-family"))  # asked for: on any device
+    assert args("--tv-family", "false")[0].tv_family == "false"
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    assert family_on(*args("--device", "cuda")) and family_on(*args())  # "auto" device: CUDA here
+    assert not family_on(*args("--device", "cuda", "--tv-family", "false"))
+    for extra in (["--tv-xy-weight", "3"], ["--checkpoint-dir", "ck"], ["--resume", "ck"], ["--half-set-resolution"],
+                  ["--error-bounds"]):
+        assert not family_on(*args("--device", "cuda", *extra)), extra
+    assert not family_on(*args("--device", "cuda"), distributed_launch=True)
 
 
 def _short() -> SolverConfig:
@@ -100,7 +129,7 @@ def test_a_family_writes_each_member_as_the_run_at_its_weight_and_the_pick(tmp_p
                  "--tv-xy-weight", f"{other['tv_xy_weight']:g}", "--tv-z-weight", f"{other['tv_z_weight']:g}"]) == 0
     assert np.array_equal(read_volume_tiff(cold)[0], read_volume_tiff(other["path"])[0])
     # --config RI.json reruns the pick alone (its weights as numbers, no family)
-    assert report["config"]["tv_family"] is False
+    assert report["config"]["tv_family"] == "false"
     again = tmp_path / "again.tif"
     assert main(["reconstruct", "--config", str(tmp_path / "RI.json"), "--out", str(again), "--device", "cpu", "--quiet"]) == 0
     assert np.array_equal(read_volume_tiff(again)[0], read_volume_tiff(out)[0])

@@ -60,6 +60,8 @@ def _add_schema_args(group, model, defaults: dict | None = None, tiers: tuple[st
             kwargs["type"] = _number_or_auto(kind) if accepts_auto(info) else kind
             if choices(info) is not None:
                 kwargs["choices"] = choices(info)
+            if tuple(choices(info) or ()) == ("auto", "true", "false"):  # a switch: the flag alone means "true"
+                kwargs.update(nargs="?", const="true")
         group.add_argument("--" + name.replace("_", "-"), **kwargs)
 
 
@@ -328,7 +330,7 @@ def _cmd_info(args: argparse.Namespace) -> int:
 def _cmd_plan(args: argparse.Namespace) -> int:
     import json
 
-    from napari_fdt.cli.family import family_json, family_summary, planned_config
+    from napari_fdt.cli.family import family_json, family_on, family_summary, planned_config
     from napari_fdt.data.io import read_acquisition
     from napari_fdt.device import resolve_device
     from napari_fdt.recon.loop.plan import plan_for
@@ -338,13 +340,14 @@ def _cmd_plan(args: argparse.Namespace) -> int:
     config = _config_from_args(args)
     acq = read_acquisition(args.acquisition)
     device = resolve_device(args.device)
-    plan, src = plan_for(acq, planned_config(config), device.type)
+    family = family_on(config, args)
+    plan, src = plan_for(acq, planned_config(config, family), device.type)
     k = config.n_wavelengths if config.coherence in ("spectral", "mask+spectral") else 1
     peak, _, _, _ = finest_stage_bytes(acq, resolve_stage_lengths(config, acq.n_images), src, k, device.type)
     if args.json:
-        print(json.dumps({**plan.to_dict(), "peak_memory_bytes": int(peak), **family_json(config, plan)}))
+        print(json.dumps({**plan.to_dict(), "peak_memory_bytes": int(peak), **family_json(family, plan)}))
         return 0
-    print(family_summary(config, plan))
+    print(family_summary(family, plan))
     held = "the finest stage's batch" + (" and the images" if device.type != "cpu" else "; the images are read from the file")
     print(f"peak memory: about {peak / 2.0**30:.2f} GiB on {device} ({held})")
     return 0
@@ -467,10 +470,13 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
         side = Path(args.truth).with_name("ground_truth_sources_um.json")
         if side.exists():
             truth_src = np.asarray(json.loads(side.read_text())["sources_um"], dtype=np.float64)
-    if config.tv_family:  # (cli/family.py: one whole run per TV weight, then the pick)
+    from napari_fdt.cli.family import family_on
+
+    launched = distributed.world_from_env()[0] > 1
+    if family_on(config, args, distributed_launch=launched):  # (cli/family.py: one whole run per TV weight, then the pick)
         from napari_fdt.cli.family import check_family_request, run_family_and_write
 
-        check_family_request(config, args, out, distributed_launch=distributed.world_from_env()[0] > 1)
+        check_family_request(config, args, out, distributed_launch=launched)
         return run_family_and_write(args, config, acq, out, truth, truth_src)
     group = distributed.setup(args.device, args.dist_backend)
     completed = False

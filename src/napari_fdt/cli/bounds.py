@@ -27,7 +27,7 @@ def check_bounds_request(config, out: Path, protected: set[Path], world_size: in
     bound_out = bounds_path(out)
     if bound_out.resolve() in protected:
         raise FDTInputError("out", f"the error bound {bound_out} would overwrite an input", "write the result somewhere else")
-    if config.tv_family:
+    if config.tv_family == "true":
         raise FDTInputError("error_bounds", "and tv_family together are not built: the bound is made for one run",
                             "drop --tv-family, or make the bound of the member you pick with --config its RI.json")
     if world_size > 1:

@@ -11,7 +11,26 @@ from typing import Any
 from napari_fdt.errors import FDTInputError
 from napari_fdt.recon.settings.config import AUTO, SolverConfig
 
-__all__ = ["member_path", "check_family_request", "run_family_and_write", "planned_config", "family_summary", "family_json"]
+__all__ = ["member_path", "family_on", "check_family_request", "run_family_and_write", "planned_config", "family_summary",
+           "family_json"]
+
+
+def family_on(config: SolverConfig, args: Any, distributed_launch: bool = False) -> bool:
+    """Whether ``fdt reconstruct`` (and ``fdt plan``) make a family: ``tv_family`` "true" (then
+    :func:`check_family_request` refuses what a family cannot do), "false" never; "auto" on a CUDA device where nothing
+    the command asks for excludes a family (TV weights as numbers, ``--resume``, ``--checkpoint-dir``, torchrun,
+    ``half_set_resolution``, ``error_bounds``), and never on the CPU, where a family costs 2.3x a run (median;
+    docs/decisions/tv-family.md, "Default, per device")."""
+    if config.tv_family != AUTO:
+        return config.tv_family == "true"
+    from napari_fdt.device import resolve_device
+
+    if resolve_device(getattr(args, "device", None) or "auto").type != "cuda":
+        return False
+    excluded = (config.tv_xy_weight != AUTO or config.tv_z_weight != AUTO or getattr(args, "resume", None) is not None
+                or getattr(args, "checkpoint_dir", None) is not None or distributed_launch or config.half_set_resolution
+                or config.error_bounds)
+    return not excluded
 
 def member_path(out: Path, tau: float) -> Path:
     """Where member ``tau`` goes beside ``out``: ``RI.tif`` → ``RI_tv3.tif`` (``RI.ome.zarr`` → ``RI_tv3.ome.zarr``)."""
@@ -20,29 +39,29 @@ def member_path(out: Path, tau: float) -> Path:
     return beside(out, f"tv{tau:g}")
 
 
-def planned_config(config: SolverConfig) -> SolverConfig:
-    """The configuration one run of ``config`` plans: with ``tv_family``, a member's (every member plans alike: the TV
-    weights are numbers and no trials run)."""
+def planned_config(config: SolverConfig, family: bool) -> SolverConfig:
+    """The configuration one run of ``config`` plans: with a ``family`` (:func:`family_on`), a member's (every member
+    plans alike: the TV weights are numbers and no trials run)."""
     from napari_fdt.recon.run.family import FAMILY_TAUS, member_config
 
-    return member_config(config, FAMILY_TAUS[0]) if config.tv_family else config
+    return member_config(config, FAMILY_TAUS[0]) if family else config
 
 
-def family_summary(config: SolverConfig, plan) -> str:
-    """``fdt plan``'s text: the plan, or with ``tv_family`` the family's price and one member's plan."""
+def family_summary(family: bool, plan) -> str:
+    """``fdt plan``'s text: the plan, or with a ``family`` the family's price and one member's plan."""
     from napari_fdt.recon.run.family import FAMILY_TAUS
 
-    if not config.tv_family:
+    if not family:
         return plan.summary()
     return (f"a family of {len(FAMILY_TAUS)} volumes, one whole run per TV weight (τ_xy {', '.join(f'{t:g}' for t in FAMILY_TAUS)}): "
             f"about {len(FAMILY_TAUS) * plan.predicted_s:.0f} s in all; each member's plan:\n{plan.summary()}")
 
 
-def family_json(config: SolverConfig, plan) -> dict[str, Any]:
-    """``fdt plan --json``'s ``tv_family`` entry (empty without a family)."""
+def family_json(family: bool, plan) -> dict[str, Any]:
+    """``fdt plan --json``'s ``tv_family`` entry (empty without a ``family``)."""
     from napari_fdt.recon.run.family import FAMILY_TAUS
 
-    if not config.tv_family:
+    if not family:
         return {}
     return {"tv_family": {"taus": list(FAMILY_TAUS), "predicted_member_s": plan.predicted_s,
                           "predicted_total_s": len(FAMILY_TAUS) * plan.predicted_s}}

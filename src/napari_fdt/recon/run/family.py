@@ -102,7 +102,7 @@ class Family:
 def member_config(config: SolverConfig, tau: float) -> SolverConfig:
     """``config`` as member ``tau``'s run: the TV weights the member's numbers, no family (``--config`` of its report
     reruns that member alone)."""
-    return dataclasses.replace(config, tv_xy_weight=float(tau), tv_z_weight=float(TV_Z_RATIO * tau), tv_family=False)
+    return dataclasses.replace(config, tv_xy_weight=float(tau), tv_z_weight=float(TV_Z_RATIO * tau), tv_family="false")
 
 
 def parts_off(config: SolverConfig) -> SolverConfig:

@@ -118,7 +118,7 @@ class Reconstructor:
         self.acquisition, self.group = acquisition, group
         #: the configuration as given (what RI.json and checkpoints store: resolving it again gives the same run)
         self.requested_config = config or SolverConfig()
-        if self.requested_config.tv_family:  # several whole runs (recon/run/family.py), never one solver's
+        if self.requested_config.tv_family == "true":  # several whole runs (recon/run/family.py), never one solver's
             raise FDTInputError("tv_family", "asks for a family of runs, not one run", "use fdt reconstruct --tv-family or napari_fdt.recon.run.family.run_family")
         #: the configuration as run: the finest stage lengthened to ``final_stage_min_passes`` passes over the images
         #: (:func:`napari_fdt.recon.settings.config.resolve_stage_lengths`)

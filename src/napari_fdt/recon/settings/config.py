@@ -214,13 +214,16 @@ class SolverConfig:
         "with fresh noise and reconstructed with the run's choices, twice; their bias and spread, calibrated on simulated "
         "scenes (docs/guide.md, \"Can I believe this structure?\")",
         fix="true or false")
-    tv_family: bool = setting(
-        False, description="reconstruct a family of volumes, one whole run per TV weight (τ_xy 1, 3 and 10, τ_z half of it), "
+    tv_family: Switch = setting(
+        "auto", description="reconstruct a family of volumes, one whole run per TV weight (τ_xy 1, 3 and 10, τ_z half of it), "
         "instead of choosing the weight by trials: each member's held-out error against the best member's (paired, with its "
-        "standard error), and the pick (the largest weight within 5 % of the best held-out error that the images cannot tell from it). `fdt reconstruct --tv-family` "
-        "writes the pick to --out and the other members beside it. About three runs' time (docs/solver.md, \"A family of "
-        "volumes across TV weights\")",
-        fix="true or false", tier="basic")
+        "standard error), and the pick (the largest weight within 5 % of the best held-out error that the images cannot tell "
+        "from it). `fdt reconstruct` writes the pick to --out and the other members beside it. About two to three runs' time. "
+        "`\"auto\"`: `fdt reconstruct` makes the family on a CUDA device (about 1.8-2.1x a run there) unless something it "
+        "asks for excludes one (TV weights as numbers, --resume, --checkpoint-dir, torchrun, half_set_resolution, "
+        "error_bounds); one run on the CPU (docs/decisions/tv-family.md). A `Reconstructor` is one run whatever this says "
+        "(docs/solver.md, \"A family of volumes across TV weights\")",
+        fix="auto, true or false", tier="basic", strict=False)
     early_stopping: EarlyStopping = setting(
         "best", strict=False, description="`\"best\"`: each stage ends on its iterate of lowest validation error (when the last is worse "
         "by more than `early_stopping_tolerance`); `\"stop\"`: also ends a stage once the error has stayed above its best for "
