@@ -8,8 +8,8 @@
 # that one item that hangs or fails leaves the others' results. Writes OUT_DIR/NAME.log per item, the sample
 # runs' reports, and OUT_DIR/session.tgz with those and the files the items wrote under benchmarks/results. ITEMS: a
 # comma-separated subset of
-# tta,checks,split,sample,step,coarse,profile,profile_nosources,tta_envelope,suite_multislice,suite_envelope,reg_demo (default: all, in
-# that order). The limits are about twice what each took on an H200 (2026-11-26). A 15-minute lease holds one call of
+# cold,tta,checks,overhead,overhead_base,split,sample,step,coarse,profile,profile_nosources,tta_envelope,suite_multislice,suite_envelope,reg_demo
+# (default: all, in that order). The limits are about twice what each took on an H200 (2026-11-26). A 15-minute lease holds one call of
 # about 9 minutes with the machine's start, then a short second call at once on the warm machine (it is given back
 # 30 s after a call): on an H100 (2026-11-26) tta,checks,sample,step,profile,suite_multislice took 425 s, and
 # reg_demo with REG_DEMO_SETTINGS=auto about 110 s (27 s of it simulating the demo).
@@ -21,7 +21,7 @@
 # no install.
 set -u
 out=${1:?usage: gpu_session.sh OUT_DIR [ITEMS]}
-items=${2:-tta,checks,split,sample,step,coarse,profile,profile_nosources,tta_envelope,suite_multislice,suite_envelope,reg_demo}
+items=${2:-cold,tta,checks,overhead,overhead_base,split,sample,step,coarse,profile,profile_nosources,tta_envelope,suite_multislice,suite_envelope,reg_demo}
 mkdir -p "$out"
 tmp=$(mktemp -d)
 touch "$tmp/start"
@@ -50,8 +50,12 @@ item() {  # item NAME LIMIT_S COMMAND...: run one item in a fresh process, its o
     "$py" -c "import torch, sys; print(sys.version.split()[0], torch.__version__, torch.cuda.get_device_name(0))"
 } 2>&1 | tee "$out/device.txt"
 
+item cold 90 "$py" -m benchmarks run cold_start --device cuda --repeats 2   # fresh processes: first on a fresh machine
 item tta 90 "$py" -m benchmarks run time_to_accuracy --device cuda
 item checks 240 "$py" -m benchmarks run gpu_checks
+# the finest iteration against its model step (issue 48); BASE_SRC (a `git archive REV src` unpacked) times that code too
+item overhead 90 "$py" -m benchmarks run iteration_overhead --device cuda --rounds 3 --iterations 30
+[ -n "${BASE_SRC:-}" ] && PYTHONPATH="$BASE_SRC:$PYTHONPATH" item overhead_base 90 "$py" -m benchmarks run iteration_overhead --device cuda --rounds 3 --iterations 30
 item split 45 "$py" -m benchmarks run split_field --device cuda --write
 # the README's command on the GPU, with the field window the defaults choose and with the split window
 sample='for w in auto split; do "$0" -c "import sys; from napari_fdt.cli import main; sys.exit(main())" reconstruct sample_data/letters --device "$2" --quiet \
