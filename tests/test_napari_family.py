@@ -51,4 +51,4 @@ def test_a_family_runs_shows_its_members_on_a_slider_and_saves_the_one_shown(mak
     assert member["tau"] == FAMILY_TAUS[other] and member["picked"] is False and "chosen by the user" in member["why"]
     assert report["regularisation"]["tv_xy_weight"] == FAMILY_TAUS[other]
     assert [e["tau"] for e in report["regularisation"]["family"]] == list(FAMILY_TAUS)
-    assert report["config"]["tv_xy_weight"] == FAMILY_TAUS[other] and report["config"]["tv_family"] is False
+    assert report["config"]["tv_xy_weight"] == FAMILY_TAUS[other] and report["config"]["tv_family"] == "false"
