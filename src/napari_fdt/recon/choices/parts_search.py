@@ -18,7 +18,18 @@ from napari_fdt.model.render import iter_batches
 from napari_fdt.physics.aberrations import ZERNIKE_MODES
 from napari_fdt.recon.calibration.adam import Adam
 from napari_fdt.recon.choices.parts_switch import parts_chosen_by, set_parts
-from napari_fdt.recon.loop.model_parts import BINARY_PARTS, FIT_IMAGES, FIT_ITERATIONS, FIT_RATES, FITTED_PARTS, MIN_IMPROVEMENT, PartsChoice, decide, next_pass
+from napari_fdt.recon.loop.model_parts import (
+    BINARY_PARTS,
+    FIT_IMAGES,
+    FIT_ITERATIONS,
+    FIT_RATES,
+    FITTED_PARTS,
+    GRID_TRIAL_TRAINING_IMAGES,
+    MIN_IMPROVEMENT,
+    PartsChoice,
+    decide,
+    next_pass,
+)
 from napari_fdt.recon.loop.run_validation import image_errors, validation
 from napari_fdt.recon.problem.stages import Stage
 
@@ -151,11 +162,6 @@ def try_fitted_parts(rec: Run, stage: Stage, mask: torch.Tensor | None, ref_each
         else:
             cal.restore_values(before)
     return trials, ref_each
-
-
-#: Training images the 2x field grid's trial predicts at most, besides the held-out ones (evenly spread): its model
-#: costs about 4x a camera-grid prediction on the full window (37 s of a 213 s run on letters128 with every image).
-GRID_TRIAL_TRAINING_IMAGES = 32
 
 
 def _test_training_images(rec: Run) -> np.ndarray:

@@ -89,6 +89,9 @@ FINEST_ONLY_PARTS: tuple[str, ...] = ("sub_slices", "field_grid")
 FIT_ITERATIONS = 30
 #: Training images the parameters are fitted to (evenly spread over the training images).
 FIT_IMAGES = 8
+#: Training images the 2x field grid's trial predicts at most, besides the held-out ones (evenly spread): its model
+#: costs about 4x a camera-grid prediction on the full window (37 s of a 213 s run on letters128 with every image).
+GRID_TRIAL_TRAINING_IMAGES = 32
 #: Adam step sizes of the fit: Zernike coefficients (rad), NA scale (relative), pupil edge (relative to NA/λ).
 FIT_RATES: dict[str, float] = {"zernike": 0.05, "na_scale": 0.003, "pupil_edge": 0.005}
 #: The pupil pilot before the stages (:mod:`napari_fdt.recon.choices.parts_pilot`): its steps, and the images of each kind

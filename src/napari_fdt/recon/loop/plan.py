@@ -108,10 +108,14 @@ class Phase:
     trials: bool = False
     parts: tuple[str, ...] = ()
     first_iteration: int = 0
+    #: seconds of the tests at the phase's end (the model parts', :mod:`~napari_fdt.recon.loop.parts_price`) and what
+    #: they test, in words
+    test_s: float = 0.0
+    test: str = ""
 
     @property
     def predicted_s(self) -> float:
-        return self.iterations * self.seconds_per_iteration
+        return self.iterations * self.seconds_per_iteration + self.test_s
 
     @property
     def name(self) -> str:
@@ -136,7 +140,8 @@ class Phase:
     def to_dict(self) -> dict[str, Any]:
         return {"name": self.name, "phase": self.pass_name, "stage": self.stage, "factor": self.factor, "model": self.model,
                 "iterations": self.iterations, "fft_shape": list(self.fft_shape),
-                "seconds_per_iteration": self.seconds_per_iteration, "predicted_s": self.predicted_s}
+                "seconds_per_iteration": self.seconds_per_iteration, "predicted_s": self.predicted_s,
+                **({"test": self.test, "test_s": self.test_s} if self.test_s else {})}
 
 
 @dataclass(frozen=True)
@@ -227,10 +232,18 @@ class Plan:
         kept at the last coarse stage's end)."""
         return replace(self, phases=self.phases[:index] + self.phases[index + 1:], if_part_kept_early_s=None, early_test_stage=None)
 
-    def with_rerun(self, reruns: Sequence[Phase], choice_to_come: bool = False) -> "Plan":
+    def with_rerun(self, reruns: Sequence[Phase], choice_to_come: bool = False, tests_again: bool | None = None) -> "Plan":
         """The plan with the phases of the stages run again appended (their ``pass_name`` set to "rerun"); without
-        ``choice_to_come`` no choice of parts is to come (and nothing more to price for one)."""
+        ``choice_to_come`` no choice of parts is to come (and nothing more to price for one); ``tests_again`` (default:
+        ``choice_to_come``): the parts still to choose are tested again at the last rerun phase's end."""
         phases = self.phases + tuple(replace(p, pass_name=RERUN) for p in reruns)
+        if (choice_to_come if tests_again is None else tests_again) and reruns:  # tested again at the rerun's end,
+            # through the kept parts' model: the first pass's price scaled by the models' step costs
+            tested = [p for p in self.phases if p.test == "testing the model parts"]
+            last = len(phases) - 1
+            if tested and tested[-1].seconds_per_iteration > 0:
+                scale = phases[last].seconds_per_iteration / tested[-1].seconds_per_iteration
+                phases = phases[:last] + (replace(phases[last], test_s=tested[-1].test_s * scale, test=tested[-1].test),)
         if choice_to_come:
             return replace(self, phases=phases, if_finest_parts_kept_s=None, finest_parts=(), if_part_kept_early_s=None,
                            early_test_stage=None)
@@ -248,7 +261,8 @@ class Plan:
 
     def summary(self) -> str:
         """One line per phase with its iterations and predicted seconds, and the total."""
-        lines = [f"  {p.name}: {p.iterations} it, ~{_seconds(p.predicted_s)}" for p in self.phases]
+        lines = [f"  {p.name}: {p.iterations} it, ~{_seconds(p.predicted_s)}"
+                 + (f" (of which ~{_seconds(p.test_s)} {p.test} at its end)" if p.test_s else "") for p in self.phases]
         if self.if_part_kept_s:
             early = ""
             if self.if_part_kept_early_s is not None:
@@ -332,7 +346,8 @@ def stage_phase(config: SolverConfig, optics: Optics, image_shape: tuple[int, in
 def make_plan(config: SolverConfig, optics: Optics, image_shape: tuple[int, int], sources_um: np.ndarray,
               coarse_model: str, device_type: str, choose_tv_at: int | None, pixel_integration: bool = False,
               parts_to_choose: bool = False, pupil_edge: float | None = None, finest_parts: tuple[str, ...] = (),
-              pupil_pilot: bool = False, early_test_stage: int | None = None) -> Plan:
+              pupil_pilot: bool = False, early_test_stage: int | None = None, auto_parts: tuple[str, ...] = (),
+              n_images: int = 0, n_held: int = 0) -> Plan:
     """The plan of a run of ``config`` (as run: its stages resolved) on ``device_type`` ("cpu" or "cuda"), with the
     initial ``sources_um`` (N, 3) µm, ``coarse_model`` resolved for the device; ``choose_tv_at``: the stage at whose
     start the ``"auto"`` TV weights are tried (None: no choice), every weight for :func:`probe_iterations` of its
@@ -343,7 +358,9 @@ def make_plan(config: SolverConfig, optics: Optics, image_shape: tuple[int, int]
     be chosen from the data (:attr:`Plan.if_part_kept_s` then says what keeping one would add); ``finest_parts``: the
     ``"auto"`` parts of the finest stage's model among them (:attr:`Plan.if_finest_parts_kept_s`); ``pupil_pilot``: the
     pupil is tried before the stages (:attr:`Plan.pupil_pilot`); ``early_test_stage``: the stage at whose end the aberrations
-    are tested in the first pass (:func:`~napari_fdt.recon.loop.model_parts.coarse_end_test_planned`; None: no such test)."""
+    are tested in the first pass (:func:`~napari_fdt.recon.loop.model_parts.coarse_end_test_planned`; None: no such test);
+    ``auto_parts``, ``n_images``, ``n_held``: the parts to choose and the images (all, held out) their tests predict,
+    priced at the phases' ends where given (:func:`_with_tests`)."""
     src = np.asarray(sources_um, dtype=np.float64)
     stages = [stage_phase(config, optics, image_shape, src, i, coarse_model, device_type, pixel_integration=pixel_integration,
                           pupil_edge=pupil_edge)
@@ -390,8 +407,39 @@ def make_plan(config: SolverConfig, optics: Optics, image_shape: tuple[int, int]
 
         bounds = REPLICATES * stages_s
     dropped = stages[-1].predicted_s if parts_to_choose and config.parts_backward else None
+    if parts_to_choose and n_images:
+        phases = _with_tests(phases, config, optics, image_shape, src, coarse_model, device_type, pixel_integration,
+                             pupil_edge, auto_parts, n_images, n_held, early)
     return Plan(tuple(phases), "cuda" if device_type == "cuda" else "cpu", extra, early, early_test_stage if early is not None else None,
                 finest_again, finest_parts, dropped, halves, bounds)
+
+
+def _with_tests(phases: list[Phase], config: SolverConfig, optics: Optics, image_shape: tuple[int, int], src: np.ndarray,
+                coarse_model: str, device_type: str, pixel_integration: bool, pupil_edge: float | None,
+                auto_parts: tuple[str, ...], n_images: int, n_held: int, early: float | None) -> list[Phase]:
+    """``phases`` with the model parts' tests priced at the ends of the phases they follow: the finest stage's first run,
+    and the last coarse stage's (where ``early``, that test's price of a keep, is planned)."""
+    from napari_fdt.recon.loop.model_parts import BINARY_PARTS, coarse_test_stage
+    from napari_fdt.recon.loop.parts_price import coarse_end_test_s, finest_end_test_s, test_images
+
+    last, dev = len(config.stages) - 1, ("cuda" if device_type == "cuda" else "cpu")
+    batch = config.stage_batch(last)
+
+    def image_s(parts: tuple[str, ...]) -> float:
+        return stage_phase(config, optics, image_shape, src, last, coarse_model, device_type, RUN, parts,
+                           pixel_integration=pixel_integration, pupil_edge=pupil_edge).seconds_per_iteration / batch
+
+    n_test, n_fit = test_images(n_images, n_held, config.parts_test_images)
+    costs = {"": image_s(()), **{p: image_s((p,)) for p in BINARY_PARTS if p in auto_parts}}
+    out = list(phases)
+    finest = max(i for i, p in enumerate(out) if p.pass_name == RUN and p.stage == last)
+    out[finest] = replace(out[finest], test_s=finest_end_test_s(costs, auto_parts, n_test, n_fit, n_held, dev),
+                          test="testing the model parts")
+    stage = coarse_test_stage(config)
+    runs = [i for i, p in enumerate(out) if p.pass_name == RUN and p.stage == stage]
+    if early is not None and runs:
+        out[runs[-1]] = replace(out[runs[-1]], test_s=coarse_end_test_s(costs[""], n_test, n_fit, dev), test="testing the aberrations")
+    return out
 
 
 def plan_for(acquisition, config: SolverConfig, device_type: str, sources_um: np.ndarray | None = None) -> tuple[Plan, np.ndarray]:
@@ -425,7 +473,8 @@ def plan_for(acquisition, config: SolverConfig, device_type: str, sources_um: np
                      parts_to_choose=split and any(v is None for v in requested.values()),
                      pupil_edge=camera_model(cfg, acquisition).pupil_edge,
                      finest_parts=tuple(p for p in FINEST_ONLY_PARTS if requested[p] is None),
-                     pupil_pilot=pupil_pilot_wanted(cfg, n_held, requested["pupil"] is None), early_test_stage=early)
+                     pupil_pilot=pupil_pilot_wanted(cfg, n_held, requested["pupil"] is None), early_test_stage=early,
+                     auto_parts=tuple(p for p, v in requested.items() if v is None), n_images=len(src), n_held=n_held)
     return plan, src
 
 
@@ -485,7 +534,8 @@ class Pace:
         per_it = s / n if n > 0 else p.seconds_per_iteration * ratio
         left_here = max(0, self.plan.iterations_before(phase) + p.iterations - done)
         ahead = self.plan.phases[phase + 1:]
-        return left_here * per_it + ratio * sum(q.predicted_s for q in ahead) + len(ahead) * self.setup_seconds()
+        test_here = ratio * p.test_s if left_here > 0 else 0.0  # the tests at this phase's end (once its iterations are done, under way)
+        return left_here * per_it + test_here + ratio * sum(q.predicted_s for q in ahead) + len(ahead) * self.setup_seconds()
 
     def measured_seconds(self) -> list[float | None]:
         """Each phase's measured seconds, set-up included (None for a phase not reached)."""

@@ -197,7 +197,8 @@ class Reconstructor:
                               self.device.type, choose_tv_at, pixel_integration=self.parts["pixel_integration"],
                               parts_to_choose=self.parts_choice is None, pupil_edge=self.camera.pupil_edge,
                               finest_parts=tuple(p for p in FINEST_ONLY_PARTS if p in self._auto_parts), pupil_pilot=self.completed_stages == 0 and pilot_due(self),
-                              early_test_stage=early_test_stage(self))
+                              early_test_stage=early_test_stage(self), auto_parts=tuple(self._auto_parts),
+                              n_images=self.acquisition.n_images, n_held=len(self.validation_indices))
         #: the time-left estimate from the plan and the measured times
         self.pace = Pace(self.plan)
         #: the index in :attr:`plan` of the phase now running
@@ -220,7 +221,7 @@ class Reconstructor:
         if any(p.pass_name == RERUN and p.stage == 0 for p in self.plan.phases):
             return
         again = [self._stage_phase(i, RERUN, rerun_parts(self)) for i in range(len(self.config.stages))]
-        self._revise_plan(self.plan.with_rerun(again))
+        self._revise_plan(self.plan.with_rerun(again, tests_again=bool(self._auto_parts)))
 
     def _enter_stage_phase(self, stage_index: int) -> None:
         """Make the phase of stage ``stage_index`` in this pass the current one: a stage before the TV trials (while the
