@@ -32,6 +32,7 @@ def family_on(config: SolverConfig, args: Any, distributed_launch: bool = False)
                 or config.error_bounds)
     return not excluded
 
+
 def member_path(out: Path, tau: float) -> Path:
     """Where member ``tau`` goes beside ``out``: ``RI.tif`` → ``RI_tv3.tif`` (``RI.ome.zarr`` → ``RI_tv3.ome.zarr``)."""
     from napari_fdt.data.io import beside
