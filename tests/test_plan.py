@@ -265,6 +265,14 @@ def test_the_plan_says_what_keeping_a_model_part_would_add(sample) -> None:
     again = [stage_phase(resolve_stage_lengths(cfg, sample.n_images), sample.optics, sample.image_shape, src, i,
                          "multislice", "cpu") for i in range(len(cfg.stages))]
     assert plan.if_part_kept_s == pytest.approx(sum(p.predicted_s for p in again))
+    # the spectral model, where it is to choose, runs a pass per wavelength: its own line (beads and cells_fine, whose
+    # second passes kept it, took 2-5x the line above, 2026-11-28)
+    spectral = [stage_phase(resolve_stage_lengths(cfg, sample.n_images), sample.optics, sample.image_shape, src, i,
+                            "multislice", "cpu", parts=("spectral",)) for i in range(len(cfg.stages))]
+    assert plan.if_spectral_kept_s == pytest.approx(sum(p.predicted_s for p in spectral))
+    assert plan.if_spectral_kept_s == pytest.approx(cfg.n_wavelengths * plan.if_part_kept_s)
+    assert "if it is the spectral model" in plan.summary()
+    assert plan_for(sample, SolverConfig(coherence="mask"), "cpu")[0].if_spectral_kept_s is None
     assert plan.if_part_kept_s > plan.phases[-1].predicted_s  # more than the finest stage alone: the coarse ones too
     assert "if the data ask for a model part" in plan.summary()
     assert plan.to_dict()["predicted_extra_s_if_a_part_is_kept"] == plan.if_part_kept_s

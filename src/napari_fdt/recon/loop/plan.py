@@ -173,6 +173,9 @@ class Plan:
     #: seconds of the error bound after the run (``error_bounds``: the stages again per re-simulated replicate, no
     #: trials); None where it is not asked for
     bounds_s: float | None = None
+    #: seconds more if the part kept is the spectral model (every stage again, one pass per wavelength: 2-5x
+    #: :attr:`if_part_kept_s` on beads and cells_fine, 2026-11-28); None where it is not to choose
+    if_spectral_kept_s: float | None = None
 
     @property
     def pupil_pilot(self) -> bool:
@@ -246,7 +249,7 @@ class Plan:
                 phases = phases[:last] + (replace(phases[last], test_s=tested[-1].test_s * scale, test=tested[-1].test),)
         if choice_to_come:
             return replace(self, phases=phases, if_finest_parts_kept_s=None, finest_parts=(), if_part_kept_early_s=None,
-                           early_test_stage=None)
+                           early_test_stage=None, if_spectral_kept_s=None)
         return Plan(phases, self.device_type, half_sets_s=self.half_sets_s, if_part_dropped_s=self.if_part_dropped_s,
                     bounds_s=self.bounds_s)
 
@@ -257,7 +260,8 @@ class Plan:
                 "predicted_extra_s_if_a_part_is_kept_before_the_finest_stage": self.if_part_kept_early_s,
                 "predicted_extra_s_if_finest_parts_are_kept": self.if_finest_parts_kept_s, "finest_parts": list(self.finest_parts),
                 "pupil_pilot": self.pupil_pilot, "predicted_extra_s_if_a_part_is_dropped_at_the_end": self.if_part_dropped_s,
-                "predicted_extra_s_half_set_resolution": self.half_sets_s, "predicted_extra_s_error_bounds": self.bounds_s}
+                "predicted_extra_s_half_set_resolution": self.half_sets_s, "predicted_extra_s_error_bounds": self.bounds_s,
+                "predicted_extra_s_if_the_spectral_model_is_kept": self.if_spectral_kept_s}
 
     def summary(self) -> str:
         """One line per phase with its iterations and predicted seconds, and the total."""
@@ -269,8 +273,10 @@ class Plan:
                 p = next(q for q in self.phases if q.stage == self.early_test_stage)
                 early = (f" (~{_seconds(self.if_part_kept_early_s)} where stage {p.stage + 1}/{p.n_stages}'s end finds it:"
                          " the finest stage then runs once)")
+            spectral = (f"; ~{_seconds(self.if_spectral_kept_s)} more if it is the spectral model, a pass per wavelength"
+                        if self.if_spectral_kept_s else "")
             lines.append(f"  if the data ask for a model part (pupil, aberrations, ...): every stage again, "
-                         f"~{_seconds(self.if_part_kept_s)} more{early}")
+                         f"~{_seconds(self.if_part_kept_s)} more{early}{spectral}")
         if self.if_finest_parts_kept_s:
             what = " or ".join(PART_WORDS.get(p, p) for p in self.finest_parts)
             lines.append(f"  if the data ask for {what} alone: the finest stage again with them, ~{_seconds(self.if_finest_parts_kept_s)} more")
@@ -382,6 +388,11 @@ def make_plan(config: SolverConfig, optics: Optics, image_shape: tuple[int, int]
                                 pixel_integration=pixel_integration, pupil_edge=pupil_edge).predicted_s for i in range(len(config.stages)))
     elif parts_to_choose:  # parts_rerun "finest": the finest stage again
         extra = stages[-1].predicted_s
+    spectral = None
+    if extra is not None and config.parts_rerun == "stages" and "spectral" in auto_parts:  # every stage again, k passes
+        spectral = sum(stage_phase(config, optics, image_shape, src, i, again, device_type, RERUN, ("spectral",),
+                                   pixel_integration=pixel_integration, pupil_edge=pupil_edge).predicted_s
+                       for i in range(len(config.stages)))
     early = None
     if extra is not None and config.parts_rerun == "stages" and early_test_stage is not None:
         early = extra - stages[-1].predicted_s  # found at the coarse stage's end: the first pass's finest stage never runs
@@ -411,7 +422,7 @@ def make_plan(config: SolverConfig, optics: Optics, image_shape: tuple[int, int]
         phases = _with_tests(phases, config, optics, image_shape, src, coarse_model, device_type, pixel_integration,
                              pupil_edge, auto_parts, n_images, n_held, early)
     return Plan(tuple(phases), "cuda" if device_type == "cuda" else "cpu", extra, early, early_test_stage if early is not None else None,
-                finest_again, finest_parts, dropped, halves, bounds)
+                finest_again, finest_parts, dropped, halves, bounds, spectral)
 
 
 def _with_tests(phases: list[Phase], config: SolverConfig, optics: Optics, image_shape: tuple[int, int], src: np.ndarray,
