@@ -27,10 +27,26 @@ def family_on(config: SolverConfig, args: Any, distributed_launch: bool = False)
 
     if resolve_device(getattr(args, "device", None) or "auto").type != "cuda":
         return False
-    excluded = (config.tv_xy_weight != AUTO or config.tv_z_weight != AUTO or getattr(args, "resume", None) is not None
-                or getattr(args, "checkpoint_dir", None) is not None or distributed_launch or config.half_set_resolution
-                or config.error_bounds)
-    return not excluded
+    return not config.error_bounds and _excluded(config, args, distributed_launch) is None
+
+
+def _excluded(config: SolverConfig, args: Any, distributed_launch: bool) -> FDTInputError | None:
+    """What the command asks for that a family cannot do, as the error :func:`check_family_request` raises (the first
+    of them), or None. (``error_bounds`` with a family is refused by ``cli/bounds.check_bounds_request``.)"""
+    if config.tv_xy_weight != AUTO or config.tv_z_weight != AUTO:
+        return FDTInputError("tv_family", "sets the TV weights of its members itself, but tv_xy_weight or tv_z_weight is a number",
+                             'leave both "auto" with --tv-family, or give the weights without it')
+    if getattr(args, "resume", None) is not None:
+        return FDTInputError("tv_family", "a family cannot be resumed from one member's checkpoint",
+                             "resume without --tv-family (the member's own settings), or start the family again")
+    if getattr(args, "checkpoint_dir", None) is not None:
+        return FDTInputError("tv_family", "members do not write checkpoints yet", "run the family without --checkpoint-dir")
+    if distributed_launch:
+        return FDTInputError("tv_family", "is not run under torchrun yet", "run the family in one process, or one weight per launch")
+    if config.half_set_resolution:
+        return FDTInputError("tv_family", "and half_set_resolution together would run six more half runs",
+                             "run the family, then the picked member's report with --config RI.json --half-set-resolution")
+    return None
 
 
 def member_path(out: Path, tau: float) -> Path:
@@ -74,19 +90,9 @@ def check_family_request(config: SolverConfig, args: Any, out: Path, distributed
     from napari_fdt.data.io import report_path
     from napari_fdt.recon.run.family import FAMILY_TAUS
 
-    if config.tv_xy_weight != AUTO or config.tv_z_weight != AUTO:
-        raise FDTInputError("tv_family", "sets the TV weights of its members itself, but tv_xy_weight or tv_z_weight is a number",
-                            'leave both "auto" with --tv-family, or give the weights without it')
-    if args.resume is not None:
-        raise FDTInputError("tv_family", "a family cannot be resumed from one member's checkpoint",
-                            "resume without --tv-family (the member's own settings), or start the family again")
-    if getattr(args, "checkpoint_dir", None) is not None:
-        raise FDTInputError("tv_family", "members do not write checkpoints yet", "run the family without --checkpoint-dir")
-    if distributed_launch:
-        raise FDTInputError("tv_family", "is not run under torchrun yet", "run the family in one process, or one weight per launch")
-    if config.half_set_resolution:
-        raise FDTInputError("tv_family", "and half_set_resolution together would run six more half runs",
-                            "run the family, then the picked member's report with --config RI.json --half-set-resolution")
+    excluded = _excluded(config, args, distributed_launch)
+    if excluded is not None:
+        raise excluded
     paths = [member_path(out, tau) for tau in FAMILY_TAUS]
     for p in paths:
         for q in (p, report_path(p)):
