@@ -54,6 +54,9 @@ OVERHEAD_S: dict[str, float] = {"cpu": 0.0, "cuda": 1.7e-2}
 PILOT_STEP_OVERHEAD_S = 0.016
 
 
+#: What the tests at the finest stage's end are called in the plan (:attr:`Phase.test`; a rerun's are found by it).
+PARTS_TEST = "testing the model parts"
+
 #: Cost units of the split-field model's source field at one image pixel of one screen of one image (the radial
 #: tables' interpolation and phase, forward and backward): the sample's finest stage on 2 CPU cores, 0.134 s per
 #: iteration on a 192² window against 0.078 s for its FFTs alone (2026-11-26).
@@ -114,8 +117,13 @@ class Phase:
     test: str = ""
 
     @property
+    def iterations_s(self) -> float:
+        """The predicted seconds of the phase's iterations (without the tests at its end)."""
+        return self.iterations * self.seconds_per_iteration
+
+    @property
     def predicted_s(self) -> float:
-        return self.iterations * self.seconds_per_iteration + self.test_s
+        return self.iterations_s + self.test_s
 
     @property
     def name(self) -> str:
@@ -242,7 +250,7 @@ class Plan:
         phases = self.phases + tuple(replace(p, pass_name=RERUN) for p in reruns)
         if (choice_to_come if tests_again is None else tests_again) and reruns:  # tested again at the rerun's end,
             # through the kept parts' model: the first pass's price scaled by the models' step costs
-            tested = [p for p in self.phases if p.test == "testing the model parts"]
+            tested = [p for p in self.phases if p.test == PARTS_TEST]
             last = len(phases) - 1
             if tested and tested[-1].seconds_per_iteration > 0:
                 scale = phases[last].seconds_per_iteration / tested[-1].seconds_per_iteration
@@ -441,11 +449,11 @@ def _with_tests(phases: list[Phase], config: SolverConfig, optics: Optics, image
                            pixel_integration=pixel_integration, pupil_edge=pupil_edge).seconds_per_iteration / batch
 
     n_test, n_fit = test_images(n_images, n_held, config.parts_test_images)
-    costs = {"": image_s(()), **{p: image_s((p,)) for p in BINARY_PARTS if p in auto_parts}}
     out = list(phases)
     finest = max(i for i, p in enumerate(out) if p.pass_name == RUN and p.stage == last)
+    costs = {"": out[finest].seconds_per_iteration / batch, **{p: image_s((p,)) for p in BINARY_PARTS if p in auto_parts}}
     out[finest] = replace(out[finest], test_s=finest_end_test_s(costs, auto_parts, n_test, n_fit, n_held, dev),
-                          test="testing the model parts")
+                          test=PARTS_TEST)
     stage = coarse_test_stage(config)
     runs = [i for i, p in enumerate(out) if p.pass_name == RUN and p.stage == stage]
     if early is not None and runs:
