@@ -28,10 +28,9 @@ import time
 import torch
 
 from benchmarks._results import append_row, results_file
-from benchmarks.step_profile_cpu import ROOT, finest_stage_step
+from benchmarks.step_profile_cpu import ROOT, finest_stage_config, finest_stage_step
 from napari_fdt.data.io import read_acquisition
 from napari_fdt.recon.run.solver import Reconstructor
-from napari_fdt.recon.settings.config import SolverConfig
 
 
 def _sync(device: torch.device) -> None:
@@ -51,7 +50,7 @@ def _per_call_ms(fn, calls: int, device: torch.device) -> float:
 
 def model_step(rec, stage, batch: int):
     """The stage model's images, L2 loss and backward to Δn for ``batch`` fixed images (no optimiser)."""
-    idx = torch.arange(batch, device=stage.images.device if hasattr(stage.images, "device") else None)
+    idx = torch.arange(batch, device=stage.images.device)
     src = stage.stage_sources(rec.calibration.calibrated_sources().detach()[idx])
     target = stage.images[idx]
     dn = rec.volume.delta_n().detach().clone().requires_grad_(True)
@@ -66,12 +65,7 @@ def model_step(rec, stage, batch: int):
 
 def solver_iteration_ms(acq, settings: dict, device: str, iterations: int, skip: int = 20) -> float:
     """Milliseconds per iteration of the finest stage run by ``Reconstructor.run``, iterations skip … skip+iterations."""
-    cfg = SolverConfig.from_dict({**SolverConfig().to_dict(), "tv_xy_weight": 1.0, "tv_z_weight": 0.5,
-                                  "stages": [{"factor": 1, "iterations": 100000, "batch_size": None}],
-                                  "final_stage_min_passes": 0, "early_stopping": "off", "calibrate_pupil": False,
-                                  "calibrate_aberrations": False, "obliquity_correction": False, "coherence": "mask",
-                                  "calibration_from_stage": 0, **settings})
-    rec = Reconstructor(acq, cfg, device=device)
+    rec = Reconstructor(acq, finest_stage_config(100000, **{"calibration_from_stage": 0, **settings}), device=device)
     dev = torch.device(device)
     marks: list[float] = []
     count = [0]

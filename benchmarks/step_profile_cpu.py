@@ -30,15 +30,22 @@ from napari_fdt.recon.settings.config import SolverConfig  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 
 
+def finest_stage_config(iterations: int = 1000, **settings) -> SolverConfig:
+    """The settings of the finest stage run alone: factor 1 for ``iterations``, TV 1/0.5, parts off, no early stopping,
+    ``settings`` on top."""
+    return SolverConfig.from_dict({**SolverConfig().to_dict(), "tv_xy_weight": 1.0, "tv_z_weight": 0.5,
+                                   "stages": [{"factor": 1, "iterations": iterations, "batch_size": None}],
+                                   "final_stage_min_passes": 0, "early_stopping": "off", "calibrate_pupil": False,
+                                   "calibrate_aberrations": False, "obliquity_correction": False, "coherence": "mask",
+                                   **settings})
+
+
 def finest_stage_step(acquisition, device: str = "cpu", **settings):
     """``Reconstructor._step`` of ``acquisition``'s finest stage run alone (factor 1, TV 1/0.5, parts off, no early
     stopping, the default validation split: held-out images in a batch run through the model separately), with
     ``settings`` on top, on ``device``; returns (the step, the Reconstructor, the stage). Shared with
     ``benchmarks/host_syncs.py`` and ``benchmarks/iteration_overhead.py``."""
-    cfg = SolverConfig.from_dict({**SolverConfig().to_dict(), "tv_xy_weight": 1.0, "tv_z_weight": 0.5,
-                                  "stages": [{"factor": 1, "iterations": 1000, "batch_size": None}], "final_stage_min_passes": 0,
-                                  "early_stopping": "off", "calibrate_pupil": False, "calibrate_aberrations": False,
-                                  "obliquity_correction": False, "coherence": "mask", **settings})
+    cfg = finest_stage_config(**settings)
     rec = Reconstructor(acquisition, cfg, device=device)
     stage = rec._build_stage(0)
     rec._carry_volume_to(stage)

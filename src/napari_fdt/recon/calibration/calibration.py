@@ -303,7 +303,7 @@ class RowAdam(torch.optim.Optimizer):
         m, v, t = st["exp_avg"], st["exp_avg_sq"], st["visits"]
         b1, b2 = group["betas"]
         gr = g[rows]
-        sq = gr[:, :, None] * gr[:, None, :] if group["moment"] == "matrix" else gr.square().mean(dim=1, keepdim=True)
+        sq = self._second_moment(group, gr)
         m[rows] = b1 * m[rows] + (1 - b1) * gr
         v[rows] = b2 * v[rows] + (1 - b2) * sq
         t[rows] += 1
@@ -320,13 +320,19 @@ class RowAdam(torch.optim.Optimizer):
         m, v, t = st["exp_avg"], st["exp_avg_sq"], st["visits"]
         b1, b2 = group["betas"]
         visited = (g != 0).any(dim=1)
-        sq = g[:, :, None] * g[:, None, :] if group["moment"] == "matrix" else g.square().mean(dim=1, keepdim=True)
+        sq = self._second_moment(group, g)
         vis = visited.reshape(-1, *([1] * (sq.ndim - 1)))
         m.copy_(torch.where(visited[:, None], b1 * m + (1 - b1) * g, m))
         v.copy_(torch.where(vis, b2 * v + (1 - b2) * sq, v))
         t.add_(visited.to(t.dtype))
         step = self._steps(group, m, v, t.clamp_min(1)[:, None], group.get("cosine_from", 0.0), g.dtype, True)
         p.view(p.shape[0], -1).sub_(torch.where(visited[:, None], step, torch.zeros_like(step)))
+
+    @staticmethod
+    def _second_moment(group: dict, g: torch.Tensor) -> torch.Tensor:
+        """This visit's second moment of gradient rows ``g`` (R, C): their outer products (R, C, C) for the ``"matrix"``
+        moment, their mean squares (R, 1) for the ``"isotropic"`` one."""
+        return g[:, :, None] * g[:, None, :] if group["moment"] == "matrix" else g.square().mean(dim=1, keepdim=True)
 
     @staticmethod
     def _steps(group: dict, m: torch.Tensor, v: torch.Tensor, tr: torch.Tensor, start, dtype: torch.dtype,
