@@ -142,7 +142,7 @@ def test_settings_come_in_tiers_and_the_help_lists_them_in_order() -> None:
     assert set(by_tier["experimental"]) == {"source_step", "calibrate_sources_in_envelope_stages",
                                             "calibrate_source_depth_in_envelope_stages", "restart_source_moments",
                                             "multislice_source_step_scale", "source_step_schedule", "lr_ri_final_ratio",
-                                            "parts_rerun", "parts_test_images", "parts_backward"}
+                                            "parts_rerun", "parts_test_images", "parts_backward", "parts_branch"}
     assert sum(map(len, by_tier.values())) == len(fields)
     rows = [line for line in settings_markdown().splitlines() if line.startswith("| `")]
     tiers_in_table = [line.split("|")[2].strip() for line in rows[: len(fields)]]

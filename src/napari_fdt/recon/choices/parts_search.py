@@ -17,6 +17,7 @@ from napari_fdt.model.gain import least_squares_gain
 from napari_fdt.model.render import iter_batches
 from napari_fdt.physics.aberrations import ZERNIKE_MODES
 from napari_fdt.recon.calibration.adam import Adam
+from napari_fdt.recon.choices.parts_branch import branch_due, branch_trial, defers_the_rest
 from napari_fdt.recon.choices.parts_switch import parts_chosen_by, set_parts
 from napari_fdt.recon.loop.model_parts import (
     BINARY_PARTS,
@@ -65,6 +66,8 @@ def choose_parts(rec: Run, stage: Stage, mask: torch.Tensor | None, should_stop:
         cal.restore_values(start_values)
         set_parts(rec, provisional)
 
+    deferred = False  # a part kept by a branch of training: the parts after it wait for the pass run again with it
+
     for part in [p for p in BINARY_PARTS if p in rec._auto_parts]:
         if rec._stop_requested(should_stop):
             cancel()
@@ -78,13 +81,27 @@ def choose_parts(rec: Run, stage: Stage, mask: torch.Tensor | None, should_stop:
         verdict = decide(np.asarray(ref_each)[trial_positions(rec, cap)], each)
         trials.append({"part": part, "validation_error": err, "image_errors": each, **verdict,
                        "seconds": time.perf_counter() - t1})
+        if not verdict["on"] and branch_due(rec, part):  # blind through this volume: a short branch of training with it
+            set_parts(rec, {**rec.parts, part: False})
+            branch = branch_trial(rec, stage, mask, part, should_stop)
+            if branch is None:
+                cancel()
+                return None
+            trials.append(branch)
+            if branch["on"]:
+                set_parts(rec, {**rec.parts, part: True})
+                if defers_the_rest(rec):  # the other parts: at the end of the pass run again with it (physics first)
+                    stage, mask, deferred = variant, vmask, True
+                    break
+                verdict = {"on": True}
+                each = choice_errors(rec, variant, vmask)[1]  # the next parts' reference
         if verdict["on"]:
-            if cap is not None:  # the next parts' reference: every test image
+            if cap is not None and "test" not in trials[-1]:  # the next parts' reference: every test image
                 err, each = choice_errors(rec, variant, vmask)
             stage, mask, ref_each = variant, vmask, each
         else:
             set_parts(rec, {**rec.parts, part: False})
-    fitted_auto = [p for p in FITTED_PARTS if p in rec._auto_parts]
+    fitted_auto = [p for p in FITTED_PARTS if p in rec._auto_parts and not deferred]
     if fitted_auto:
         tested = try_fitted_parts(rec, stage, mask, ref_each, fitted_auto, should_stop)
         if tested is None:

@@ -11,7 +11,8 @@
     stage's start). At the end of the first multi-slice stage (``"auto"`` model parts): the paired test of
     :mod:`napari_fdt.recon.choices.parts_search`; where a part is kept, every stage runs again with it (``parts_rerun``
     ``"stages"``) or the stage again from its start (``"finest"``). Where the kept parts change only the finest stage's
-    model (:data:`~napari_fdt.recon.loop.model_parts.FINEST_ONLY_PARTS`), the finest stage runs again from its start with
+    model (:data:`~napari_fdt.recon.loop.model_parts.FINEST_ONLY_PARTS`) and the trial through the volume kept them (not
+    a branch of training, :mod:`napari_fdt.recon.choices.parts_branch`), the finest stage runs again from its start with
     them and, under ``"stages"``, the parts not kept are tried again at its end (a part kept then makes every stage run
     again, with all the kept parts).
 :class:`ConfirmModelParts`
@@ -110,7 +111,11 @@ class ChooseModelParts:
         if not any(rec.parts[p] for p in rec._auto_parts):
             return Verdict.GO_ON
         kept = tuple(p for p in rec._auto_parts if rec.parts[p])
-        finest_only = set(kept) <= set(FINEST_ONLY_PARTS)  # the stages before would run as they did
+        # the stages before would run as they did; not where a branch found the part (its volume differs from the thin
+        # model's from the coarse stages on: beads_high seed 1, Δn error 0.455 with the finest stage again, 0.313 with
+        # multi-slice coarse stages; docs/decisions/parts-backward.md)
+        by_branch = any(t.get("test") == "branch" and t["on"] for t in rec.parts_choice.trials)
+        finest_only = set(kept) <= set(FINEST_ONLY_PARTS) and not by_branch
         if rec.config.parts_rerun == "stages" and rec.parts_choice.rerun != "stages" and not finest_only:
             restart_with_parts(rec)  # every stage again from the first with the kept parts (the plan appends them)
             return Verdict.FROM_FIRST_STAGE

@@ -16,7 +16,9 @@ coarse volume's and hides what the model lacks; :mod:`napari_fdt.recon.choices.p
 1. The reference is the model with the auto parts off: the validation error of each held-out image
    (:mod:`napari_fdt.recon.assess.validation`; positions as fitted to their own images, gains in closed form).
 2. The parts without parameters (sub-slices, field grid, pixel integration, obliquity, spectral), one at a time: the held-out images are
-   predicted with the part on, through the same volume.
+   predicted with the part on, through the same volume. Sub-slices or the field grid rejected there are tried again by a
+   short branch of training with and without them (:mod:`napari_fdt.recon.choices.parts_branch`); kept so, every stage
+   runs again with them and the parts not yet tried wait for that pass.
 3. The parts with parameters (pupil, aberrations), one at a time on top of what step 2 kept: their parameters are fitted
    to a subset of the *training* images with the volume and sources held fixed (:data:`FIT_ITERATIONS` Adam steps on
    the images' relative error with closed-form gains; the field leaving the volume is computed once, the pupil is
@@ -46,7 +48,8 @@ from napari_fdt.recon.settings.config import AUTO, SolverConfig
 
 __all__ = ["PARTS", "BINARY_PARTS", "FITTED_PARTS", "SETTING_OF", "STANDARD_ERRORS_LEVEL", "standard_errors", "MIN_IMPROVEMENT", "FIT_ITERATIONS",
            "FIT_IMAGES", "FIT_RATES", "PILOT_ITERATIONS", "PILOT_BATCH",
-           "FINEST_ONLY_PARTS", "PartsChoice", "EarlyTrials", "pupil_pilot_wanted", "decide", "switch", "requested_parts", "requested_for", "parts_stage",
+           "FINEST_ONLY_PARTS", "BRANCH_SHARE", "BRANCH_MIN_ITERATIONS", "branch_iterations", "PartsChoice", "EarlyTrials",
+           "pupil_pilot_wanted", "decide", "switch", "requested_parts", "requested_for", "parts_stage",
            "coarse_test_stage", "coarse_end_test_planned"]
 
 #: Parts without parameters, tried first, in this order (sub-slices first: a spectral model or a pupil fit can absorb
@@ -85,6 +88,20 @@ COARSE_END_MIN_IMPROVEMENT = 0.03
 #: Parts that change only the finest stage's model (not the coarse stages'): where the choice keeps only these, the finest
 #: stage runs again from its start with them (the stages before it would run as they did), whatever ``parts_rerun`` says.
 FINEST_ONLY_PARTS: tuple[str, ...] = ("sub_slices", "field_grid")
+#: The branch trial's iterations (:mod:`napari_fdt.recon.choices.parts_branch`) as a share of the finest stage's.
+#: Measured from the finest stage's end at seed 0 with 8 iterations (5 % of 160): sub-slices lowered the held-out error of beads_high (made with 4 screens per slice) by
+#: 14.5 % (z 10.6) and raised that of beads (made with one screen per slice) by 8.4 % (z −10.0); with 16 iterations
+#: 15.8 % and −6.7 % (docs/decisions/parts-backward.md).
+BRANCH_SHARE = 0.05
+#: The fewest iterations of a branch.
+BRANCH_MIN_ITERATIONS = 4
+
+
+def branch_iterations(finest_iterations: int) -> int:
+    """Iterations of each arm of a branch trial at the end of a finest stage of ``finest_iterations``."""
+    return max(BRANCH_MIN_ITERATIONS, int(round(BRANCH_SHARE * finest_iterations)))
+
+
 #: Adam steps of the fit of a part's parameters with the volume fixed.
 FIT_ITERATIONS = 30
 #: Training images the parameters are fitted to (evenly spread over the training images).

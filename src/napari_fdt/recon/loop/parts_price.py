@@ -9,6 +9,9 @@ images without gradients and fit the pupil's parameters through a cached exit fi
   training images), the stage built again for each; then, where the pupil or the aberrations are to choose, the
   fit images' exit field once and per part :data:`~napari_fdt.recon.loop.model_parts.FIT_ITERATIONS` fit steps on the
   :data:`~napari_fdt.recon.loop.model_parts.FIT_IMAGES` fit images and the test images again;
+- where the trial through the volume rejects sub-slices or the 2x field grid, a branch of training
+  (:mod:`napari_fdt.recon.choices.parts_branch`): its iterations without the part and with it, and the held-out images
+  predicted at each arm's end;
 - at the last coarse stage's end (:func:`~napari_fdt.recon.loop.model_parts.coarse_end_test_planned`): the finest
   stage built, its reference, and the aberrations' fit and prediction.
 
@@ -19,7 +22,7 @@ plan prices the parts' tests").
 
 from __future__ import annotations
 
-from napari_fdt.recon.loop.model_parts import BINARY_PARTS, FIT_IMAGES, FIT_ITERATIONS, FITTED_PARTS, GRID_TRIAL_TRAINING_IMAGES
+from napari_fdt.recon.loop.model_parts import BINARY_PARTS, FINEST_ONLY_PARTS, FIT_IMAGES, FIT_ITERATIONS, FITTED_PARTS, GRID_TRIAL_TRAINING_IMAGES
 
 __all__ = ["PREDICT_SHARE", "FIT_SHARE", "FIT_STEP_S", "TRIAL_SETUP_S", "test_images", "finest_end_test_s", "coarse_end_test_s"]
 
@@ -50,14 +53,18 @@ def _fitted_s(image_s: float, n_test: int, n_fit: int, n_parts: int, device_type
 
 
 def finest_end_test_s(image_s: dict[str, float], auto_parts: tuple[str, ...], n_test: int, n_fit: int, n_held: int,
-                      device_type: str) -> float:
+                      device_type: str, branch_images: int = 0) -> float:
     """Seconds of the test at the finest stage's end. ``image_s``: a training step's seconds per image of the finest
-    stage's model, as it is (key ``""``) and with each binary part in ``auto_parts`` on (key: the part)."""
+    stage's model, as it is (key ``""``) and with each binary part in ``auto_parts`` on (key: the part);
+    ``branch_images``: the images one arm of a branch trial trains on (its iterations × the batch; 0 without branches;
+    priced wherever the part is to choose: the trial through the volume rejects it on most scenes)."""
     base = image_s[""]
     total = n_test * PREDICT_SHARE * base
     for part in (p for p in BINARY_PARTS if p in auto_parts):
         n = n_held + min(n_test - n_held, GRID_TRIAL_TRAINING_IMAGES) if part == "field_grid" else n_test
         total += TRIAL_SETUP_S[device_type] + n * PREDICT_SHARE * image_s[part]
+        if branch_images and part in FINEST_ONLY_PARTS:
+            total += (branch_images + n_held * PREDICT_SHARE) * (base + image_s[part]) + TRIAL_SETUP_S[device_type]
     return total + _fitted_s(base, n_test, n_fit, sum(p in auto_parts for p in FITTED_PARTS), device_type)
 
 

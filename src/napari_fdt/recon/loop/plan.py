@@ -24,7 +24,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from napari_fdt.physics.optics import Optics
-from napari_fdt.recon.loop.model_parts import PILOT_BATCH, PILOT_ITERATIONS
+from napari_fdt.recon.loop.model_parts import PILOT_BATCH, PILOT_ITERATIONS, branch_iterations
 from napari_fdt.recon.loop.phases import PUPIL_PILOT, RERUN, RUN, TV_CHOICE, probe_iterations
 from napari_fdt.recon.loop.regularisation import TV_PATH, selection_stages
 from napari_fdt.recon.problem.stage_spec import rerun_coarse_model
@@ -452,7 +452,8 @@ def _with_tests(phases: list[Phase], config: SolverConfig, optics: Optics, image
     out = list(phases)
     finest = max(i for i, p in enumerate(out) if p.pass_name == RUN and p.stage == last)
     costs = {"": out[finest].seconds_per_iteration / batch, **{p: image_s((p,)) for p in BINARY_PARTS if p in auto_parts}}
-    out[finest] = replace(out[finest], test_s=finest_end_test_s(costs, auto_parts, n_test, n_fit, n_held, dev),
+    branch = branch_iterations(config.stages[last].iterations) * batch if config.parts_branch and n_held >= 2 else 0
+    out[finest] = replace(out[finest], test_s=finest_end_test_s(costs, auto_parts, n_test, n_fit, n_held, dev, branch),
                           test=PARTS_TEST)
     stage = coarse_test_stage(config)
     runs = [i for i, p in enumerate(out) if p.pass_name == RUN and p.stage == stage]

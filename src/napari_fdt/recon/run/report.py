@@ -169,12 +169,14 @@ def describe_parts(summary: dict[str, Any]) -> str:
         said = [again[t.get("after", "stages")]] if t.get("pass", 1) > 1 else []
         said += [f"at stage {t['at_stage'] + 1}'s end"] if "at_stage" in t else []
         said += ["before the stages, at Δn = 0"] if t.get("pass", 1) == 0 else []
+        said += [f"by {t['iterations']} iterations of training with it and without"] if t.get("test") == "branch" else []
         said = [w for w in said if w]
         return f" ({', '.join(said)})" if said else ""
 
-    tried = ", ".join(f"{t['part']}{when(t)} "
-                      f"{'on' if t['on'] else 'off'} "
-                      f"({-100 * t.get('improvement', 0.0) / max(t.get('reference_error') or chosen['reference_error'] or 1e-30, 1e-30):+.1f} %)"
+    def base(t: dict[str, Any]) -> float:  # the error the change is relative to (a branch's: its arm without the part)
+        return max(t.get("validation_error_without") or t.get("reference_error") or chosen["reference_error"] or 1e-30, 1e-30)
+
+    tried = ", ".join(f"{t['part']}{when(t)} {'on' if t['on'] else 'off'} ({-100 * t.get('improvement', 0.0) / base(t):+.1f} %)"
                       for t in chosen["trials"] if "improvement" in t)
     where = f"in stage {chosen['stage'] + 1}" if chosen["stage"] >= 0 else "before the stages"
     return (f"model parts on: {needed} (chosen by the validation error {chosen['reference_error']:.4f} {where}, "

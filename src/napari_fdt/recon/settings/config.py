@@ -317,6 +317,12 @@ class SolverConfig:
         "images (the admission's paired test); a part that no longer helps is dropped and the finest stage runs again without "
         "it, kept where the held-out images are not worse by more than noise (docs/solver.md, \"Model parts\")",
         fix="use true or false", tier="experimental")
+    parts_branch: bool = setting(
+        True, description="where the trial through the volume rejects sub-slices or the 2x field grid (a volume trained without "
+        "them has adapted to the simpler model), try them again by a short branch of training: 5 % of the finest stage's "
+        "iterations from its end with the part and without it, the held-out images paired at the two ends; a part kept "
+        "so sends the other parts to the end of the stage run again with it (docs/decisions/parts-backward.md)",
+        fix="use true or false", tier="experimental")
     parts_pilot: bool = setting(
         True, description="also choose the \"auto\" pupil parts (`calibrate_pupil`, `calibrate_aberrations`) before the finest stage: "
         "the pupil before the stages, from a pilot at Δn = 0 (the sources' positions and gains fitted through the finest stage's "
