@@ -56,9 +56,8 @@ def branch_due(rec: Run, part: str) -> bool:
 def defers_the_rest(rec: Run) -> bool:
     """Whether a part kept by a branch trial sends the parts not yet tried to the finest stage's end of the pass that runs
     every stage again with it (the first choice, with ``parts_rerun`` ``"stages"``: the parts not kept are tried again
-    there): they are then tried
-    through a volume trained with the more exact model, not through one that a part able to absorb any residual (the
-    spectral model, the aberrations) would mend in its place."""
+    there): they are then tried through a volume trained with the more exact model, not through one that a part able to
+    absorb any residual (the spectral model, the aberrations) would mend in its place."""
     return rec.parts_choice is None and rec.config.parts_rerun == "stages"
 
 

@@ -94,9 +94,8 @@ def choose_parts(rec: Run, stage: Stage, mask: torch.Tensor | None, should_stop:
                     stage, mask, deferred = variant, vmask, True
                     break
                 verdict = {"on": True}
-                each = choice_errors(rec, variant, vmask)[1]  # the next parts' reference
         if verdict["on"]:
-            if cap is not None and "test" not in trials[-1]:  # the next parts' reference: every test image
+            if cap is not None:  # the next parts' reference: every test image
                 err, each = choice_errors(rec, variant, vmask)
             stage, mask, ref_each = variant, vmask, each
         else:

@@ -89,9 +89,9 @@ COARSE_END_MIN_IMPROVEMENT = 0.03
 #: stage runs again from its start with them (the stages before it would run as they did), whatever ``parts_rerun`` says.
 FINEST_ONLY_PARTS: tuple[str, ...] = ("sub_slices", "field_grid")
 #: The branch trial's iterations (:mod:`napari_fdt.recon.choices.parts_branch`) as a share of the finest stage's.
-#: Measured from the finest stage's end at seed 0 with 8 iterations (5 % of 160): sub-slices lowered the held-out error of beads_high (made with 4 screens per slice) by
-#: 14.5 % (z 10.6) and raised that of beads (made with one screen per slice) by 8.4 % (z −10.0); with 16 iterations
-#: 15.8 % and −6.7 % (docs/decisions/parts-backward.md).
+#: Measured from the finest stage's end at seed 0 with 8 iterations (5 % of 160): sub-slices lowered the held-out error
+#: of beads_high (made with 4 screens per slice) by 14.5 % (z 10.6) and raised that of beads (made with one screen per
+#: slice) by 8.4 % (z −10.0); with 16 iterations 15.7 % and −6.7 % (docs/decisions/parts-backward.md).
 BRANCH_SHARE = 0.05
 #: The fewest iterations of a branch.
 BRANCH_MIN_ITERATIONS = 4

@@ -321,7 +321,7 @@ class SolverConfig:
         True, description="where the trial through the volume rejects sub-slices or the 2x field grid (a volume trained without "
         "them has adapted to the simpler model), try them again by a short branch of training: 5 % of the finest stage's "
         "iterations from its end with the part and without it, the held-out images paired at the two ends; a part kept "
-        "so sends the other parts to the end of the stage run again with it (docs/decisions/parts-backward.md)",
+        "so makes every stage run again with it, the other parts tried in that pass (docs/decisions/parts-backward.md)",
         fix="use true or false", tier="experimental")
     parts_pilot: bool = setting(
         True, description="also choose the \"auto\" pupil parts (`calibrate_pupil`, `calibrate_aberrations`) before the finest stage: "
