@@ -27,6 +27,7 @@ from napari_fdt.errors import FDTInputError
 __all__ = [
     "SCHEMA_CONFIG",
     "accepts_auto",
+    "number_words",
     "bounds",
     "choices",
     "example",
@@ -126,12 +127,21 @@ def _inner_model(annotation: Any) -> type | None:
     return None
 
 
-def accepts_auto(info: FieldInfo) -> bool:
-    """Whether a numeric field also takes the string ``"auto"`` (a value chosen from the data)."""
+def number_words(info: FieldInfo) -> tuple[str, ...]:
+    """The words a numeric field also takes (``("auto",)`` for ``sub_slices``; ``field_oversampling`` takes
+    ``"before_spectral"`` too), else ``()``."""
     annotation = info.annotation
     if typing.get_origin(annotation) not in (Union, types.UnionType):
-        return False
-    return any(typing.get_origin(a) is Literal and typing.get_args(a) == ("auto",) for a in typing.get_args(annotation))
+        return ()
+    args = typing.get_args(annotation)
+    if all(typing.get_origin(a) is Literal or a is type(None) for a in args):
+        return ()
+    return tuple(w for a in args if typing.get_origin(a) is Literal for w in typing.get_args(a))
+
+
+def accepts_auto(info: FieldInfo) -> bool:
+    """Whether a numeric field also takes the string ``"auto"`` (a value chosen from the data)."""
+    return "auto" in number_words(info)
 
 
 def scalar_type(info: FieldInfo) -> tuple[type | None, bool]:
@@ -143,7 +153,7 @@ def scalar_type(info: FieldInfo) -> tuple[type | None, bool]:
     if typing.get_origin(annotation) in (Union, types.UnionType):
         optional = type(None) in typing.get_args(annotation)
         args = [a for a in typing.get_args(annotation) if a is not type(None)
-                and not (typing.get_origin(a) is Literal and typing.get_args(a) == ("auto",))]
+                and not (typing.get_origin(a) is Literal and number_words(info))]
         if len(args) != 1:
             return None, optional
         annotation = args[0]
@@ -300,7 +310,7 @@ def _markdown_value(value: Any) -> str:
 def _markdown_type(info: FieldInfo) -> str:
     kind, optional = scalar_type(info)
     options = choices(info)
-    auto = ' or `"auto"`' if accepts_auto(info) else ""
+    auto = "".join(f' or `"{w}"`' for w in number_words(info))
     if options is not None:
         text = " \\| ".join(f'`"{c}"`' for c in options)
     elif kind is not None:

@@ -32,11 +32,12 @@ def _schema_help(info, default) -> str:
     return text.replace("%", "%%")
 
 
-def _number_or_auto(kind: type):
-    """An argparse type for a number that may also be ``auto``."""
+def _number_or_words(kind: type, words: tuple[str, ...]):
+    """An argparse type for a number that may also be one of ``words`` (``auto``)."""
     def parse(text: str):
-        return "auto" if text.strip().lower() == "auto" else kind(text)
-    parse.__name__ = f"{kind.__name__} or auto"
+        word = text.strip().lower()
+        return word if word in words else kind(text)
+    parse.__name__ = " or ".join((kind.__name__,) + words)
     return parse
 
 
@@ -45,7 +46,7 @@ def _add_schema_args(group, model, defaults: dict | None = None, tiers: tuple[st
     with the ``Literal`` choices and the description as help. With ``defaults`` None every flag defaults to
     None (unset: it overrides nothing); else the flag's default is ``defaults[name]``. ``tiers``: only the fields of
     these tiers (:data:`napari_fdt.schema.TIERS`; None: all)."""
-    from napari_fdt.schema import accepts_auto, choices, scalar_type, schema_fields, tier
+    from napari_fdt.schema import choices, number_words, scalar_type, schema_fields, tier
 
     for name, info in schema_fields(model).items():
         kind, _ = scalar_type(info)
@@ -57,7 +58,7 @@ def _add_schema_args(group, model, defaults: dict | None = None, tiers: tuple[st
         if kind is bool:
             kwargs["action"] = argparse.BooleanOptionalAction
         else:
-            kwargs["type"] = _number_or_auto(kind) if accepts_auto(info) else kind
+            kwargs["type"] = _number_or_words(kind, number_words(info)) if number_words(info) else kind
             if choices(info) is not None:
                 kwargs["choices"] = choices(info)
             if tuple(choices(info) or ()) == ("auto", "true", "false"):  # a switch: the flag alone means "true"

@@ -33,6 +33,7 @@ from napari_fdt.recon.loop.model_parts import (
 )
 from napari_fdt.recon.loop.run_validation import image_errors, validation
 from napari_fdt.recon.problem.stages import Stage
+from napari_fdt.recon.settings.config import BEFORE_SPECTRAL
 
 if TYPE_CHECKING:
     from napari_fdt.recon.loop.interface import Run
@@ -66,12 +67,11 @@ def choose_parts(rec: Run, stage: Stage, mask: torch.Tensor | None, should_stop:
         cal.restore_values(start_values)
         set_parts(rec, provisional)
 
-    deferred = False  # a part kept by a branch of training: the parts after it wait for the pass run again with it
-
-    for part in [p for p in BINARY_PARTS if p in rec._auto_parts]:
-        if rec._stop_requested(should_stop):
-            cancel()
-            return None
+    def trial(part: str) -> str | None:
+        """Try ``part`` through the volume (and by a branch where that rejects a part of the finest model); the
+        outcome: "on", "off", "deferred" (kept by a branch, the parts after it wait for the pass run again with it) or
+        None when stopped."""
+        nonlocal stage, mask, ref_each
         t1 = time.perf_counter()
         set_parts(rec, {**rec.parts, part: True})
         variant = stage if part == "spectral" else rec._build_stage(stage.index)
@@ -85,21 +85,62 @@ def choose_parts(rec: Run, stage: Stage, mask: torch.Tensor | None, should_stop:
             set_parts(rec, {**rec.parts, part: False})
             branch = branch_trial(rec, stage, mask, part, should_stop)
             if branch is None:
-                cancel()
                 return None
             trials.append(branch)
             if branch["on"]:
                 set_parts(rec, {**rec.parts, part: True})
                 if defers_the_rest(rec):  # the other parts: at the end of the pass run again with it (physics first)
-                    stage, mask, deferred = variant, vmask, True
-                    break
+                    stage, mask = variant, vmask
+                    return "deferred"
                 verdict = {"on": True}
-        if verdict["on"]:
-            if cap is not None:  # the next parts' reference: every test image
-                err, each = choice_errors(rec, variant, vmask)
-            stage, mask, ref_each = variant, vmask, each
-        else:
+        if not verdict["on"]:
             set_parts(rec, {**rec.parts, part: False})
+            return "off"
+        if cap is not None:  # the next parts' reference: every test image
+            err, each = choice_errors(rec, variant, vmask)
+        stage, mask, ref_each = variant, vmask, each
+        return "on"
+
+    def grid_before_spectral(before: tuple[torch.Tensor | None, list[float]]) -> str | None:
+        """The spectral model just passed its trial under ``field_oversampling = "before_spectral"``. Its blur can absorb
+        what a field grid too coarse for the scattered light aliases (beads made on the 2x grid kept it in the grid's
+        place; docs/decisions/parts-backward.md), so the grid, the physics, is tried first, from the reference before
+        the spectral model (``before``: the loss mask and the per-image errors). The grid rejected: the spectral model is kept as tried. The grid kept: the
+        spectral model's trial is set aside (``"waits_for"``) and, unless the parts wait for a pass run again with the
+        grid, tried again through the grid's model. The outcome as :func:`trial`'s."""
+        nonlocal mask, ref_each
+        spectral, kept = trials[-1], (mask, ref_each)
+        set_parts(rec, {**rec.parts, "spectral": False})
+        mask, ref_each = before
+        start = len(trials)
+        grid = trial("field_grid")
+        for t in trials[start:]:
+            t["before_part"] = "spectral"
+        if grid == "off":  # the spectral model as tried
+            set_parts(rec, {**rec.parts, "spectral": True})
+            mask, ref_each = kept
+            return "on"
+        if grid is not None:
+            spectral.update(on=False, waits_for="field_grid")
+        return trial("spectral") if grid == "on" else grid
+
+    # the 2x grid under "before_spectral": tried only where the spectral model would be kept, and before it is
+    grid_first = "field_grid" in rec._auto_parts and rec.config.field_oversampling == BEFORE_SPECTRAL
+    outcome: str | None = "off"
+    for part in [p for p in BINARY_PARTS if p in rec._auto_parts and not (p == "field_grid" and grid_first)]:
+        if rec._stop_requested(should_stop):
+            cancel()
+            return None
+        before = (mask, ref_each)
+        outcome = trial(part)
+        if outcome == "on" and part == "spectral" and grid_first:
+            outcome = grid_before_spectral(before)
+        if outcome is None:
+            cancel()
+            return None
+        if outcome == "deferred":
+            break
+    deferred = outcome == "deferred"
     fitted_auto = [p for p in FITTED_PARTS if p in rec._auto_parts and not deferred]
     if fitted_auto:
         tested = try_fitted_parts(rec, stage, mask, ref_each, fitted_auto, should_stop)

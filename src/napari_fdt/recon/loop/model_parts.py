@@ -44,7 +44,7 @@ from typing import Any
 import numpy as np
 
 from napari_fdt.recon.problem.stages import camera_grid_drops_band, resolved_pixel_integration, stated_pixel_integration, thick_slices
-from napari_fdt.recon.settings.config import AUTO, SolverConfig
+from napari_fdt.recon.settings.config import AUTO, SolverConfig, grid_to_choose
 
 __all__ = ["PARTS", "BINARY_PARTS", "FITTED_PARTS", "SETTING_OF", "STANDARD_ERRORS_LEVEL", "standard_errors", "MIN_IMPROVEMENT", "FIT_ITERATIONS",
            "FIT_IMAGES", "FIT_RATES", "PILOT_ITERATIONS", "PILOT_BATCH",
@@ -132,7 +132,7 @@ def requested_parts(config: SolverConfig) -> dict[str, bool | None]:
     ``pixel_integration`` stated by ``acquisition.json`` is resolved by the caller)."""
     out = {part: switch(getattr(config, SETTING_OF[part])) for part in PARTS if part not in ("spectral", "sub_slices", "field_grid")}
     out["sub_slices"] = None if config.sub_slices == AUTO else config.sub_slices > 1
-    out["field_grid"] = None if config.field_oversampling == AUTO else config.field_oversampling == 2
+    out["field_grid"] = None if grid_to_choose(config.field_oversampling) else config.field_oversampling == 2
     coherence = config.coherence
     out["spectral"] = None if coherence == AUTO else coherence in ("spectral", "mask+spectral")
     return {part: out[part] for part in PARTS}

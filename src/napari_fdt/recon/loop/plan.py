@@ -28,7 +28,7 @@ from napari_fdt.recon.loop.model_parts import PILOT_BATCH, PILOT_ITERATIONS, bra
 from napari_fdt.recon.loop.phases import PUPIL_PILOT, RERUN, RUN, TV_CHOICE, probe_iterations
 from napari_fdt.recon.loop.regularisation import TV_PATH, selection_stages
 from napari_fdt.recon.problem.stage_spec import rerun_coarse_model
-from napari_fdt.recon.settings.config import SolverConfig
+from napari_fdt.recon.settings.config import BEFORE_SPECTRAL, SolverConfig
 
 __all__ = ["SECONDS_PER_UNIT", "OVERHEAD_S", "SOURCE_FIELD_UNITS", "Phase", "Plan", "Pace", "iteration_units", "envelope_padded_shape", "stage_phase",
            "make_plan", "plan_for"]
@@ -427,17 +427,21 @@ def make_plan(config: SolverConfig, optics: Optics, image_shape: tuple[int, int]
         bounds = REPLICATES * stages_s
     dropped = stages[-1].predicted_s if parts_to_choose and config.parts_backward else None
     if parts_to_choose and n_images:
-        phases = _with_tests(phases, config, optics, image_shape, src, coarse_model, device_type, pixel_integration,
-                             pupil_edge, auto_parts, n_images, n_held, early)
+        phases, grid_first_s = _with_tests(phases, config, optics, image_shape, src, coarse_model, device_type, pixel_integration,
+                                           pupil_edge, auto_parts, n_images, n_held, early)
+        if spectral is not None:  # under "before_spectral" the 2x grid is tested before a spectral model is kept
+            spectral += grid_first_s
     return Plan(tuple(phases), "cuda" if device_type == "cuda" else "cpu", extra, early, early_test_stage if early is not None else None,
                 finest_again, finest_parts, dropped, halves, bounds, spectral)
 
 
 def _with_tests(phases: list[Phase], config: SolverConfig, optics: Optics, image_shape: tuple[int, int], src: np.ndarray,
                 coarse_model: str, device_type: str, pixel_integration: bool, pupil_edge: float | None,
-                auto_parts: tuple[str, ...], n_images: int, n_held: int, early: float | None) -> list[Phase]:
+                auto_parts: tuple[str, ...], n_images: int, n_held: int, early: float | None) -> tuple[list[Phase], float]:
     """``phases`` with the model parts' tests priced at the ends of the phases they follow: the finest stage's first run,
-    and the last coarse stage's (where ``early``, that test's price of a keep, is planned)."""
+    and the last coarse stage's (where ``early``, that test's price of a keep, is planned); and the seconds of the 2x
+    grid's test where ``field_oversampling`` is ``"before_spectral"`` (tested only before a spectral model is kept: not
+    in the finest stage's price), else 0."""
     from napari_fdt.recon.loop.model_parts import BINARY_PARTS, coarse_test_stage
     from napari_fdt.recon.loop.parts_price import coarse_end_test_s, finest_end_test_s, test_images
 
@@ -453,13 +457,16 @@ def _with_tests(phases: list[Phase], config: SolverConfig, optics: Optics, image
     finest = max(i for i, p in enumerate(out) if p.pass_name == RUN and p.stage == last)
     costs = {"": out[finest].seconds_per_iteration / batch, **{p: image_s((p,)) for p in BINARY_PARTS if p in auto_parts}}
     branch = branch_iterations(config.stages[last].iterations) * batch if config.parts_branch and n_held >= 2 else 0
-    out[finest] = replace(out[finest], test_s=finest_end_test_s(costs, auto_parts, n_test, n_fit, n_held, dev, branch),
-                          test=PARTS_TEST)
+    grid_later = "field_grid" in auto_parts and config.field_oversampling == BEFORE_SPECTRAL
+    tested = tuple(p for p in auto_parts if not (grid_later and p == "field_grid"))
+    test_s = finest_end_test_s(costs, tested, n_test, n_fit, n_held, dev, branch)
+    grid_s = finest_end_test_s(costs, tested + ("field_grid",), n_test, n_fit, n_held, dev, branch) - test_s if grid_later else 0.0
+    out[finest] = replace(out[finest], test_s=test_s, test=PARTS_TEST)
     stage = coarse_test_stage(config)
     runs = [i for i, p in enumerate(out) if p.pass_name == RUN and p.stage == stage]
     if early is not None and runs:
         out[runs[-1]] = replace(out[runs[-1]], test_s=coarse_end_test_s(costs[""], n_test, n_fit, dev), test="testing the aberrations")
-    return out
+    return out, grid_s
 
 
 def plan_for(acquisition, config: SolverConfig, device_type: str, sources_um: np.ndarray | None = None) -> tuple[Plan, np.ndarray]:

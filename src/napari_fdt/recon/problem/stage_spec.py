@@ -13,7 +13,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any, Collection
 
-from napari_fdt.recon.settings.config import SolverConfig
+from napari_fdt.recon.settings.config import SolverConfig, grid_to_choose
 
 __all__ = ["AUTO_SUB_SLICES", "CameraModel", "StageSpec", "runs_envelope", "rerun_coarse_model", "stage_sub_slices", "stage_field_oversampling", "fine_field_grid",
            "stage_spec"]
@@ -60,8 +60,9 @@ def stage_sub_slices(setting: int | str, part_on: bool, factor: int) -> int:
 
 def stage_field_oversampling(setting: int | str, part_on: bool) -> int:
     """The field grid's factor over the camera's for the ``field_oversampling`` setting: the number when given; for
-    ``"auto"`` 2 where the part (``field_grid``) is on, else 1 (it applies to factor-1 stages: :func:`fine_field_grid`)."""
-    if setting != "auto":
+    ``"auto"`` and ``"before_spectral"`` 2 where the part (``field_grid``) is on, else 1 (it applies to factor-1 stages:
+    :func:`fine_field_grid`)."""
+    if not grid_to_choose(setting):
         return int(setting)
     return 2 if part_on else 1
 

@@ -170,6 +170,8 @@ def describe_parts(summary: dict[str, Any]) -> str:
         said += [f"at stage {t['at_stage'] + 1}'s end"] if "at_stage" in t else []
         said += ["before the stages, at Δn = 0"] if t.get("pass", 1) == 0 else []
         said += [f"by {t['iterations']} iterations of training with it and without"] if t.get("test") == "branch" else []
+        said += [f"tried before keeping the {t['before_part']} model"] if t.get("before_part") else []
+        said += ["set aside: the 2x field grid tried first"] if t.get("waits_for") == "field_grid" else []
         said = [w for w in said if w]
         return f" ({', '.join(said)})" if said else ""
 

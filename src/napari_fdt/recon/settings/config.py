@@ -22,7 +22,7 @@ from pydantic import BeforeValidator, Field, model_validator
 from napari_fdt.errors import FDTInputError, FDTWarning
 from napari_fdt.schema import markdown_table, schema_dataclass, setting
 
-__all__ = ["StageConfig", "SolverConfig", "AutoWeight", "AUTO", "load_config", "COHERENCE_MODELS", "BACKWARD_MODES", "COARSE_MODELS",
+__all__ = ["StageConfig", "SolverConfig", "AutoWeight", "AUTO", "BEFORE_SPECTRAL", "grid_to_choose", "load_config", "COHERENCE_MODELS", "BACKWARD_MODES", "COARSE_MODELS",
            "resolve_coarse_model", "settings_markdown"]
 
 #: "auto": the spectral model where the validation error shows it (:mod:`napari_fdt.recon.loop.model_parts`), else none.
@@ -86,7 +86,15 @@ AutoWeight = typing.Union[typing.Annotated[float, Field(ge=0, strict=True)], Lit
 #: says the slices are thick (:mod:`napari_fdt.recon.loop.model_parts`).
 SubSlices = typing.Union[typing.Annotated[int, Field(ge=1, le=16, strict=True)], Literal["auto"]]
 #: The finest stage's field grid over the camera's: 1, 2, or ``"auto"`` (a model part, as :data:`SubSlices`).
-FieldOversampling = typing.Union[typing.Annotated[int, Field(ge=1, le=2, strict=True)], Literal["auto"]]
+FieldOversampling = typing.Union[typing.Annotated[int, Field(ge=1, le=2, strict=True)], Literal["auto", "before_spectral"]]
+#: ``field_oversampling``'s value that tries the 2x field grid only where the spectral model would be kept without it.
+BEFORE_SPECTRAL = "before_spectral"
+
+
+def grid_to_choose(field_oversampling: int | str) -> bool:
+    """Whether ``field_oversampling`` leaves the 2x field grid (part ``field_grid``) to the data: ``"auto"`` or
+    ``"before_spectral"``."""
+    return field_oversampling in ("auto", BEFORE_SPECTRAL)
 
 #: The value of a setting chosen from the data.
 AUTO = "auto"
@@ -284,9 +292,11 @@ class SolverConfig:
         "sample scatters beyond the camera grid's Nyquist is propagated, not aliased; docs/physics.md, \"A finer field grid\"); "
         "about 4× the finest stage's cost and memory. `\"auto\"`: a model part tried with 2 where the camera grid's Nyquist "
         "1/(2·pixel_size_um) is below the medium's n_b/λ and the finest stage fits in memory with it, kept where the held-out "
-        "images show it (the finest stage then runs again with it). Not the default: no suite scene kept it, those made on the "
-        "2x grid included, and its trial costs 4-6 % of a run (docs/decisions/model-parts.md, \"Forward-accuracy parts\")",
-        fix="1 (the camera grid), 2 or \"auto\"")
+        "images show it (the finest stage then runs again with it). `\"before_spectral\"`: the same part, tried only where the "
+        "spectral model would be kept, and before it: that model's blur can absorb what a too-coarse field grid aliases "
+        "(beads made on the 2x grid kept it in the grid's place; docs/decisions/parts-backward.md); elsewhere the run is the "
+        "camera grid's to the bit",
+        fix="1 (the camera grid), 2, \"auto\" or \"before_spectral\"")
     field_window: FieldWindow = setting(
         "auto", strict=False, description="window the multi-slice model's fields run on: `\"full\"` (each source's whole field, on a "
         "window that keeps its periodic copies off the image: 7-16x the image's area on the suite), `\"split\"` (the sources' "
