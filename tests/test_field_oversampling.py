@@ -152,7 +152,8 @@ def test_auto_field_grid_is_tried_only_where_the_camera_grid_aliases_the_medium_
 
     camera = dict(OPTICS)
     auto = SolverConfig(field_oversampling="auto")
-    assert requested_for(SolverConfig(), SimpleNamespace(optics=Optics(**camera), extra={}))[0]["field_grid"] is False  # default 1
+    assert requested_for(SolverConfig(field_oversampling=1), SimpleNamespace(optics=Optics(**camera), extra={}))[0]["field_grid"] is False
+    assert requested_for(SolverConfig(), SimpleNamespace(optics=Optics(**camera), extra={}))[0]["field_grid"] is None  # before_spectral
     requested, why = requested_for(auto, SimpleNamespace(optics=Optics(**camera), extra={}))
     assert requested["field_grid"] is None and why["field_grid"] == "setting"
     requested, why = requested_for(auto, SimpleNamespace(optics=Optics(**{**camera, "pixel_size_um": 0.2}), extra={}))

@@ -88,3 +88,18 @@ def test_the_plan_prices_the_grid_with_the_spectral_model_not_at_the_finest_stag
     finest = [sum(ph.test_s for ph in p.phases) for p in (one, auto, lazy)]
     assert finest[2] == pytest.approx(finest[0]) and finest[1] > finest[0]
     assert lazy.if_spectral_kept_s - one.if_spectral_kept_s == pytest.approx(finest[1] - finest[0])
+    # "if the data ask for sub-slices alone": the grid is not priced as a part of the finest stage on its own
+    assert lazy.finest_parts == one.finest_parts and "field_grid" in auto.finest_parts
+    assert "the 2x field grid tried first in its place" in lazy.summary() and "in its place" not in one.summary()
+
+
+def test_a_family_member_that_shares_a_choice_of_no_parts_runs_the_camera_grid() -> None:
+    """A member after a choice that kept nothing runs with every chosen part off, the grid's default included (else it
+    would predict the test images again to choose nothing)."""
+    from napari_fdt.recon.run.family import parts_off
+    from napari_fdt.recon.settings.config import SolverConfig
+
+    assert SolverConfig().field_oversampling == "before_spectral"
+    off = parts_off(SolverConfig())
+    assert off.field_oversampling == 1 and off.sub_slices == 1 and off.coherence == "none"
+    assert parts_off(SolverConfig(field_oversampling=2)).field_oversampling == 2  # a number given is kept

@@ -17,10 +17,10 @@ from napari_fdt.recon.settings.config import SolverConfig, StageConfig
 def test_settings_accept_auto_true_false() -> None:
     cfg = SolverConfig()
     assert (cfg.calibrate_pupil, cfg.calibrate_aberrations, cfg.obliquity_correction, cfg.coherence) == ("auto",) * 4
-    assert requested_parts(cfg) == {p: None for p in PARTS} | {"field_grid": False}  # the 2x grid: 1 unless asked
-    assert requested_parts(SolverConfig(field_oversampling="auto"))["field_grid"] is None
+    assert requested_parts(cfg) == {p: None for p in PARTS}  # the 2x grid: "before_spectral", chosen by the data
+    assert requested_parts(SolverConfig(field_oversampling=1))["field_grid"] is False
     fixed = SolverConfig(calibrate_pupil=True, calibrate_aberrations="false", obliquity_correction=False, coherence="spectral")
-    assert requested_parts(fixed) == {"sub_slices": None, "field_grid": False,
+    assert requested_parts(fixed) == {"sub_slices": None, "field_grid": None,
                                      "pixel_integration": None, "obliquity": False, "spectral": True, "pupil": True, "aberrations": False}
     assert switch("auto") is None and switch("true") is True and switch(False) is False
     with pytest.raises(FDTInputError, match=r"^calibrate_pupil: "):

@@ -184,6 +184,9 @@ class Plan:
     #: seconds more if the part kept is the spectral model (every stage again, one pass per wavelength: 2-5x
     #: :attr:`if_part_kept_s` on beads and cells_fine, 2026-11-28); None where it is not to choose
     if_spectral_kept_s: float | None = None
+    #: whether the 2x field grid is tried before a spectral model is kept (``field_oversampling = "before_spectral"``;
+    #: :attr:`if_spectral_kept_s` holds the grid's test)
+    grid_before_spectral: bool = False
 
     @property
     def pupil_pilot(self) -> bool:
@@ -282,7 +285,8 @@ class Plan:
                 early = (f" (~{_seconds(self.if_part_kept_early_s)} where stage {p.stage + 1}/{p.n_stages}'s end finds it:"
                          " the finest stage then runs once)")
             spectral = (f"; ~{_seconds(self.if_spectral_kept_s)} more if it is the spectral model, a pass per wavelength"
-                        if self.if_spectral_kept_s else "")
+                        + (" (the 2x field grid tried first in its place: ~4x the finest stage's cost where kept)"
+                           if self.grid_before_spectral else "") if self.if_spectral_kept_s else "")
             lines.append(f"  if the data ask for a model part (pupil, aberrations, ...): every stage again, "
                          f"~{_seconds(self.if_part_kept_s)} more{early}{spectral}")
         if self.if_finest_parts_kept_s:
@@ -405,6 +409,8 @@ def make_plan(config: SolverConfig, optics: Optics, image_shape: tuple[int, int]
     if extra is not None and config.parts_rerun == "stages" and early_test_stage is not None:
         early = extra - stages[-1].predicted_s  # found at the coarse stage's end: the first pass's finest stage never runs
     finest_again, finest_parts = None, tuple(finest_parts) if parts_to_choose else ()
+    if config.field_oversampling == BEFORE_SPECTRAL:  # the grid comes with a spectral model's keep, priced there
+        finest_parts = tuple(p for p in finest_parts if p != "field_grid")
     if finest_parts:
         last = len(config.stages) - 1
         finest_again = stage_phase(config, optics, image_shape, src, last, coarse_model, device_type, RERUN, finest_parts,
@@ -432,7 +438,8 @@ def make_plan(config: SolverConfig, optics: Optics, image_shape: tuple[int, int]
         if spectral is not None:  # under "before_spectral" the 2x grid is tested before a spectral model is kept
             spectral += grid_first_s
     return Plan(tuple(phases), "cuda" if device_type == "cuda" else "cpu", extra, early, early_test_stage if early is not None else None,
-                finest_again, finest_parts, dropped, halves, bounds, spectral)
+                finest_again, finest_parts, dropped, halves, bounds, spectral,
+                grid_before_spectral=spectral is not None and "field_grid" in auto_parts and config.field_oversampling == BEFORE_SPECTRAL)
 
 
 def _with_tests(phases: list[Phase], config: SolverConfig, optics: Optics, image_shape: tuple[int, int], src: np.ndarray,

@@ -39,7 +39,7 @@ import numpy as np
 
 from napari_fdt.errors import FDTWarning
 from napari_fdt.recon.loop.regularisation import TV_Z_RATIO
-from napari_fdt.recon.settings.config import SolverConfig
+from napari_fdt.recon.settings.config import AUTO, BEFORE_SPECTRAL, SolverConfig
 
 if TYPE_CHECKING:
     from napari_fdt.data.acquisition import Acquisition
@@ -109,7 +109,7 @@ def parts_off(config: SolverConfig) -> SolverConfig:
     """``config`` with every ``"auto"`` model part off (a choice that kept none, taken as settings: no tests)."""
     off = {"sub_slices": 1, "field_oversampling": 1, "obliquity_correction": "false", "coherence": "none",
            "calibrate_pupil": "false", "calibrate_aberrations": "false"}
-    return dataclasses.replace(config, **{k: v for k, v in off.items() if getattr(config, k) == "auto"})
+    return dataclasses.replace(config, **{k: v for k, v in off.items() if getattr(config, k) in (AUTO, BEFORE_SPECTRAL)})
 
 
 def verdict(members: list[Member], tolerance: float = PICK_TOLERANCE,

@@ -288,14 +288,14 @@ class SolverConfig:
         "runs again with it; docs/decisions/model-parts.md); one screen elsewhere",
         fix="\"auto\", 1 (one thin screen per slice), or 2-4 for slices thick against the depth of field")
     field_oversampling: FieldOversampling = setting(
-        1, strict=False, description="the finest stage's field on a grid this many times finer than the camera's (2: light the "
-        "sample scatters beyond the camera grid's Nyquist is propagated, not aliased; docs/physics.md, \"A finer field grid\"); "
-        "about 4× the finest stage's cost and memory. `\"auto\"`: a model part tried with 2 where the camera grid's Nyquist "
-        "1/(2·pixel_size_um) is below the medium's n_b/λ and the finest stage fits in memory with it, kept where the held-out "
-        "images show it (the finest stage then runs again with it). `\"before_spectral\"`: the same part, tried only where the "
-        "spectral model would be kept, and before it: that model's blur can absorb what a too-coarse field grid aliases "
-        "(beads made on the 2x grid kept it in the grid's place; docs/decisions/parts-backward.md); elsewhere the run is the "
-        "camera grid's to the bit",
+        "before_spectral", strict=False, description="the finest stage's field on a grid this many times finer than the "
+        "camera's (2: light the sample scatters beyond the camera grid's Nyquist is propagated, not aliased; docs/physics.md, "
+        "\"A finer field grid\"); about 4× the finest stage's cost and memory. `\"auto\"`: a model part tried with 2 where the "
+        "camera grid's Nyquist 1/(2·pixel_size_um) is below the medium's n_b/λ and the finest stage fits in memory with it, "
+        "kept where the held-out images show it (the finest stage or every stage runs again with it), at a trial's and a branch's cost in "
+        "every run. `\"before_spectral\"` (the default): the same part, tried only where the spectral model would be kept, "
+        "and before it: that model's blur can absorb what a too-coarse field grid aliases (beads made on the 2x grid kept it "
+        "in the grid's place; docs/decisions/parts-backward.md); elsewhere the run is the camera grid's to the bit",
         fix="1 (the camera grid), 2, \"auto\" or \"before_spectral\"")
     field_window: FieldWindow = setting(
         "auto", strict=False, description="window the multi-slice model's fields run on: `\"full\"` (each source's whole field, on a "
