@@ -260,7 +260,7 @@ def test_the_plan_says_what_keeping_a_model_part_would_add(sample) -> None:
     under coarse_model "auto") as its own line; with every part given as a setting there is no such line."""
     from napari_fdt.recon.loop.plan import plan_for, stage_phase
 
-    cfg = SolverConfig()
+    cfg = SolverConfig(field_oversampling=1)  # (the grid's test before a spectral keep: tests/test_grid_before_spectral.py)
     plan, src = plan_for(sample, cfg, "cpu")
     again = [stage_phase(resolve_stage_lengths(cfg, sample.n_images), sample.optics, sample.image_shape, src, i,
                          "multislice", "cpu") for i in range(len(cfg.stages))]
