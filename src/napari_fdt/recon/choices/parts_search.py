@@ -29,11 +29,11 @@ from napari_fdt.recon.loop.model_parts import (
     MIN_IMPROVEMENT,
     PartsChoice,
     decide,
+    grid_waits_for_spectral,
     next_pass,
 )
 from napari_fdt.recon.loop.run_validation import image_errors, validation
 from napari_fdt.recon.problem.stages import Stage
-from napari_fdt.recon.settings.config import BEFORE_SPECTRAL
 
 if TYPE_CHECKING:
     from napari_fdt.recon.loop.interface import Run
@@ -105,9 +105,9 @@ def choose_parts(rec: Run, stage: Stage, mask: torch.Tensor | None, should_stop:
         """The spectral model just passed its trial under ``field_oversampling = "before_spectral"``. Its blur can absorb
         what a field grid too coarse for the scattered light aliases (beads made on the 2x grid kept it in the grid's
         place; docs/decisions/parts-backward.md), so the grid, the physics, is tried first, from the reference before
-        the spectral model (``before``: the loss mask and the per-image errors). The grid rejected: the spectral model is kept as tried. The grid kept: the
-        spectral model's trial is set aside (``"waits_for"``) and, unless the parts wait for a pass run again with the
-        grid, tried again through the grid's model. The outcome as :func:`trial`'s."""
+        the spectral model (``before``: the loss mask and the per-image errors). The grid rejected: the spectral model
+        is kept as tried. The grid kept: the spectral model's trial is set aside (``"waits_for"``) and, unless the parts
+        wait for a pass run again with the grid, tried again through the grid's model. The outcome as :func:`trial`'s."""
         nonlocal mask, ref_each
         spectral, kept = trials[-1], (mask, ref_each)
         set_parts(rec, {**rec.parts, "spectral": False})
@@ -125,7 +125,7 @@ def choose_parts(rec: Run, stage: Stage, mask: torch.Tensor | None, should_stop:
         return trial("spectral") if grid == "on" else grid
 
     # the 2x grid under "before_spectral": tried only where the spectral model would be kept, and before it is
-    grid_first = "field_grid" in rec._auto_parts and rec.config.field_oversampling == BEFORE_SPECTRAL
+    grid_first = grid_waits_for_spectral(rec.config, rec._auto_parts)
     outcome: str | None = "off"
     for part in [p for p in BINARY_PARTS if p in rec._auto_parts and not (p == "field_grid" and grid_first)]:
         if rec._stop_requested(should_stop):

@@ -44,7 +44,7 @@ from typing import Any
 import numpy as np
 
 from napari_fdt.recon.problem.stages import camera_grid_drops_band, resolved_pixel_integration, stated_pixel_integration, thick_slices
-from napari_fdt.recon.settings.config import AUTO, SolverConfig, grid_to_choose
+from napari_fdt.recon.settings.config import AUTO, BEFORE_SPECTRAL, SolverConfig, grid_to_choose
 
 __all__ = ["PARTS", "BINARY_PARTS", "FITTED_PARTS", "SETTING_OF", "STANDARD_ERRORS_LEVEL", "standard_errors", "MIN_IMPROVEMENT", "FIT_ITERATIONS",
            "FIT_IMAGES", "FIT_RATES", "PILOT_ITERATIONS", "PILOT_BATCH",
@@ -136,6 +136,13 @@ def requested_parts(config: SolverConfig) -> dict[str, bool | None]:
     coherence = config.coherence
     out["spectral"] = None if coherence == AUTO else coherence in ("spectral", "mask+spectral")
     return {part: out[part] for part in PARTS}
+
+
+def grid_waits_for_spectral(config: SolverConfig, auto_parts: tuple[str, ...] | list[str]) -> bool:
+    """Whether the 2x field grid (part ``field_grid``, among ``auto_parts``) is tried only where a spectral model passes
+    its trial, before that model is kept (``field_oversampling = "before_spectral"``): not in the finest stage's tests
+    of its own, and priced with the spectral model's keep. The one place the search, the plan and its words ask."""
+    return "field_grid" in auto_parts and config.field_oversampling == BEFORE_SPECTRAL
 
 
 def pupil_pilot_wanted(config: SolverConfig, n_held_out: int, pupil_auto: bool) -> bool:

@@ -24,11 +24,11 @@ from typing import Any, Sequence
 import numpy as np
 
 from napari_fdt.physics.optics import Optics
-from napari_fdt.recon.loop.model_parts import PILOT_BATCH, PILOT_ITERATIONS, branch_iterations
+from napari_fdt.recon.loop.model_parts import PILOT_BATCH, PILOT_ITERATIONS, branch_iterations, grid_waits_for_spectral
 from napari_fdt.recon.loop.phases import PUPIL_PILOT, RERUN, RUN, TV_CHOICE, probe_iterations
 from napari_fdt.recon.loop.regularisation import TV_PATH, selection_stages
 from napari_fdt.recon.problem.stage_spec import rerun_coarse_model
-from napari_fdt.recon.settings.config import BEFORE_SPECTRAL, SolverConfig
+from napari_fdt.recon.settings.config import SolverConfig
 
 __all__ = ["SECONDS_PER_UNIT", "OVERHEAD_S", "SOURCE_FIELD_UNITS", "Phase", "Plan", "Pace", "iteration_units", "envelope_padded_shape", "stage_phase",
            "make_plan", "plan_for"]
@@ -409,7 +409,7 @@ def make_plan(config: SolverConfig, optics: Optics, image_shape: tuple[int, int]
     if extra is not None and config.parts_rerun == "stages" and early_test_stage is not None:
         early = extra - stages[-1].predicted_s  # found at the coarse stage's end: the first pass's finest stage never runs
     finest_again, finest_parts = None, tuple(finest_parts) if parts_to_choose else ()
-    if config.field_oversampling == BEFORE_SPECTRAL:  # the grid comes with a spectral model's keep, priced there
+    if grid_waits_for_spectral(config, auto_parts):  # the grid comes with a spectral model's keep, priced there
         finest_parts = tuple(p for p in finest_parts if p != "field_grid")
     if finest_parts:
         last = len(config.stages) - 1
@@ -439,7 +439,7 @@ def make_plan(config: SolverConfig, optics: Optics, image_shape: tuple[int, int]
             spectral += grid_first_s
     return Plan(tuple(phases), "cuda" if device_type == "cuda" else "cpu", extra, early, early_test_stage if early is not None else None,
                 finest_again, finest_parts, dropped, halves, bounds, spectral,
-                grid_before_spectral=spectral is not None and "field_grid" in auto_parts and config.field_oversampling == BEFORE_SPECTRAL)
+                grid_before_spectral=spectral is not None and grid_waits_for_spectral(config, auto_parts))
 
 
 def _with_tests(phases: list[Phase], config: SolverConfig, optics: Optics, image_shape: tuple[int, int], src: np.ndarray,
@@ -464,7 +464,7 @@ def _with_tests(phases: list[Phase], config: SolverConfig, optics: Optics, image
     finest = max(i for i, p in enumerate(out) if p.pass_name == RUN and p.stage == last)
     costs = {"": out[finest].seconds_per_iteration / batch, **{p: image_s((p,)) for p in BINARY_PARTS if p in auto_parts}}
     branch = branch_iterations(config.stages[last].iterations) * batch if config.parts_branch and n_held >= 2 else 0
-    grid_later = "field_grid" in auto_parts and config.field_oversampling == BEFORE_SPECTRAL
+    grid_later = grid_waits_for_spectral(config, auto_parts)
     tested = tuple(p for p in auto_parts if not (grid_later and p == "field_grid"))
     test_s = finest_end_test_s(costs, tested, n_test, n_fit, n_held, dev, branch)
     grid_s = finest_end_test_s(costs, tested + ("field_grid",), n_test, n_fit, n_held, dev, branch) - test_s if grid_later else 0.0
