@@ -112,7 +112,7 @@ def run_family_and_write(args, config: SolverConfig, acq, out: Path, truth, trut
 
     paths = check_family_request(config, args, out, distributed_launch=False)
     first = Reconstructor(acq, member_config(config, FAMILY_TAUS[0]), device=args.device)
-    print(family_summary(config, first.plan), file=sys.stderr)
+    print(family_summary(True, first.plan), file=sys.stderr)
     reports: dict[float, dict[str, Any]] = {}
 
     def keep(member: Member) -> None:
