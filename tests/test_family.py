@@ -55,7 +55,7 @@ def test_member_configs_and_paths() -> None:
 
 
 @pytest.mark.parametrize("extra,field", [(["--tv-xy-weight", "3"], "tv_family"), (["--half-set-resolution"], "tv_family"),
-                                         (["--checkpoint-dir", "ck"], "tv_family")])
+                                         (["--resume", "ck"], "tv_family")])  # ck: not a family's checkpoint folder
 def test_what_a_family_cannot_do_is_refused_before_the_run(tmp_path: Path, tiny_sim, capsys, extra, field) -> None:
     acq = write_acquisition(tiny_sim.acquisition, tmp_path / "acq")
     code = main(["reconstruct", str(acq), "--out", str(tmp_path / "RI.tif"), "--tv-family", "--device", "cpu", *extra])
@@ -86,9 +86,9 @@ def test_auto_makes_a_family_on_cuda_unless_the_command_excludes_one(monkeypatch
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
     assert family_on(*args("--device", "cuda")) and family_on(*args())  # "auto" device: CUDA here
     assert not family_on(*args("--device", "cuda", "--tv-family", "false"))
-    for extra in (["--tv-xy-weight", "3"], ["--checkpoint-dir", "ck"], ["--resume", "ck"], ["--half-set-resolution"],
-                  ["--error-bounds"]):
+    for extra in (["--tv-xy-weight", "3"], ["--resume", "ck"], ["--half-set-resolution"], ["--error-bounds"]):
         assert not family_on(*args("--device", "cuda", *extra)), extra
+    assert family_on(*args("--device", "cuda", "--checkpoint-dir", "ck"))  # each member writes its own checkpoints
     assert not family_on(*args("--device", "cuda"), distributed_launch=True)
 
 
@@ -148,3 +148,44 @@ def test_fdt_plan_prices_the_family_as_its_members(tmp_path: Path, tiny_sim, cap
     assert member <= one["predicted_total_s"] * 1.001  # a member runs no TV trials: at most the run's own price
     assert main(["plan", str(acq), "--tv-family"]) == 0
     assert "a family of 3 volumes" in capsys.readouterr().out
+
+
+def test_a_family_interrupted_resumes_from_its_checkpoints_to_the_same_volumes(tmp_path: Path, scene16, capsys) -> None:
+    """A family stopped inside its second member (after that member's first stage) and resumed with ``--resume`` of its
+    checkpoint folder writes the same members, bit for bit, as the family run without a stop: the first member
+    continues from its last checkpoint (no more iterations), the second from its first stage's, the third starts."""
+    from napari_fdt.data.io import read_acquisition
+    from napari_fdt.recon.run.family import FAMILY_MARKER, member_folder, read_family_marker, run_family
+
+    acq = write_acquisition(scene16.acquisition, tmp_path / "acq")
+    cfg = _short()
+    cfg.save(tmp_path / "cfg.json")
+    full = tmp_path / "full" / "RI.tif"
+    full.parent.mkdir()
+    assert main(["reconstruct", str(acq), "--config", str(tmp_path / "cfg.json"), "--out", str(full), "--tv-family",
+                 "--device", "cpu", "--quiet"]) == 0
+
+    ck, stop = tmp_path / "ck", [False]
+    runs = run_family(read_acquisition(acq), SolverConfig.from_dict({**cfg.to_dict(), "tv_family": "true"}), device="cpu",
+                      should_stop=lambda: stop[0], checkpoint_dir=ck)
+    with pytest.raises(StopIteration) as ended:
+        while True:
+            k, snap = next(runs)
+            if k == 1 and snap.stage_complete:
+                stop[0] = True  # inside the second member, after its first stage: as a killed run
+    assert ended.value.value is None  # stopped: no family
+    assert read_family_marker(ck)[1] == tuple(FAMILY_TAUS) and (ck / FAMILY_MARKER).is_file()
+    assert (member_folder(ck, FAMILY_TAUS[1]) / "stage_0.pt").is_file()
+    assert not member_folder(ck, FAMILY_TAUS[2]).exists()
+
+    resumed = tmp_path / "resumed" / "RI.tif"
+    resumed.parent.mkdir()
+    capsys.readouterr()
+    assert main(["reconstruct", str(acq), "--resume", str(ck), "--out", str(resumed), "--device", "cpu", "--quiet"]) == 0
+    assert "resuming the family" in capsys.readouterr().err
+    for tau in FAMILY_TAUS:
+        a = member_path(full, tau) if member_path(full, tau).exists() else full
+        b = member_path(resumed, tau) if member_path(resumed, tau).exists() else resumed
+        assert (a == full) == (b == resumed)  # the same member picked
+        assert np.array_equal(read_volume_tiff(a)[0], read_volume_tiff(b)[0]), tau
+    assert (member_folder(ck, FAMILY_TAUS[2]) / "stage_1.pt").is_file()  # the resumed family went on writing there

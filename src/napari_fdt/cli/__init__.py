@@ -144,7 +144,7 @@ def build_parser() -> argparse.ArgumentParser:
                      help="ground-truth RI TIFF for metrics (ground_truth_sources_um.json beside it is used too)")
     rec.add_argument("--checkpoint-dir", type=Path, default=None, help="write a checkpoint at the end of every stage here")
     rec.add_argument("--resume", type=Path, default=None, help="continue from a checkpoint written by --checkpoint-dir: its "
-                     "folder (the checkpoint written last) or one stage_*.pt file")
+                     "folder (the checkpoint written last; a family's folder resumes the family) or one stage_*.pt file")
     rec.add_argument("--overwrite", action="store_true", help="replace existing output files")
     rec.add_argument("--quiet", action="store_true", help="no progress bar (the plan is still printed at the start)")
     rec.add_argument("--save-config", type=Path, default=None, help="write the full configuration used to this file and exit")

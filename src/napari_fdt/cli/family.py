@@ -18,9 +18,12 @@ __all__ = ["member_path", "family_on", "check_family_request", "run_family_and_w
 def family_on(config: SolverConfig, args: Any, distributed_launch: bool = False) -> bool:
     """Whether ``fdt reconstruct`` (and ``fdt plan``) make a family: ``tv_family`` "true" (then
     :func:`check_family_request` refuses what a family cannot do), "false" never; "auto" on a CUDA device where nothing
-    the command asks for excludes a family (TV weights as numbers, ``--resume``, ``--checkpoint-dir``, torchrun,
+    the command asks for excludes a family (TV weights as numbers, ``--resume`` of one run's checkpoints, torchrun,
     ``half_set_resolution``, ``error_bounds``), and never on the CPU, where a family costs 2.3x a run (median;
-    docs/decisions/tv-family.md, "Default, per device")."""
+    docs/decisions/tv-family.md, "Default, per device"). ``--resume`` of a family's checkpoint folder resumes the
+    family, whatever the settings say (a resumed run takes its checkpoint's settings)."""
+    if _family_folder(args):
+        return True
     if config.tv_family != AUTO:
         return config.tv_family == "true"
     from napari_fdt.device import resolve_device
@@ -36,17 +39,25 @@ def _excluded(config: SolverConfig, args: Any, distributed_launch: bool) -> FDTI
     if config.tv_xy_weight != AUTO or config.tv_z_weight != AUTO:
         return FDTInputError("tv_family", "sets the TV weights of its members itself, but tv_xy_weight or tv_z_weight is a number",
                              'leave both "auto" with --tv-family, or give the weights without it')
-    if getattr(args, "resume", None) is not None:
-        return FDTInputError("tv_family", "a family cannot be resumed from one member's checkpoint",
-                             "resume without --tv-family (the member's own settings), or start the family again")
-    if getattr(args, "checkpoint_dir", None) is not None:
-        return FDTInputError("tv_family", "members do not write checkpoints yet", "run the family without --checkpoint-dir")
+    if getattr(args, "resume", None) is not None and not _family_folder(args):
+        return FDTInputError("tv_family", f"cannot resume from {args.resume}: it holds one run's checkpoints, not a "
+                             "family's (a family's folder holds family.json and a tv<weight> folder per member)",
+                             "resume that run without --tv-family (its own settings), or point --resume at the folder a "
+                             "family wrote with --checkpoint-dir")
     if distributed_launch:
         return FDTInputError("tv_family", "is not run under torchrun yet", "run the family in one process, or one weight per launch")
     if config.half_set_resolution:
         return FDTInputError("tv_family", "and half_set_resolution together would run six more half runs",
                              "run the family, then the picked member's report with --config RI.json --half-set-resolution")
     return None
+
+
+def _family_folder(args: Any) -> bool:
+    """Whether ``--resume`` names a family's checkpoint folder (:data:`~napari_fdt.recon.run.family.FAMILY_MARKER`)."""
+    from napari_fdt.recon.run.family import read_family_marker
+
+    resume = getattr(args, "resume", None)
+    return resume is not None and Path(resume).is_dir() and read_family_marker(resume) is not None
 
 
 def member_path(out: Path, tau: float) -> Path:
@@ -84,19 +95,25 @@ def family_json(family: bool, plan) -> dict[str, Any]:
                           "predicted_total_s": len(FAMILY_TAUS) * plan.predicted_s}}
 
 
+def _taus(args: Any) -> tuple[float, ...]:
+    """The members' weights: a resumed family's own (its marker), else :data:`~napari_fdt.recon.run.family.FAMILY_TAUS`."""
+    from napari_fdt.recon.run.family import FAMILY_TAUS, read_family_marker
+
+    return read_family_marker(args.resume)[1] if _family_folder(args) else FAMILY_TAUS
+
+
 def check_family_request(config: SolverConfig, args: Any, out: Path, distributed_launch: bool) -> list[Path]:
     """Refuse what a family cannot do, before any run (FDTInputError naming the field); return the members' paths
     (each checked free unless ``--overwrite``)."""
     from napari_fdt.data.io import report_path
-    from napari_fdt.recon.run.family import FAMILY_TAUS
 
     excluded = _excluded(config, args, distributed_launch)
     if excluded is not None:
         raise excluded
-    paths = [member_path(out, tau) for tau in FAMILY_TAUS]
+    paths = [member_path(out, tau) for tau in _taus(args)]
     for p in paths:
         for q in (p, report_path(p)):
-            if q.exists() and not args.overwrite:
+            if q.exists() and not args.overwrite and not _family_folder(args):  # (resumed: the members written before)
                 raise FDTInputError("out", f"{q} (a member of the family) exists", "choose another --out or pass --overwrite")
     return paths
 
@@ -105,18 +122,26 @@ def run_family_and_write(args, config: SolverConfig, acq, out: Path, truth, trut
     """Run the family, each member written as it completes, then the pick to ``out``; prints the verdict."""
     from napari_fdt.cli.progress import _progress_bar, _show_progress
     from napari_fdt.data.io import report_path
-    from napari_fdt.recon.run.family import FAMILY_TAUS, Member, family_entries, member_config, run_family, with_family
+    from napari_fdt.recon.run.family import Member, family_entries, member_config, member_folder, read_family_marker, run_family, with_family
     from napari_fdt.recon.run.report import write_result
     from napari_fdt.recon.run.session import finish_run
     from napari_fdt.recon.run.solver import Reconstructor
 
     paths = check_family_request(config, args, out, distributed_launch=False)
-    first = Reconstructor(acq, member_config(config, FAMILY_TAUS[0]), device=args.device)
-    print(family_summary(True, first.plan), file=sys.stderr)
+    taus, resume, sources = _taus(args), _family_folder(args), None
+    if resume:  # the family's own settings and weights; each member from its checkpoint where it left one
+        config = read_family_marker(args.resume)[0]
+        done = [f"τ_xy {t:g}" for t in taus if any(member_folder(args.resume, t).glob("stage_*.pt"))]
+        print(f"resuming the family in {args.resume} (checkpoints of {', '.join(done) or 'no member yet'})", file=sys.stderr)
+    else:
+        first = Reconstructor(acq, member_config(config, taus[0]), device=args.device)
+        sources = first.initial_sources_um
+        print(family_summary(True, first.plan), file=sys.stderr)
+    checkpoint_dir = args.checkpoint_dir if args.checkpoint_dir is not None else args.resume if resume else None
     reports: dict[float, dict[str, Any]] = {}
 
     def keep(member: Member) -> None:
-        path = paths[FAMILY_TAUS.index(member.tau)]
+        path = paths[taus.index(member.tau)]
         report = finish_run(member.rec, False, output=str(path), acquisition_path=str(args.acquisition), truth_ri=truth,
                             truth_sources_um=truth_src)
         reports[member.tau] = report
@@ -125,7 +150,8 @@ def run_family_and_write(args, config: SolverConfig, acq, out: Path, truth, trut
         print(f"member τ_xy {member.tau:g} done ({member.seconds:.0f} s, {err}): wrote {path}", file=sys.stderr)
 
     bar, current = None, -1
-    runs = run_family(acq, config, device=args.device, initial_sources_um=first.initial_sources_um, keep=keep)
+    runs = run_family(acq, config, device=args.device, initial_sources_um=sources, keep=keep, taus=taus,
+                      checkpoint_dir=checkpoint_dir, resume=resume)
     try:
         while True:
             try:
@@ -137,11 +163,12 @@ def run_family_and_write(args, config: SolverConfig, acq, out: Path, truth, trut
                 if bar is not None:
                     bar.close()
                 bar, current = _progress_bar(snap.plan_iterations, disable=args.quiet), k
-                print(f"member {k + 1}/{len(FAMILY_TAUS)}: τ_xy {FAMILY_TAUS[k]:g}", file=sys.stderr)
+                print(f"member {k + 1}/{len(taus)}: τ_xy {taus[k]:g}", file=sys.stderr)
             _show_progress(bar, snap)
     except KeyboardInterrupt:
         runs.close()
-        print(f"interrupted: {len(reports)} member(s) complete and written; no pick", file=sys.stderr)
+        again = f"; --resume {checkpoint_dir} continues it" if checkpoint_dir is not None else ""
+        print(f"interrupted: {len(reports)} member(s) complete and written; no pick{again}", file=sys.stderr)
         return 130
     finally:
         if bar is not None:

@@ -24,20 +24,26 @@ off (:func:`parts_off`), no tests, which is bit for bit their own run wherever t
 they kept nothing: docs/decisions/tv-family.md). The family replaces the TV weights' trials: its members' weights are
 numbers. Without held-out images there is no verdict
 and the pick is the smallest weight (a warning says so).
+
+With a checkpoint folder each member writes its own (``tv<τ>/stage_*.pt`` under it, as a run's ``--checkpoint-dir``)
+beside :data:`FAMILY_MARKER` (the family's settings and weights, plain JSON); resumed from that folder, members with a
+checkpoint continue from it (a member that had completed does no more iterations), the others start as they would have.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 import time
 import warnings
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable, Generator
 
 import numpy as np
 
-from napari_fdt.errors import FDTWarning
+from napari_fdt.errors import FDTInputError, FDTWarning
 from napari_fdt.recon.loop.regularisation import TV_Z_RATIO
 from napari_fdt.recon.settings.config import AUTO, BEFORE_SPECTRAL, SolverConfig
 
@@ -47,7 +53,7 @@ if TYPE_CHECKING:
     from napari_fdt.recon.run.solver import Reconstructor
 
 __all__ = ["FAMILY_TAUS", "PICK_TOLERANCE", "INDISTINGUISHABLE_SE", "Member", "Family", "member_config", "parts_off", "verdict",
-           "run_family", "family_entries", "with_family"]
+           "FAMILY_MARKER", "member_folder", "read_family_marker", "run_family", "family_entries", "with_family"]
 
 #: The members' lateral TV weights τ_xy (τ_z = τ_xy · TV_Z_RATIO): they bracket the best fixed weights measured (τ 1 on
 #: the sample and thick slabs, 3 on a cells-like scene, 10 on cells and sparse beads: docs/decisions/tv-half-sets.md).
@@ -138,6 +144,55 @@ def verdict(members: list[Member], tolerance: float = PICK_TOLERANCE,
     return pick, reason
 
 
+#: The file that makes a checkpoint folder a family's: ``{"format", "taus", "config"}`` (JSON, read without running code).
+FAMILY_MARKER = "family.json"
+_MARKER_FORMAT = "napari-fdt tv family"
+
+
+def member_folder(directory: str | Path, tau: float) -> Path:
+    """Member ``tau``'s checkpoint folder in a family's ``directory``: ``tv3`` for τ 3."""
+    return Path(directory) / f"tv{tau:g}"
+
+
+def read_family_marker(directory: str | Path) -> tuple[SolverConfig, tuple[float, ...]] | None:
+    """The family's settings and weights from ``directory``'s :data:`FAMILY_MARKER`; None where ``directory`` is not a
+    family's checkpoint folder (a run's, or not a folder); FDTInputError where the marker cannot be read."""
+    marker = Path(directory) / FAMILY_MARKER
+    if not marker.is_file():
+        return None
+    try:
+        state = json.loads(marker.read_text(encoding="utf-8"))
+        if state.get("format") != _MARKER_FORMAT:
+            raise ValueError(f"format {state.get('format')!r}")
+        return SolverConfig.from_dict(state["config"]), tuple(float(t) for t in state["taus"])
+    except Exception as exc:  # noqa: BLE001 (bad JSON, a missing key, settings this version does not know)
+        raise FDTInputError("resume", f"{marker} cannot be read as a family's checkpoint folder: {exc}",
+                            "point --resume at the folder a family wrote with --checkpoint-dir, or start the family again") from None
+
+
+def _write_family_marker(directory: str | Path, config: SolverConfig, taus: tuple[float, ...]) -> None:
+    from napari_fdt.data.io import write_json_atomic
+
+    Path(directory).mkdir(parents=True, exist_ok=True)
+    write_json_atomic(Path(directory) / FAMILY_MARKER, {"format": _MARKER_FORMAT, "taus": list(taus),
+                                                        "config": config.to_dict()}, overwrite=True)
+
+
+def _member_run(acquisition: Acquisition, cfg: SolverConfig, tau: float, device: Any, sources: np.ndarray | None,
+                resume_dir: Path | None) -> Reconstructor:
+    """Member ``tau``'s solver: from its checkpoint in ``resume_dir`` where it has one (its own settings), else new."""
+    from napari_fdt.recon.run.solver import Reconstructor
+
+    folder = None if resume_dir is None else member_folder(resume_dir, tau)
+    if folder is None or not any(folder.glob("stage_*.pt")):
+        return Reconstructor(acquisition, cfg, device=device, initial_sources_um=sources)
+    rec = Reconstructor.from_checkpoint(folder, acquisition, device=device)
+    if rec.config.tv_xy_weight != float(tau):
+        raise FDTInputError("resume", f"{folder} holds a run at τ_xy {rec.config.tv_xy_weight:g}, not member τ_xy {tau:g}",
+                            "resume the family from the folder it wrote, unchanged, or start it again")
+    return rec
+
+
 def _held_out_errors(rec: Reconstructor) -> tuple[float | None, list[float]]:
     """The held-out error and each held-out image's at the run's end, through its finest stage's model."""
     from napari_fdt.recon.loop.run_validation import validation
@@ -152,23 +207,29 @@ def _held_out_errors(rec: Reconstructor) -> tuple[float | None, list[float]]:
 def run_family(acquisition: Acquisition, config: SolverConfig, *, device: Any = "auto",
                initial_sources_um: np.ndarray | None = None, should_stop: Callable[[], bool] | None = None,
                taus: tuple[float, ...] = FAMILY_TAUS, keep: Callable[[Member], None] | None = None,
+               checkpoint_dir: str | Path | None = None, resume: bool = False,
                ) -> Generator[tuple[int, Snapshot], None, Family | None]:
     """Run each member's whole path in turn, yielding ``(member index, snapshot)``; returns the :class:`Family` with its
     verdict, or None when stopped (``should_stop``) before the last member completed.
 
     ``keep(member)`` is called as each member completes (a front end writes or shows it then; members stream as they
-    finish); the member's solver stays in ``member.rec``."""
+    finish); the member's solver stays in ``member.rec``. ``checkpoint_dir``: each member's checkpoints go to its
+    :func:`member_folder` there, with the family's :data:`FAMILY_MARKER`; ``resume``: members that left a checkpoint
+    there continue from it (``config`` and ``taus`` then as :func:`read_family_marker` gives them)."""
     from napari_fdt.recon.choices.parts_backward import kept_auto_parts
-    from napari_fdt.recon.run.solver import Reconstructor
 
     members: list[Member] = []
     sources, shared_from = initial_sources_um, None
+    if checkpoint_dir is not None and not (resume and (Path(checkpoint_dir) / FAMILY_MARKER).is_file()):
+        _write_family_marker(checkpoint_dir, config, taus)
     for k, tau in enumerate(taus):
         cfg = member_config(config, tau) if shared_from is None else parts_off(member_config(config, tau))
         t0 = time.perf_counter()
-        rec = Reconstructor(acquisition, cfg, device=device, initial_sources_um=sources)
+        rec = _member_run(acquisition, cfg, tau, device, sources, Path(checkpoint_dir) if resume and checkpoint_dir else None)
+        before_s = rec.elapsed_s  # a resumed member's seconds before this process
         sources = rec.initial_sources_um  # the first member's start (fitted once where the acquisition gives none)
-        for snap in rec.run(should_stop=should_stop):
+        folder = None if checkpoint_dir is None else member_folder(checkpoint_dir, tau)
+        for snap in rec.run(should_stop=should_stop, checkpoint_dir=folder):
             yield k, snap
         if rec.completed_stages < len(cfg.stages):
             return None
@@ -176,7 +237,7 @@ def run_family(acquisition: Acquisition, config: SolverConfig, *, device: Any = 
         if k == 0 and rec.parts_choice is not None and "validation" in rec.parts_choice.chosen_by.values() and not kept_auto_parts(rec):
             shared_from = float(tau)  # its tests kept nothing: the later members run with the parts off
         member.validation_error, member.image_errors = _held_out_errors(rec)
-        member.seconds = time.perf_counter() - t0
+        member.seconds = before_s + time.perf_counter() - t0
         members.append(member)
         if keep is not None:
             keep(member)

@@ -228,9 +228,10 @@ class SolverConfig:
         "standard error), and the pick (the largest weight within 5 % of the best held-out error that the images cannot tell "
         "from it). `fdt reconstruct` writes the pick to --out and the other members beside it. About two to three runs' time. "
         "`\"auto\"`: `fdt reconstruct` makes the family on a CUDA device (about 1.8-2.1x a run there) unless something it "
-        "asks for excludes one (TV weights as numbers, --resume, --checkpoint-dir, torchrun, half_set_resolution, "
-        "error_bounds); one run on the CPU (docs/decisions/tv-family.md). A `Reconstructor` is one run whatever this says "
-        "(docs/solver.md, \"A family of volumes across TV weights\")",
+        "asks for excludes one (TV weights as numbers, --resume of one run's checkpoints, torchrun, half_set_resolution, "
+        "error_bounds); one run on the CPU (docs/decisions/tv-family.md). With --checkpoint-dir each member writes its own "
+        "checkpoints there (tv<weight>/), and --resume of that folder resumes the family. A `Reconstructor` is one run "
+        "whatever this says (docs/solver.md, \"A family of volumes across TV weights\")",
         fix="auto, true or false", tier="basic", strict=False)
     early_stopping: EarlyStopping = setting(
         "best", strict=False, description="`\"best\"`: each stage ends on its iterate of lowest validation error (when the last is worse "
