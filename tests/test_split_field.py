@@ -195,7 +195,11 @@ def test_the_solver_uses_it_where_it_holds() -> None:
     assert not uses_split_field("auto", "cpu", 1, 0.9)  # a window the light cone fills: nothing to save
     assert not uses_split_field("auto", "cuda", 1, 0.4)  # not measured on CUDA
     assert not uses_split_field("split", "cpu", 1, 0.4, obliquity="per_source")
-    assert not uses_split_field("split", "cpu", 1, 0.4, field_oversampling=2)
+    # the 2x field grid: split where the camera takes point samples of an image of even sizes (fine pixel 2i is
+    # camera pixel i), the full window for pixel means (tests/test_field_oversampling.py holds the split one)
+    assert uses_split_field("split", "cpu", 1, 0.4, field_oversampling=2, image_shape=(32, 32))
+    assert not uses_split_field("split", "cpu", 1, 0.4, field_oversampling=2, image_shape=(32, 33))
+    assert not uses_split_field("split", "cpu", 1, 0.4, field_oversampling=2, pixel_integration=True, image_shape=(32, 32))
     assert not uses_split_field("split", "cpu", 1, 0.4, pupil_edge=0.0)  # a hard pupil's tails wrap on the small window
     assert uses_split_field("split", "cpu", 1, 0.4, pupil_edge=0.05)
     dn, src, o, plan = _setup()

@@ -16,6 +16,10 @@ finer over the same window in µm and returns images on the camera grid:
 It costs about 4× a camera-grid model per slice (4× the pixels) and the fine volume's memory. The simulator uses it
 with ``fdt simulate --field-oversampling 2`` (part of ``--forward-accuracy high``), the solver's finest stage with the
 setting ``field_oversampling = 2`` (advanced; default 1, the camera grid).
+
+``split=True`` runs the fine grid's field as :class:`~napari_fdt.model.split_field.SplitFieldModel` does the camera
+grid's: the sources' field exact, the sample's on the image and its light cone (17–52 % of the full window's pixels);
+the camera's point samples only (no ``pixel_integration``) and even image sizes (fine pixel 2i is camera pixel i).
 """
 
 from __future__ import annotations
@@ -67,15 +71,24 @@ class OversampledModel:
     """
 
     def __init__(self, optics: Optics, plan: GridPlan, *, device: str | torch.device | None = "auto",
-                 dtype: torch.dtype = torch.float32, pixel_integration: bool = False, **options) -> None:
+                 dtype: torch.dtype = torch.float32, pixel_integration: bool = False, split: bool = False,
+                 **options) -> None:
         if any(s % 2 for s in plan.padded_shape):
             raise ValueError("the window must have even sizes")
+        if split and (pixel_integration or any(s % 2 for s in plan.image_shape)):
+            raise ValueError("the split fine grid takes point samples on an image of even sizes")
         self.optics = optics
         self.plan = plan
         self.factor = FACTOR
         self.pixel_integration = bool(pixel_integration)
+        self.split = bool(split)
         fine_optics = dataclasses.replace(optics, pixel_size_um=optics.pixel_size_um / FACTOR)
-        self.inner = MultiSliceModel(fine_optics, fine_plan(plan), device=device, dtype=dtype, **options)
+        if self.split:
+            from napari_fdt.model.split_field import SplitFieldModel
+
+            self.inner = SplitFieldModel(fine_optics, fine_plan(plan), device=device, dtype=dtype, **options)
+        else:
+            self.inner = MultiSliceModel(fine_optics, fine_plan(plan), device=device, dtype=dtype, **options)
         self.device, self.dtype = self.inner.device, self.inner.dtype
 
     # what the rest of the package reads of a model
@@ -126,11 +139,15 @@ class OversampledModel:
                             **optics_overrides) -> torch.Tensor:
         """:meth:`intensity` from :meth:`exit_spectra` (the pupil and camera applied here; see the camera-grid model's)."""
         k = self.kernels(**optics_overrides)
+        if self.split:
+            return self._split_camera(*self.inner._pupil_spectra(exit_spec, spec0, k), sources_um, k)
         return self._camera(self._field(*self.inner._pupil_spectra(exit_spec, spec0, k), sources_um, k))
 
     def fine_field(self, delta_n: torch.Tensor, sources_um: torch.Tensor, **optics_overrides) -> torch.Tensor:
         """The camera field on the whole fine window, (B, 2Hp, 2Wp) complex; exact (non-periodic) homogeneous part on
-        the image and a margin where the model uses it (a pupil edge below the plan's taper)."""
+        the image and a margin where the model uses it (a pupil edge below the plan's taper). Not with ``split``."""
+        if self.split:
+            raise NotImplementedError("the split fine grid has the camera field on the image only (intensity)")
         k = self.kernels(**optics_overrides)
         spec, free = self.inner._camera_spectra(self.pad_volume(delta_n), sources_um, k)
         return self._field(spec, free, sources_um, k)
@@ -143,7 +160,22 @@ class OversampledModel:
 
     def intensity(self, delta_n: torch.Tensor, sources_um: torch.Tensor, **optics_overrides) -> torch.Tensor:
         """``|E|²`` on the camera's image, (B, H, W): at the pixel centres, or averaged over each pixel."""
+        if self.split:
+            k = self.kernels(**optics_overrides)
+            return self._split_camera(*self.inner._camera_spectra(self.pad_volume(delta_n), sources_um, k), sources_um, k)
         return self._camera(self.fine_field(delta_n, sources_um, **optics_overrides))
+
+    def _split_camera(self, spec: torch.Tensor, free: None, sources_um: torch.Tensor, k) -> torch.Tensor:
+        """The split fine model's camera: ``|E|²`` at the even fine pixels of the image (the camera pixels' centres),
+        the sample's field from its window and the sources' exact field there alone."""
+        inner = self.inner
+        oy, ox = inner.plan.offset
+        h, w = inner.plan.image_shape
+        sample = torch.fft.ifft2(spec)[..., oy:oy + h:2, ox:ox + w:2]
+        ys = inner._window_coordinates(oy, oy + h, 0, 1.0, k.pixel_size_um)[::2]
+        xs = inner._window_coordinates(ox, ox + w, 1, 1.0, k.pixel_size_um)[::2]
+        field = sample + inner.camera_free_field(sources_um, k, ys, xs)
+        return field.real.square() + field.imag.square()
 
     def _camera(self, field: torch.Tensor) -> torch.Tensor:
         if self.pixel_integration:

@@ -337,7 +337,7 @@ def stage_phase(config: SolverConfig, optics: Optics, image_shape: tuple[int, in
     else:
         _, opt, _, window = multislice_plan(optics, sc.factor, image_shape, sources_um)
         split = config_uses_split_field(config, device_type, sc.factor, window, opt, pupil_edge, field_grid="field_grid" in parts,
-                                        obliquity="obliquity" in parts)
+                                        obliquity="obliquity" in parts, pixel_integration=pixel_integration)
         shape = model_window(window, opt, split)
     model = "envelope" if envelope else "multislice"
     dev = "cuda" if device_type == "cuda" else "cpu"
@@ -352,7 +352,7 @@ def stage_phase(config: SolverConfig, optics: Optics, image_shape: tuple[int, in
         from napari_fdt.model.split_field import FINE_MARGIN
 
         h, w = window.image_shape
-        source_pixels = h * w
+        source_pixels = 4 * h * w if spec.fine_grid else h * w  # the sources' field at every screen's (fine) pixels
         camera_points = (2 * h + 2 * FINE_MARGIN) * (2 * w + 2 * FINE_MARGIN) if pixel_integration else h * w
     units = iteration_units(batch, screens, shape, pixel_integration and not envelope, source_pixels, camera_points)
     if not envelope and ("spectral" in parts or config.coherence in ("spectral", "mask+spectral")):

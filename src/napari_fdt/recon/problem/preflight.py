@@ -9,6 +9,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import warnings
 
 import numpy as np
@@ -84,7 +85,9 @@ def finest_stage_bytes(acquisition: Acquisition, config: SolverConfig, sources_u
         batch = min(cfg.stage_batch(finest_index), acquisition.n_images)
     images = images_on_device(acquisition, device_type)
     screens = o.n_slices * spec.screens_per_slice  # ("auto" sub-slices: one screen)
-    if config_uses_split_field(cfg, device_type, factor, plan, opt, spec.pupil_edge):
+    if config_uses_split_field(cfg, device_type, factor, plan, opt, spec.pupil_edge, pixel_integration=spec.pixel_integration):
+        if spec.fine_grid:  # the split window of the field's 2x grid
+            plan, opt = fine_plan(plan), dataclasses.replace(opt, pixel_size_um=opt.pixel_size_um / 2)
         plan = split_plan(plan, opt)  # the split model's loop runs on plain autograd
         need = split_training_bytes(plan.padded_shape, plan.image_shape, screens, batch, n_wavelengths,
                                     spec.pixel_integration)
