@@ -52,12 +52,18 @@ def _excluded(config: SolverConfig, args: Any, distributed_launch: bool) -> FDTI
     return None
 
 
-def _family_folder(args: Any) -> bool:
-    """Whether ``--resume`` names a family's checkpoint folder (:data:`~napari_fdt.recon.run.family.FAMILY_MARKER`)."""
+def _family_marker(args: Any) -> tuple[SolverConfig, tuple[float, ...]] | None:
+    """The settings and weights of the family whose checkpoint folder ``--resume`` names
+    (:func:`~napari_fdt.recon.run.family.read_family_marker`), or None where it names none."""
     from napari_fdt.recon.run.family import read_family_marker
 
     resume = getattr(args, "resume", None)
-    return resume is not None and Path(resume).is_dir() and read_family_marker(resume) is not None
+    return read_family_marker(resume) if resume is not None and Path(resume).is_dir() else None
+
+
+def _family_folder(args: Any) -> bool:
+    """Whether ``--resume`` names a family's checkpoint folder (:data:`~napari_fdt.recon.run.family.FAMILY_MARKER`)."""
+    return _family_marker(args) is not None
 
 
 def member_path(out: Path, tau: float) -> Path:
@@ -95,25 +101,20 @@ def family_json(family: bool, plan) -> dict[str, Any]:
                           "predicted_total_s": len(FAMILY_TAUS) * plan.predicted_s}}
 
 
-def _taus(args: Any) -> tuple[float, ...]:
-    """The members' weights: a resumed family's own (its marker), else :data:`~napari_fdt.recon.run.family.FAMILY_TAUS`."""
-    from napari_fdt.recon.run.family import FAMILY_TAUS, read_family_marker
-
-    return read_family_marker(args.resume)[1] if _family_folder(args) else FAMILY_TAUS
-
-
 def check_family_request(config: SolverConfig, args: Any, out: Path, distributed_launch: bool) -> list[Path]:
     """Refuse what a family cannot do, before any run (FDTInputError naming the field); return the members' paths
     (each checked free unless ``--overwrite``)."""
     from napari_fdt.data.io import report_path
+    from napari_fdt.recon.run.family import FAMILY_TAUS
 
     excluded = _excluded(config, args, distributed_launch)
     if excluded is not None:
         raise excluded
-    paths = [member_path(out, tau) for tau in _taus(args)]
+    marker = _family_marker(args)
+    paths = [member_path(out, tau) for tau in (FAMILY_TAUS if marker is None else marker[1])]
     for p in paths:
         for q in (p, report_path(p)):
-            if q.exists() and not args.overwrite and not _family_folder(args):  # (resumed: the members written before)
+            if q.exists() and not args.overwrite and marker is None:  # (resumed: the members written before)
                 raise FDTInputError("out", f"{q} (a member of the family) exists", "choose another --out or pass --overwrite")
     return paths
 
@@ -122,16 +123,18 @@ def run_family_and_write(args, config: SolverConfig, acq, out: Path, truth, trut
     """Run the family, each member written as it completes, then the pick to ``out``; prints the verdict."""
     from napari_fdt.cli.progress import _progress_bar, _show_progress
     from napari_fdt.data.io import report_path
-    from napari_fdt.recon.run.family import Member, family_entries, member_config, member_folder, read_family_marker, run_family, with_family
+    from napari_fdt.recon.loop.checkpoint import has_checkpoint
+    from napari_fdt.recon.run.family import FAMILY_TAUS, Member, family_entries, member_config, member_folder, run_family, with_family
     from napari_fdt.recon.run.report import write_result
     from napari_fdt.recon.run.session import finish_run
     from napari_fdt.recon.run.solver import Reconstructor
 
     paths = check_family_request(config, args, out, distributed_launch=False)
-    taus, resume, sources = _taus(args), _family_folder(args), None
+    marker, taus, sources = _family_marker(args), FAMILY_TAUS, None
+    resume = marker is not None
     if resume:  # the family's own settings and weights; each member from its checkpoint where it left one
-        config = read_family_marker(args.resume)[0]
-        done = [f"τ_xy {t:g}" for t in taus if any(member_folder(args.resume, t).glob("stage_*.pt"))]
+        config, taus = marker
+        done = [f"τ_xy {t:g}" for t in taus if has_checkpoint(member_folder(args.resume, t))]
         print(f"resuming the family in {args.resume} (checkpoints of {', '.join(done) or 'no member yet'})", file=sys.stderr)
     else:
         first = Reconstructor(acq, member_config(config, taus[0]), device=args.device)

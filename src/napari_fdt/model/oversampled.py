@@ -33,7 +33,7 @@ from napari_fdt.physics.camera import pixel_average_from_fine
 from napari_fdt.physics.grid import GridPlan
 from napari_fdt.physics.optics import Optics
 
-__all__ = ["OversampledModel", "upsample_volume", "fine_plan", "FACTOR"]
+__all__ = ["OversampledModel", "upsample_volume", "fine_plan", "fine_optics", "FACTOR"]
 
 #: How much finer the field grid is than the camera's (per axis).
 FACTOR = 2
@@ -52,6 +52,11 @@ def upsample_volume(delta_n: torch.Tensor) -> torch.Tensor:
         return both.reshape(shape)
 
     return along(along(delta_n, -1), -2)
+
+
+def fine_optics(optics: Optics, factor: int = FACTOR) -> Optics:
+    """``optics`` with the field grid's pixel, ``factor``× finer than the camera's."""
+    return dataclasses.replace(optics, pixel_size_um=optics.pixel_size_um / factor)
 
 
 def fine_plan(plan: GridPlan, factor: int = FACTOR) -> GridPlan:
@@ -82,13 +87,12 @@ class OversampledModel:
         self.factor = FACTOR
         self.pixel_integration = bool(pixel_integration)
         self.split = bool(split)
-        fine_optics = dataclasses.replace(optics, pixel_size_um=optics.pixel_size_um / FACTOR)
         if self.split:
             from napari_fdt.model.split_field import SplitFieldModel
 
-            self.inner = SplitFieldModel(fine_optics, fine_plan(plan), device=device, dtype=dtype, **options)
+            self.inner = SplitFieldModel(fine_optics(optics), fine_plan(plan), device=device, dtype=dtype, **options)
         else:
-            self.inner = MultiSliceModel(fine_optics, fine_plan(plan), device=device, dtype=dtype, **options)
+            self.inner = MultiSliceModel(fine_optics(optics), fine_plan(plan), device=device, dtype=dtype, **options)
         self.device, self.dtype = self.inner.device, self.inner.dtype
 
     # what the rest of the package reads of a model

@@ -403,7 +403,7 @@ class _Lookup(torch.autograd.Function):
         if ctx.needs_input_grad[0]:
             # each point's share at its lower neighbour less its t-weighted share, plus that at the upper neighbour:
             # two scatters on one index
-            b, s, p = index.shape
+            b, s = index.shape[:2]
             lower = torch.zeros((b, s, ctx.table_len), dtype=h.dtype, device=h.device).scatter_add_(2, index, h)
             share = torch.zeros_like(lower).scatter_add_(2, index, h * t[:, None, :])
             lower.sub_(share)[..., 1:].add_(share[..., :-1])

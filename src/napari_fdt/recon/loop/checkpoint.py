@@ -29,7 +29,7 @@ if TYPE_CHECKING:
     from napari_fdt.recon.loop.interface import Run
 
 __all__ = ["FORMAT", "VERSION", "checkpoint_path", "in_stage_path", "prune_in_stage", "in_stage_state", "resume_in_stage",
-           "latest_checkpoint", "checkpoint_state", "write_checkpoint", "read_checkpoint", "restore_checkpoint"]
+           "has_checkpoint", "latest_checkpoint", "checkpoint_state", "write_checkpoint", "read_checkpoint", "restore_checkpoint"]
 
 FORMAT = "napari-fdt-checkpoint"
 #: Version 2 (2026-11-27): plain data only, read without unpickling objects. Version 1 held a NumPy array and the stage
@@ -130,11 +130,21 @@ def resume_in_stage(rec: Run, work: Any, state: dict[str, Any]) -> None:
     work.t0 = time.perf_counter() - float(state["stage_seconds"])
 
 
+def _checkpoints(directory: str | Path) -> list[Path]:
+    """The complete checkpoints in ``directory`` (``stage_*.pt``; one being written is a hidden ``.tmp``)."""
+    return [p for p in Path(directory).glob("stage_*.pt") if p.is_file()]
+
+
+def has_checkpoint(directory: str | Path) -> bool:
+    """Whether ``directory`` holds a complete checkpoint (False where it does not exist)."""
+    return bool(_checkpoints(directory))
+
+
 def latest_checkpoint(directory: str | Path) -> Path:
     """The checkpoint in ``directory`` written last (``stage_<i>.pt``; a file being written is a hidden ``.tmp`` until it
     is complete, so it is never picked). By write time, not by stage number: when a choice runs the stages again from
     the first, ``stage_0.pt`` of the second pass is newer than ``stage_1.pt`` of the first."""
-    found = [p for p in Path(directory).glob("stage_*.pt") if p.is_file()]
+    found = _checkpoints(directory)
     if not found:
         raise FDTInputError("resume", f"{directory} holds no checkpoint (stage_*.pt)",
                             "point --resume at the folder given to --checkpoint-dir, or at one of its stage_*.pt files")

@@ -9,7 +9,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import warnings
 
 import numpy as np
@@ -70,7 +69,7 @@ def finest_stage_bytes(acquisition: Acquisition, config: SolverConfig, sources_u
     with its window plan, batch and backward mode: ``(bytes, plan, batch, mode)``. ``sources_um`` (N, 3) µm set the
     window; ``batch`` (None: the stage's) the images of the step."""
     from napari_fdt.model.memory import grid_is_unitary, leanest_mode, split_training_bytes, training_bytes
-    from napari_fdt.model.oversampled import fine_plan
+    from napari_fdt.model.oversampled import fine_optics, fine_plan
     from napari_fdt.model.split_field import split_plan
     from napari_fdt.recon.problem.stage_spec import stage_spec
     from napari_fdt.recon.problem.stages import camera_model, config_uses_split_field, multislice_plan
@@ -87,7 +86,7 @@ def finest_stage_bytes(acquisition: Acquisition, config: SolverConfig, sources_u
     screens = o.n_slices * spec.screens_per_slice  # ("auto" sub-slices: one screen)
     if config_uses_split_field(cfg, device_type, factor, plan, opt, spec.pupil_edge, pixel_integration=spec.pixel_integration):
         if spec.fine_grid:  # the split window of the field's 2x grid
-            plan, opt = fine_plan(plan), dataclasses.replace(opt, pixel_size_um=opt.pixel_size_um / 2)
+            plan, opt = fine_plan(plan), fine_optics(opt)
         plan = split_plan(plan, opt)  # the split model's loop runs on plain autograd
         need = split_training_bytes(plan.padded_shape, plan.image_shape, screens, batch, n_wavelengths,
                                     spec.pixel_integration)

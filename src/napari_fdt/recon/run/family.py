@@ -181,10 +181,11 @@ def _write_family_marker(directory: str | Path, config: SolverConfig, taus: tupl
 def _member_run(acquisition: Acquisition, cfg: SolverConfig, tau: float, device: Any, sources: np.ndarray | None,
                 resume_dir: Path | None) -> Reconstructor:
     """Member ``tau``'s solver: from its checkpoint in ``resume_dir`` where it has one (its own settings), else new."""
+    from napari_fdt.recon.loop.checkpoint import has_checkpoint
     from napari_fdt.recon.run.solver import Reconstructor
 
     folder = None if resume_dir is None else member_folder(resume_dir, tau)
-    if folder is None or not any(folder.glob("stage_*.pt")):
+    if folder is None or not has_checkpoint(folder):
         return Reconstructor(acquisition, cfg, device=device, initial_sources_um=sources)
     rec = Reconstructor.from_checkpoint(folder, acquisition, device=device)
     if rec.config.tv_xy_weight != float(tau):
