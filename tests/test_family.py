@@ -189,3 +189,35 @@ def test_a_family_interrupted_resumes_from_its_checkpoints_to_the_same_volumes(t
         assert (a == full) == (b == resumed)  # the same member picked
         assert np.array_equal(read_volume_tiff(a)[0], read_volume_tiff(b)[0]), tau
     assert (member_folder(ck, FAMILY_TAUS[2]) / "stage_1.pt").is_file()  # the resumed family went on writing there
+
+
+def test_members_start_with_the_parts_the_first_member_kept_and_are_its_cold_runs(tmp_path: Path) -> None:
+    """Data made with 4 screens per slice (tests/test_parts_branch.py's scene): the first member keeps sub-slices (by the
+    branch) and runs every stage again with them; the next member starts with them on from its first stage (multi-slice
+    coarse stages, the other parts still tried at its finest stage's end), so it runs each stage once. Its volume is the
+    cold run's at its weight bit for bit: a cold run's second pass also starts from the state before any stage."""
+    from test_parts_backward import _acquisition, _config
+
+    from napari_fdt.recon.loop.phases import RERUN
+    from napari_fdt.recon.run.family import run_family
+    from napari_fdt.recon.run.report import describe_parts, model_parts_summary
+    from napari_fdt.recon.run.solver import Reconstructor
+
+    acq, cfg = _acquisition(sub_slices=4), _config(sub_slices="auto")
+    runs = run_family(acq, cfg, device="cpu", taus=(1.0, 3.0))
+    with pytest.raises(StopIteration) as ended:
+        while True:
+            next(runs)
+    first, member = ended.value.value.members
+    assert first.rec.parts["sub_slices"] and first.rec.parts_choice.rerun == "stages" and first.parts_shared == []
+    assert member.parts_shared == ["sub_slices"] and member.parts_shared_from == 1.0 and member.rec.parts["sub_slices"]
+    assert member.rec.parts_choice.rerun == "before" and not any(p.pass_name == RERUN for p in member.rec.plan.phases)
+    tried = [(t["part"], t.get("pass")) for t in member.rec.parts_choice.trials if "shared_from" not in t]
+    assert tried == [("aberrations", 1)]  # the parts not kept, tried at its finest stage's end
+    assert "as the family's τ 1 member kept them" in describe_parts(model_parts_summary(member.rec))
+    cold = Reconstructor(acq, member_config(cfg, 3.0), device="cpu")
+    for _ in cold.run():
+        pass
+    assert cold.parts_choice.rerun == "stages" and any(p.pass_name == RERUN for p in cold.plan.phases)
+    assert np.array_equal(cold.delta_n_full(), member.rec.delta_n_full())
+    assert member.validation_error == pytest.approx(cold.stages[-1].validation_error, rel=1e-6)

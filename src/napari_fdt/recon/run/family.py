@@ -17,13 +17,24 @@ every other choice, the model parts included, made by that run), and compares th
   followed (cells_fine seed 1: τ 10 at +2.4 %, told apart, 1.41× the best member's Δn error; τ 3 the best;
   docs/decisions/tv-family.md).
 
-The members share the acquisition and the initial source positions (a member's run would compute the same ones), and,
-where the first member's choice of model parts kept none, that choice: the later members run with the ``"auto"`` parts
-off (:func:`parts_off`), no tests, which is bit for bit their own run wherever their own tests would keep nothing too
-(a test that keeps nothing leaves the run as it was; on 28 of 28 members measured whose first member kept nothing,
-they kept nothing: docs/decisions/tv-family.md). The family replaces the TV weights' trials: its members' weights are
-numbers. Without held-out images there is no verdict
-and the pick is the smallest weight (a warning says so).
+The members share the acquisition and the initial source positions (a member's run would compute the same ones), and
+the first member's choice of model parts:
+
+* where it kept none, the later members run with the ``"auto"`` parts off (:func:`parts_off`), no tests, which is bit
+  for bit their own run wherever their own tests would keep nothing too (a test that keeps nothing leaves the run as it
+  was; on 28 of 28 members measured whose first member kept nothing, they kept nothing);
+* where it kept some and ran every stage again with them (``rerun`` ``"stages"``: sub-slices by the branch, the 2x
+  grid, ...), the later members start with those parts on from their first stage (:func:`start_with_shared_parts`:
+  as a run whose pilot kept them, multi-slice coarse stages), not a first pass without them and its tests. A cold
+  run's second pass also starts from the state before any stage, so such a member is bit for bit its own run wherever
+  its own first pass would keep the same parts (a kept pupil or aberrations start from the first member's values,
+  where a cold run starts from its own first pass's). The parts not kept are still tried at its finest stage's end,
+  and the shared ones tested backward at its end, so a member whose data do not want a shared part drops it
+  (docs/decisions/tv-family.md, "Sharing a kept choice"). Where the pilot kept the parts, or only the finest stage
+  ran again, each member makes its own choice: there a member runs no first pass of its own to save.
+
+The family replaces the TV weights' trials: its members' weights are numbers. Without held-out images there is no
+verdict and the pick is the smallest weight (a warning says so).
 
 With a checkpoint folder each member writes its own (``tv<τ>/stage_*.pt`` under it, as a run's ``--checkpoint-dir``)
 beside :data:`FAMILY_MARKER` (the family's settings and weights, plain JSON); resumed from that folder, members with a
@@ -53,7 +64,7 @@ if TYPE_CHECKING:
     from napari_fdt.recon.run.solver import Reconstructor
 
 __all__ = ["FAMILY_TAUS", "PICK_TOLERANCE", "INDISTINGUISHABLE_SE", "Member", "Family", "member_config", "parts_off", "verdict",
-           "FAMILY_MARKER", "member_folder", "read_family_marker", "run_family", "family_entries", "with_family"]
+           "start_with_shared_parts", "shared_parts", "FAMILY_MARKER", "member_folder", "read_family_marker", "run_family", "family_entries", "with_family"]
 
 #: The members' lateral TV weights τ_xy (τ_z = τ_xy · TV_Z_RATIO): they bracket the best fixed weights measured (τ 1 on
 #: the sample and thick slabs, 3 on a cells-like scene, 10 on cells and sparse beads: docs/decisions/tv-half-sets.md).
@@ -81,15 +92,18 @@ class Member:
     standard_error: float | None = None
     indistinguishable: bool | None = None
     picked: bool = False
-    #: the weight of the member whose choice of model parts (it kept none) this member ran with; None: its own choice
+    #: the weight of the member whose choice of model parts this member started from (:func:`run_family`); None: its own
     parts_shared_from: float | None = None
+    #: the parts on from the first stage because that member kept them (empty where it kept none)
+    parts_shared: list[str] = field(default_factory=list)
 
     def to_dict(self) -> dict[str, Any]:
         """RI.json's ``regularisation.family`` entry (without ``path``, which the writer adds)."""
         return {"tau": self.tau, "tv_xy_weight": self.tv_xy_weight, "tv_z_weight": self.tv_z_weight,
                 "validation_error": self.validation_error, "mean_difference_to_best": self.mean_difference,
                 "standard_error": self.standard_error, "indistinguishable_from_best": self.indistinguishable,
-                "picked": self.picked, "seconds": self.seconds, "parts_shared_from": self.parts_shared_from}
+                "picked": self.picked, "seconds": self.seconds, "parts_shared_from": self.parts_shared_from,
+                "parts_shared": list(self.parts_shared)}
 
 
 @dataclass
@@ -116,6 +130,36 @@ def parts_off(config: SolverConfig) -> SolverConfig:
     off = {"sub_slices": 1, "field_oversampling": 1, "obliquity_correction": "false", "coherence": "none",
            "calibrate_pupil": "false", "calibrate_aberrations": "false"}
     return dataclasses.replace(config, **{k: v for k, v in off.items() if getattr(config, k) in (AUTO, BEFORE_SPECTRAL)})
+
+
+def start_with_shared_parts(rec: Reconstructor, first: Reconstructor) -> list[str]:
+    """Start the fresh run ``rec`` with the ``"auto"`` parts the completed run ``first`` kept (its final choice, after
+    its backward test) on from the first stage, as a run whose pilot kept them starts
+    (:func:`~napari_fdt.recon.choices.parts_pilot.start_with_parts`: multi-slice coarse stages under ``coarse_model``
+    ``"auto"``, the other auto parts tried at the finest stage's end, the kept ones tested backward at the end); the
+    pupil and aberrations from ``first``'s final values where it kept them. Returns the parts shared (none: ``rec`` is
+    left as it was)."""
+    from napari_fdt.recon.calibration.calibration import PUPIL_PARAMETERS
+    from napari_fdt.recon.choices.parts_backward import kept_auto_parts
+    from napari_fdt.recon.choices.parts_pilot import PilotOutcome, start_with_parts
+    from napari_fdt.recon.loop.phases import PUPIL_PILOT
+
+    kept = [p for p in kept_auto_parts(first) if p in rec._auto_parts]
+    if not kept or rec.parts_choice is not None or rec.completed_stages:
+        return []
+    fitted = (first if {"pupil", "aberrations"} & set(kept) else rec).calibration.copy_values(PUPIL_PARAMETERS)
+    start_with_parts(rec, PilotOutcome(kept, fitted))
+    rec.parts_choice.trials = [{"part": p, "on": True, "pass": 0, "shared_from": float(first.config.tv_xy_weight)} for p in kept]
+    # no pilot runs now (a choice is made): its phase leaves the plan
+    rec._revise_plan(dataclasses.replace(rec.plan, phases=tuple(p for p in rec.plan.phases if p.pass_name != PUPIL_PILOT)))
+    return kept
+
+
+def shared_parts(rec: Reconstructor) -> list[str]:
+    """The parts ``rec`` started with because the family's first member kept them (:func:`start_with_shared_parts`;
+    read from its choice, so a resumed member says it too)."""
+    choice = rec.parts_choice
+    return [] if choice is None else [t["part"] for t in choice.trials if "shared_from" in t]
 
 
 def verdict(members: list[Member], tolerance: float = PICK_TOLERANCE,
@@ -220,7 +264,7 @@ def run_family(acquisition: Acquisition, config: SolverConfig, *, device: Any = 
     from napari_fdt.recon.choices.parts_backward import kept_auto_parts
 
     members: list[Member] = []
-    sources, shared_from = initial_sources_um, None
+    sources, shared_from, first = initial_sources_um, None, None
     if checkpoint_dir is not None and not (resume and (Path(checkpoint_dir) / FAMILY_MARKER).is_file()):
         _write_family_marker(checkpoint_dir, config, taus)
     for k, tau in enumerate(taus):
@@ -229,14 +273,23 @@ def run_family(acquisition: Acquisition, config: SolverConfig, *, device: Any = 
         rec = _member_run(acquisition, cfg, tau, device, sources, Path(checkpoint_dir) if resume and checkpoint_dir else None)
         before_s = rec.elapsed_s  # a resumed member's seconds before this process
         sources = rec.initial_sources_um  # the first member's start (fitted once where the acquisition gives none)
+        if first is not None:
+            start_with_shared_parts(rec, first)
         folder = None if checkpoint_dir is None else member_folder(checkpoint_dir, tau)
         for snap in rec.run(should_stop=should_stop, checkpoint_dir=folder):
             yield k, snap
         if rec.completed_stages < len(cfg.stages):
             return None
-        member = Member(float(tau), float(cfg.tv_xy_weight), float(cfg.tv_z_weight), rec, parts_shared_from=shared_from)
-        if k == 0 and rec.parts_choice is not None and "validation" in rec.parts_choice.chosen_by.values() and not kept_auto_parts(rec):
-            shared_from = float(tau)  # its tests kept nothing: the later members run with the parts off
+        shared = shared_parts(rec)
+        member = Member(float(tau), float(cfg.tv_xy_weight), float(cfg.tv_z_weight), rec,
+                        parts_shared_from=shared_from if shared_from is not None or not shared else float(taus[0]), parts_shared=shared)
+        if k == 0 and rec.parts_choice is not None and "validation" in rec.parts_choice.chosen_by.values():
+            if kept_auto_parts(rec):
+                # its tests kept parts and every stage ran again with them: the later members start with them (where
+                # the pilot kept them, or the finest stage alone ran again, a member's own path costs no first pass)
+                first = rec if rec.parts_choice.rerun == "stages" else None
+            else:
+                shared_from = float(tau)  # its tests kept nothing: the later members run with the parts off
         member.validation_error, member.image_errors = _held_out_errors(rec)
         member.seconds = before_s + time.perf_counter() - t0
         members.append(member)

@@ -180,9 +180,14 @@ def describe_parts(summary: dict[str, Any]) -> str:
 
     tried = ", ".join(f"{t['part']}{when(t)} {'on' if t['on'] else 'off'} ({-100 * t.get('improvement', 0.0) / base(t):+.1f} %)"
                       for t in chosen["trials"] if "improvement" in t)
+    shared = [t for t in chosen["trials"] if "shared_from" in t]  # a family member's start (recon/run/family.py)
+    said = (f"; {', '.join(t['part'] for t in shared)} on from the first stage, as the family's τ {shared[0]['shared_from']:g} "
+            "member kept them") if shared else ""
+    if chosen["reference_error"] is None:
+        return f"model parts on: {needed}{said}" + _describe_backward(chosen.get("backward"))
     where = f"in stage {chosen['stage'] + 1}" if chosen["stage"] >= 0 else "before the stages"
     return (f"model parts on: {needed} (chosen by the validation error {chosen['reference_error']:.4f} {where}, "
-            f"{chosen['seconds']:.1f} s; change of the held-out error with each part: {tried})" + _describe_backward(chosen.get("backward")))
+            f"{chosen['seconds']:.1f} s; change of the held-out error with each part: {tried}{said})" + _describe_backward(chosen.get("backward")))
 
 
 def _describe_backward(backward: dict[str, Any] | None) -> str:
