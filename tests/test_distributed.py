@@ -445,3 +445,54 @@ def test_every_configuration_runs_distributed_and_agrees_with_one_process(scene1
     floor = np.array([DN_TOL, SOURCES_TOL_UM, GAIN_RTOL])
     assert np.all(_gaps(dist, one) <= np.maximum(floor, ULP_FACTOR * ulp)), (_gaps(dist, one), ulp)
     assert sorted(p.name for p in (tmp_path / "ck").glob("stage_*.pt")) == ["stage_0.pt", "stage_1.pt"]
+
+
+def test_a_family_runs_distributed_and_agrees_with_one_process(scene16_dir: Path, tmp_path: Path) -> None:
+    """``--tv-family`` under two gloo ranks (issue 47): every member a distributed run, the verdict made on the held-out
+    errors summed over the ranks, rank 0 writing the members, the pick and the family's checkpoints; the same members
+    (the same choices, Δn within the floor above or :data:`ULP_FACTOR` times one float32 ulp's effect) and the same pick
+    as the family in one process."""
+    from napari_fdt import read_acquisition
+    from napari_fdt.cli.family import member_path
+    from napari_fdt.recon.run.family import FAMILY_TAUS, member_config, run_family
+
+    config = _matrix_config(None, True, True)
+    config.save(tmp_path / "cfg.json")
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join([str(Path(napari_fdt.__file__).resolve().parents[1]), env.get("PYTHONPATH", "")])
+    env.update(OMP_NUM_THREADS="1", FDT_DIST_TIMEOUT_S="60")
+    for name in ("WORLD_SIZE", "RANK", "LOCAL_RANK", "MASTER_ADDR", "MASTER_PORT", "FDT_DIST_BACKEND"):
+        env.pop(name, None)
+    out = tmp_path / "two" / "RI.tif"
+    proc = _run_group([sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2",
+                       "-m", "napari_fdt", "reconstruct", str(scene16_dir), "--config", str(tmp_path / "cfg.json"),
+                       "--device", "cpu", "--out", str(out), "--tv-family", "--checkpoint-dir", str(tmp_path / "ck"), "--quiet"],
+                      env, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-4000:]
+    assert proc.stdout.count("TV family") == 1  # rank 0's verdict, once
+    report = json.loads((tmp_path / "two" / "RI.json").read_text())
+    family = report["regularisation"]["family"]
+    assert report["distributed"]["world_size"] == 2 and [m["tau"] for m in family] == list(FAMILY_TAUS)
+    assert (tmp_path / "ck" / "family.json").is_file() and all((tmp_path / "ck" / f"tv{t:g}" / "stage_1.pt").is_file() for t in FAMILY_TAUS)
+
+    acq = read_acquisition(scene16_dir)
+    runs = run_family(acq, config, device="cpu")
+    with pytest.raises(StopIteration) as ended:
+        while True:
+            next(runs)
+    one = ended.value.value
+    assert [m["picked"] for m in family] == [m.picked for m in one.members]
+    floor = np.array([DN_TOL, SOURCES_TOL_UM, GAIN_RTOL])
+    for entry, member in zip(family, one.members):
+        ri, _ = read_volume_tiff(entry["path"])
+        cal = json.loads(Path(entry["path"]).with_suffix(".json").read_text())["calibration"]
+        dist = {"dn": ri - N_BG, "sources": np.array(cal["sources_um"]), "gains": np.array(cal["gains"])}
+        rec = member.rec
+        single = {"dn": rec.delta_n_full(), "sources": rec.sources_um(), "gains": rec.gains()}
+        assert Path(entry["path"]) == (out if entry["picked"] else member_path(out, member.tau))
+        # what one float32 ulp of noise in the single process's predictions moves the member by (its cold run's)
+        noisy = [_single(acq, member_config(config, member.tau), noise_seed=s) for s in (1, 2)]
+        ulp = np.max([_gaps(r, single) for r in noisy], axis=0)
+        ulp_val = max(abs(r["validation"] / rec.stages[-1].validation_error - 1) for r in noisy)
+        assert np.all(_gaps(dist, single) <= np.maximum(floor, ULP_FACTOR * ulp)), (member.tau, _gaps(dist, single), ulp)
+        assert entry["validation_error"] == pytest.approx(member.validation_error, rel=max(1e-3, ULP_FACTOR * ulp_val))

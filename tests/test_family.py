@@ -89,7 +89,8 @@ def test_auto_makes_a_family_on_cuda_unless_the_command_excludes_one(monkeypatch
     for extra in (["--tv-xy-weight", "3"], ["--resume", "ck"], ["--half-set-resolution"], ["--error-bounds"]):
         assert not family_on(*args("--device", "cuda", *extra)), extra
     assert family_on(*args("--device", "cuda", "--checkpoint-dir", "ck"))  # each member writes its own checkpoints
-    assert not family_on(*args("--device", "cuda"), distributed_launch=True)
+    assert not family_on(*args("--device", "cuda"), distributed_launch=True)  # a launch sized for one run
+    assert family_on(*args("--device", "cuda", "--tv-family"), distributed_launch=True)  # asked for: run distributed
 
 
 def _short() -> SolverConfig:

@@ -471,30 +471,29 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
         side = Path(args.truth).with_name("ground_truth_sources_um.json")
         if side.exists():
             truth_src = np.asarray(json.loads(side.read_text())["sources_um"], dtype=np.float64)
-    from napari_fdt.cli.family import family_on
+    from napari_fdt.cli.family import check_family_request, family_on, run_family_and_write
 
-    launched = distributed.world_from_env()[0] > 1
-    if family_on(config, args, distributed_launch=launched):  # (cli/family.py: one whole run per TV weight, then the pick)
-        from napari_fdt.cli.family import check_family_request, run_family_and_write
-
-        check_family_request(config, args, out, distributed_launch=launched)
-        return run_family_and_write(args, config, acq, out, truth, truth_src)
+    run = _run_and_write
+    if family_on(config, args, distributed_launch=distributed.world_from_env()[0] > 1):  # (cli/family.py: a run per TV weight)
+        check_family_request(config, args, out)
+        run = run_family_and_write
     group = distributed.setup(args.device, args.dist_backend)
     completed = False
     try:
-        code = _run_and_write(args, config, acq, out, json_out, truth, truth_src, group)
+        code = run(args, config, acq, out, truth, truth_src, group)
         completed = True
         return code
     finally:
         distributed.teardown(group, completed=completed)
 
 
-def _run_and_write(args, config, acq, out: Path, json_out: Path, truth, truth_src, group) -> int:
+def _run_and_write(args, config, acq, out: Path, truth, truth_src, group) -> int:
     from napari_fdt.cli.resolution import add_resolution_and_write
+    from napari_fdt.data.io import report_path
     from napari_fdt.recon.run.report import describe_parts, describe_plan, write_result
     from napari_fdt.recon.run.session import bounds_due, finish_run, open_run, resolution_due
 
-    device = args.device if group is None else group.device
+    device, json_out = args.device if group is None else group.device, report_path(out)
     rec = open_run(acq, config, device=device, resume=args.resume, group=group)
     writer = group is None or group.is_writer
     cancelled = False

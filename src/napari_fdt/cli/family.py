@@ -18,10 +18,11 @@ __all__ = ["member_path", "family_on", "check_family_request", "run_family_and_w
 def family_on(config: SolverConfig, args: Any, distributed_launch: bool = False) -> bool:
     """Whether ``fdt reconstruct`` (and ``fdt plan``) make a family: ``tv_family`` "true" (then
     :func:`check_family_request` refuses what a family cannot do), "false" never; "auto" on a CUDA device where nothing
-    the command asks for excludes a family (TV weights as numbers, ``--resume`` of one run's checkpoints, torchrun,
-    ``half_set_resolution``, ``error_bounds``), and never on the CPU, where a family costs 2.3x a run (median;
-    docs/decisions/tv-family.md, "Default, per device"). ``--resume`` of a family's checkpoint folder resumes the
-    family, whatever the settings say (a resumed run takes its checkpoint's settings)."""
+    the command asks for excludes a family (TV weights as numbers, ``--resume`` of one run's checkpoints,
+    ``half_set_resolution``, ``error_bounds``) and not under torchrun (a launch sized for one run; ``--tv-family`` runs
+    the family there), and never on the CPU, where a family costs 2.3x a run (median; docs/decisions/tv-family.md,
+    "Default, per device"). ``--resume`` of a family's checkpoint folder resumes the family, whatever the settings say
+    (a resumed run takes its checkpoint's settings)."""
     if _family_folder(args):
         return True
     if config.tv_family != AUTO:
@@ -30,10 +31,10 @@ def family_on(config: SolverConfig, args: Any, distributed_launch: bool = False)
 
     if resolve_device(getattr(args, "device", None) or "auto").type != "cuda":
         return False
-    return not config.error_bounds and _excluded(config, args, distributed_launch) is None
+    return not config.error_bounds and not distributed_launch and _excluded(config, args) is None
 
 
-def _excluded(config: SolverConfig, args: Any, distributed_launch: bool) -> FDTInputError | None:
+def _excluded(config: SolverConfig, args: Any) -> FDTInputError | None:
     """What the command asks for that a family cannot do, as the error :func:`check_family_request` raises (the first
     of them), or None. (``error_bounds`` with a family is refused by ``cli/bounds.check_bounds_request``.)"""
     if config.tv_xy_weight != AUTO or config.tv_z_weight != AUTO:
@@ -44,8 +45,6 @@ def _excluded(config: SolverConfig, args: Any, distributed_launch: bool) -> FDTI
                              "family's (a family's folder holds family.json and a tv<weight> folder per member)",
                              "resume that run without --tv-family (its own settings), or point --resume at the folder a "
                              "family wrote with --checkpoint-dir")
-    if distributed_launch:
-        return FDTInputError("tv_family", "is not run under torchrun yet", "run the family in one process, or one weight per launch")
     if config.half_set_resolution:
         return FDTInputError("tv_family", "and half_set_resolution together would run six more half runs",
                              "run the family, then the picked member's report with --config RI.json --half-set-resolution")
@@ -101,13 +100,13 @@ def family_json(family: bool, plan) -> dict[str, Any]:
                           "predicted_total_s": len(FAMILY_TAUS) * plan.predicted_s}}
 
 
-def check_family_request(config: SolverConfig, args: Any, out: Path, distributed_launch: bool) -> list[Path]:
+def check_family_request(config: SolverConfig, args: Any, out: Path) -> list[Path]:
     """Refuse what a family cannot do, before any run (FDTInputError naming the field); return the members' paths
     (each checked free unless ``--overwrite``)."""
     from napari_fdt.data.io import report_path
     from napari_fdt.recon.run.family import FAMILY_TAUS
 
-    excluded = _excluded(config, args, distributed_launch)
+    excluded = _excluded(config, args)
     if excluded is not None:
         raise excluded
     marker = _family_marker(args)
@@ -119,8 +118,9 @@ def check_family_request(config: SolverConfig, args: Any, out: Path, distributed
     return paths
 
 
-def run_family_and_write(args, config: SolverConfig, acq, out: Path, truth, truth_src) -> int:
-    """Run the family, each member written as it completes, then the pick to ``out``; prints the verdict."""
+def run_family_and_write(args, config: SolverConfig, acq, out: Path, truth, truth_src, group=None) -> int:
+    """Run the family, each member written as it completes, then the pick to ``out``; prints the verdict. ``group``:
+    this rank's under torchrun (every rank runs the members; rank 0 alone writes and prints)."""
     from napari_fdt.cli.progress import _progress_bar, _show_progress
     from napari_fdt.data.io import report_path
     from napari_fdt.recon.loop.checkpoint import has_checkpoint
@@ -129,21 +129,26 @@ def run_family_and_write(args, config: SolverConfig, acq, out: Path, truth, trut
     from napari_fdt.recon.run.session import finish_run
     from napari_fdt.recon.run.solver import Reconstructor
 
-    paths = check_family_request(config, args, out, distributed_launch=False)
+    paths = check_family_request(config, args, out)
     marker, taus, sources = _family_marker(args), FAMILY_TAUS, None
-    resume = marker is not None
+    resume, writer = marker is not None, group is None or group.is_writer
+    device = args.device if group is None else group.device
     if resume:  # the family's own settings and weights; each member from its checkpoint where it left one
         config, taus = marker
         done = [f"τ_xy {t:g}" for t in taus if has_checkpoint(member_folder(args.resume, t))]
-        print(f"resuming the family in {args.resume} (checkpoints of {', '.join(done) or 'no member yet'})", file=sys.stderr)
+        if writer:
+            print(f"resuming the family in {args.resume} (checkpoints of {', '.join(done) or 'no member yet'})", file=sys.stderr)
     else:
-        first = Reconstructor(acq, member_config(config, taus[0]), device=args.device)
+        first = Reconstructor(acq, member_config(config, taus[0]), device=device, group=group)
         sources = first.initial_sources_um
-        print(family_summary(True, first.plan), file=sys.stderr)
+        if writer:
+            print(family_summary(True, first.plan), file=sys.stderr)
     checkpoint_dir = args.checkpoint_dir if args.checkpoint_dir is not None else args.resume if resume else None
     reports: dict[float, dict[str, Any]] = {}
 
     def keep(member: Member) -> None:
+        if not writer:
+            return
         path = paths[taus.index(member.tau)]
         report = finish_run(member.rec, False, output=str(path), acquisition_path=str(args.acquisition), truth_ri=truth,
                             truth_sources_um=truth_src)
@@ -153,8 +158,8 @@ def run_family_and_write(args, config: SolverConfig, acq, out: Path, truth, trut
         print(f"member τ_xy {member.tau:g} done ({member.seconds:.0f} s, {err}): wrote {path}", file=sys.stderr)
 
     bar, current = None, -1
-    runs = run_family(acq, config, device=args.device, initial_sources_um=sources, keep=keep, taus=taus,
-                      checkpoint_dir=checkpoint_dir, resume=resume)
+    runs = run_family(acq, config, device=device, initial_sources_um=sources, keep=keep, taus=taus,
+                      checkpoint_dir=checkpoint_dir, resume=resume, group=group)
     try:
         while True:
             try:
@@ -165,17 +170,22 @@ def run_family_and_write(args, config: SolverConfig, acq, out: Path, truth, trut
             if k != current:
                 if bar is not None:
                     bar.close()
-                bar, current = _progress_bar(snap.plan_iterations, disable=args.quiet), k
-                print(f"member {k + 1}/{len(taus)}: τ_xy {taus[k]:g}", file=sys.stderr)
+                bar, current = _progress_bar(snap.plan_iterations, disable=args.quiet or not writer), k
+                if writer:
+                    print(f"member {k + 1}/{len(taus)}: τ_xy {taus[k]:g}", file=sys.stderr)
             _show_progress(bar, snap)
     except KeyboardInterrupt:
         runs.close()
+        if not writer:
+            return 130
         again = f"; --resume {checkpoint_dir} continues it" if checkpoint_dir is not None else ""
         print(f"interrupted: {len(reports)} member(s) complete and written; no pick{again}", file=sys.stderr)
         return 130
     finally:
         if bar is not None:
             bar.close()
+    if not writer:
+        return 0
     chosen = family.chosen
     entries = family_entries(family, reports, [str(out if m.picked else p) for m, p in zip(family.members, paths)])
     report = with_family({**reports[chosen.tau], "output": str(out)}, entries, chosen.tau, family.reason)

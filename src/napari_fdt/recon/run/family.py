@@ -61,6 +61,7 @@ from napari_fdt.recon.settings.config import AUTO, BEFORE_SPECTRAL, SolverConfig
 if TYPE_CHECKING:
     from napari_fdt.data.acquisition import Acquisition
     from napari_fdt.recon.loop.snapshot import Snapshot
+    from napari_fdt.recon.problem.distributed import Group
     from napari_fdt.recon.run.solver import Reconstructor
 
 __all__ = ["FAMILY_TAUS", "PICK_TOLERANCE", "INDISTINGUISHABLE_SE", "Member", "Family", "member_config", "parts_off", "verdict",
@@ -223,15 +224,15 @@ def _write_family_marker(directory: str | Path, config: SolverConfig, taus: tupl
 
 
 def _member_run(acquisition: Acquisition, cfg: SolverConfig, tau: float, device: Any, sources: np.ndarray | None,
-                resume_dir: Path | None) -> Reconstructor:
+                resume_dir: Path | None, group: Group | None) -> Reconstructor:
     """Member ``tau``'s solver: from its checkpoint in ``resume_dir`` where it has one (its own settings), else new."""
     from napari_fdt.recon.loop.checkpoint import has_checkpoint
     from napari_fdt.recon.run.solver import Reconstructor
 
     folder = None if resume_dir is None else member_folder(resume_dir, tau)
     if folder is None or not has_checkpoint(folder):
-        return Reconstructor(acquisition, cfg, device=device, initial_sources_um=sources)
-    rec = Reconstructor.from_checkpoint(folder, acquisition, device=device)
+        return Reconstructor(acquisition, cfg, device=device, initial_sources_um=sources, group=group)
+    rec = Reconstructor.from_checkpoint(folder, acquisition, device=device, group=group)
     if rec.config.tv_xy_weight != float(tau):
         raise FDTInputError("resume", f"{folder} holds a run at τ_xy {rec.config.tv_xy_weight:g}, not member τ_xy {tau:g}",
                             "resume the family from the folder it wrote, unchanged, or start it again")
@@ -252,7 +253,7 @@ def _held_out_errors(rec: Reconstructor) -> tuple[float | None, list[float]]:
 def run_family(acquisition: Acquisition, config: SolverConfig, *, device: Any = "auto",
                initial_sources_um: np.ndarray | None = None, should_stop: Callable[[], bool] | None = None,
                taus: tuple[float, ...] = FAMILY_TAUS, keep: Callable[[Member], None] | None = None,
-               checkpoint_dir: str | Path | None = None, resume: bool = False,
+               checkpoint_dir: str | Path | None = None, resume: bool = False, group: Group | None = None,
                ) -> Generator[tuple[int, Snapshot], None, Family | None]:
     """Run each member's whole path in turn, yielding ``(member index, snapshot)``; returns the :class:`Family` with its
     verdict, or None when stopped (``should_stop``) before the last member completed.
@@ -260,17 +261,21 @@ def run_family(acquisition: Acquisition, config: SolverConfig, *, device: Any = 
     ``keep(member)`` is called as each member completes (a front end writes or shows it then; members stream as they
     finish); the member's solver stays in ``member.rec``. ``checkpoint_dir``: each member's checkpoints go to its
     :func:`member_folder` there, with the family's :data:`FAMILY_MARKER`; ``resume``: members that left a checkpoint
-    there continue from it (``config`` and ``taus`` then as :func:`read_family_marker` gives them)."""
+    there continue from it (``config`` and ``taus`` then as :func:`read_family_marker` gives them). ``group``: under
+    torchrun every rank runs this with its :class:`~napari_fdt.recon.problem.distributed.Group` (each member a
+    distributed run; the held-out errors, the parts' choices and so the verdict are summed over the ranks, the same on
+    all); only the writer writes checkpoints and the marker, and a front end writes the members on it alone."""
     from napari_fdt.recon.choices.parts_backward import kept_auto_parts
 
     members: list[Member] = []
     sources, shared_from, first = initial_sources_um, None, None
-    if checkpoint_dir is not None and not (resume and (Path(checkpoint_dir) / FAMILY_MARKER).is_file()):
+    writer = group is None or group.is_writer
+    if writer and checkpoint_dir is not None and not (resume and (Path(checkpoint_dir) / FAMILY_MARKER).is_file()):
         _write_family_marker(checkpoint_dir, config, taus)
     for k, tau in enumerate(taus):
         cfg = member_config(config, tau) if shared_from is None else parts_off(member_config(config, tau))
         t0 = time.perf_counter()
-        rec = _member_run(acquisition, cfg, tau, device, sources, Path(checkpoint_dir) if resume and checkpoint_dir else None)
+        rec = _member_run(acquisition, cfg, tau, device, sources, Path(checkpoint_dir) if resume and checkpoint_dir else None, group)
         before_s = rec.elapsed_s  # a resumed member's seconds before this process
         sources = rec.initial_sources_um  # the first member's start (fitted once where the acquisition gives none)
         if first is not None:

@@ -230,7 +230,8 @@ class SolverConfig:
         "`\"auto\"`: `fdt reconstruct` makes the family on a CUDA device (about 1.8-2.1x a run there) unless something it "
         "asks for excludes one (TV weights as numbers, --resume of one run's checkpoints, torchrun, half_set_resolution, "
         "error_bounds); one run on the CPU (docs/decisions/tv-family.md). With --checkpoint-dir each member writes its own "
-        "checkpoints there (tv<weight>/), and --resume of that folder resumes the family. A `Reconstructor` is one run "
+        "checkpoints there (tv<weight>/), and --resume of that folder resumes the family. Under torchrun `\"true\"` runs "
+        "each member distributed (`\"auto\"` one run). A `Reconstructor` is one run "
         "whatever this says (docs/solver.md, \"A family of volumes across TV weights\")",
         fix="auto, true or false", tier="basic", strict=False)
     early_stopping: EarlyStopping = setting(
