@@ -3,6 +3,7 @@
 
     python -m benchmarks run step_profile_cpu [--acquisition DIR] [--pixel-integration] [--field-window full|split]
                                               [--frozen-sources] [--repeats 10] [--profile] [--parts] [--loop 60]
+                                              [--naive-window planned|same]
 
 Times ``Reconstructor._step`` on an acquisition's (default the bundled sample's) finest stage (factor 1, TV 1/0.5,
 parts off, the default validation split: held-out images in a batch run through the model separately; the sources'
@@ -140,6 +141,9 @@ def main() -> None:
     ap.add_argument("--pixel-integration", action="store_true", help="the camera's pixel integration on")
     ap.add_argument("--field-window", default="auto", choices=["auto", "full", "split"], help="the solver setting (auto: split on CPU)")
     ap.add_argument("--frozen-sources", action="store_true", help="the sources' positions not trained (before 2026-11-26 night)")
+    ap.add_argument("--naive-window", default="planned", choices=["planned", "same"],
+                    help="the naive step's window: the planned full window (what a plain multi-slice step needs) or the "
+                         "package's own (issue 48's comparison: the same window, batch and slices)")
     args = ap.parse_args()
     acq = read_acquisition(args.acquisition)
     step, rec, stage = finest_stage_step(acq, pixel_integration=args.pixel_integration, field_window=args.field_window,
@@ -149,6 +153,8 @@ def main() -> None:
     from napari_fdt.recon.problem.stages import multislice_plan
 
     h, w = multislice_plan(acq.optics, 1, acq.image_shape, rec.calibration.sources_um())[3].padded_shape
+    if args.naive_window == "same":
+        h, w = stage.window
     b, n = cfg.batch_size, acq.optics.n_slices
     v0 = torch.randn(b, h, w, dtype=torch.complex64)
     dn = torch.zeros(n, h, w, requires_grad=True)
@@ -166,7 +172,8 @@ def main() -> None:
         for _ in range(args.repeats):
             fn()
         times[name] = (time.perf_counter() - t0) / args.repeats
-    print(f"package's window {stage.window[0]}x{stage.window[1]}, naive's (the planned full window) {h}x{w}, {n} slices, "
+    which = "the package's" if args.naive_window == "same" else "the planned full window"
+    print(f"package's window {stage.window[0]}x{stage.window[1]}, naive's ({which}) {h}x{w}, {n} slices, "
           f"batch {b}, {torch.get_num_threads()} threads: package {1e3 * times['package']:.1f} ms, "
           f"naive {1e3 * times['naive']:.1f} ms, package {times['naive'] / times['package']:.2f}x faster")
     if args.parts:
