@@ -404,6 +404,17 @@ def scene16_dir(tmp_path_factory, scene16):
     return write_acquisition(scene16.acquisition, tmp_path_factory.mktemp("dist16") / "acq")
 
 
+def _launch_env() -> dict[str, str]:
+    """The environment of a ``torchrun`` launch of the package under test: its ``src`` first on the path, one thread
+    per rank, torchrun's own variables (from an outer launch) removed."""
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join([str(Path(napari_fdt.__file__).resolve().parents[1]), env.get("PYTHONPATH", "")])
+    env.update(OMP_NUM_THREADS="1", FDT_DIST_TIMEOUT_S="60")
+    for name in ("WORLD_SIZE", "RANK", "LOCAL_RANK", "MASTER_ADDR", "MASTER_PORT", "FDT_DIST_BACKEND"):
+        env.pop(name, None)
+    return env
+
+
 @pytest.mark.parametrize("ranks,batch,validation,auto", MATRIX)
 def test_every_configuration_runs_distributed_and_agrees_with_one_process(scene16_dir: Path, tmp_path: Path, ranks: int,
                                                                          batch: int | None, validation: bool, auto: bool) -> None:
@@ -416,11 +427,7 @@ def test_every_configuration_runs_distributed_and_agrees_with_one_process(scene1
 
     config = _matrix_config(batch, validation, auto)
     config.save(tmp_path / "cfg.json")
-    env = dict(os.environ)
-    env["PYTHONPATH"] = os.pathsep.join([str(Path(napari_fdt.__file__).resolve().parents[1]), env.get("PYTHONPATH", "")])
-    env.update(OMP_NUM_THREADS="1", FDT_DIST_TIMEOUT_S="60")
-    for name in ("WORLD_SIZE", "RANK", "LOCAL_RANK", "MASTER_ADDR", "MASTER_PORT", "FDT_DIST_BACKEND"):
-        env.pop(name, None)
+    env = _launch_env()
     out = tmp_path / "RI.tif"
     proc = _run_group([sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", str(ranks),
                        "-m", "napari_fdt", "reconstruct", str(scene16_dir), "--config", str(tmp_path / "cfg.json"),
@@ -458,11 +465,7 @@ def test_a_family_runs_distributed_and_agrees_with_one_process(scene16_dir: Path
 
     config = _matrix_config(None, True, True)
     config.save(tmp_path / "cfg.json")
-    env = dict(os.environ)
-    env["PYTHONPATH"] = os.pathsep.join([str(Path(napari_fdt.__file__).resolve().parents[1]), env.get("PYTHONPATH", "")])
-    env.update(OMP_NUM_THREADS="1", FDT_DIST_TIMEOUT_S="60")
-    for name in ("WORLD_SIZE", "RANK", "LOCAL_RANK", "MASTER_ADDR", "MASTER_PORT", "FDT_DIST_BACKEND"):
-        env.pop(name, None)
+    env = _launch_env()
     out = tmp_path / "two" / "RI.tif"
     proc = _run_group([sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2",
                        "-m", "napari_fdt", "reconstruct", str(scene16_dir), "--config", str(tmp_path / "cfg.json"),
