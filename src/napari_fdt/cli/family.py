@@ -119,8 +119,9 @@ def check_family_request(config: SolverConfig, args: Any, out: Path) -> list[Pat
 
 
 def run_family_and_write(args, config: SolverConfig, acq, out: Path, truth, truth_src, group=None) -> int:
-    """Run the family, each member written as it completes, then the pick to ``out``; prints the verdict. ``group``:
-    this rank's under torchrun (every rank runs the members; rank 0 alone writes and prints)."""
+    """Run the family (the request checked by :func:`check_family_request`), each member written as it completes, then
+    the pick to ``out``; prints the verdict. ``group``: this rank's under torchrun (every rank runs the members; rank 0
+    alone writes and prints)."""
     from napari_fdt.cli.progress import _progress_bar, _show_progress
     from napari_fdt.data.io import report_path
     from napari_fdt.recon.loop.checkpoint import has_checkpoint
@@ -129,7 +130,6 @@ def run_family_and_write(args, config: SolverConfig, acq, out: Path, truth, trut
     from napari_fdt.recon.run.session import finish_run
     from napari_fdt.recon.run.solver import Reconstructor
 
-    paths = check_family_request(config, args, out)
     marker, taus, sources = _family_marker(args), FAMILY_TAUS, None
     resume, writer = marker is not None, group is None or group.is_writer
     device = args.device if group is None else group.device
@@ -144,6 +144,7 @@ def run_family_and_write(args, config: SolverConfig, acq, out: Path, truth, trut
         if writer:
             print(family_summary(True, first.plan), file=sys.stderr)
     checkpoint_dir = args.checkpoint_dir if args.checkpoint_dir is not None else args.resume if resume else None
+    paths = [member_path(out, tau) for tau in taus]  # (as check_family_request found them free)
     reports: dict[float, dict[str, Any]] = {}
 
     def keep(member: Member) -> None:

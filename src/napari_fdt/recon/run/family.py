@@ -133,13 +133,13 @@ def parts_off(config: SolverConfig) -> SolverConfig:
     return dataclasses.replace(config, **{k: v for k, v in off.items() if getattr(config, k) in (AUTO, BEFORE_SPECTRAL)})
 
 
-def start_with_shared_parts(rec: Reconstructor, first: Reconstructor) -> list[str]:
+def start_with_shared_parts(rec: Reconstructor, first: Reconstructor) -> None:
     """Start the fresh run ``rec`` with the ``"auto"`` parts the completed run ``first`` kept (its final choice, after
     its backward test) on from the first stage, as a run whose pilot kept them starts
     (:func:`~napari_fdt.recon.choices.parts_pilot.start_with_parts`: multi-slice coarse stages under ``coarse_model``
     ``"auto"``, the other auto parts tried at the finest stage's end, the kept ones tested backward at the end); the
-    pupil and aberrations from ``first``'s final values where it kept them. Returns the parts shared (none: ``rec`` is
-    left as it was)."""
+    pupil and aberrations from ``first``'s final values where it kept them. Where it kept none that ``rec`` may choose,
+    or ``rec`` has started (resumed), ``rec`` is left as it was; :func:`shared_parts` says what was shared."""
     from napari_fdt.recon.calibration.calibration import PUPIL_PARAMETERS
     from napari_fdt.recon.choices.parts_backward import kept_auto_parts
     from napari_fdt.recon.choices.parts_pilot import PilotOutcome, start_with_parts
@@ -147,20 +147,19 @@ def start_with_shared_parts(rec: Reconstructor, first: Reconstructor) -> list[st
 
     kept = [p for p in kept_auto_parts(first) if p in rec._auto_parts]
     if not kept or rec.parts_choice is not None or rec.completed_stages:
-        return []
+        return
     fitted = (first if {"pupil", "aberrations"} & set(kept) else rec).calibration.copy_values(PUPIL_PARAMETERS)
     start_with_parts(rec, PilotOutcome(kept, fitted))
     rec.parts_choice.trials = [{"part": p, "on": True, "pass": 0, "shared_from": float(first.config.tv_xy_weight)} for p in kept]
     # no pilot runs now (a choice is made): its phase leaves the plan
     rec._revise_plan(dataclasses.replace(rec.plan, phases=tuple(p for p in rec.plan.phases if p.pass_name != PUPIL_PILOT)))
-    return kept
 
 
-def shared_parts(rec: Reconstructor) -> list[str]:
-    """The parts ``rec`` started with because the family's first member kept them (:func:`start_with_shared_parts`;
-    read from its choice, so a resumed member says it too)."""
-    choice = rec.parts_choice
-    return [] if choice is None else [t["part"] for t in choice.trials if "shared_from" in t]
+def shared_parts(rec: Reconstructor) -> tuple[list[str], float | None]:
+    """The parts ``rec`` started with because the family's first member kept them (:func:`start_with_shared_parts`),
+    and that member's τ_xy (None where none were shared); read from its choice, so a resumed member says it too."""
+    marked = [] if rec.parts_choice is None else [t for t in rec.parts_choice.trials if "shared_from" in t]
+    return [t["part"] for t in marked], (marked[0]["shared_from"] if marked else None)
 
 
 def verdict(members: list[Member], tolerance: float = PICK_TOLERANCE,
@@ -285,9 +284,9 @@ def run_family(acquisition: Acquisition, config: SolverConfig, *, device: Any = 
             yield k, snap
         if rec.completed_stages < len(cfg.stages):
             return None
-        shared = shared_parts(rec)
+        shared, kept_by = shared_parts(rec)
         member = Member(float(tau), float(cfg.tv_xy_weight), float(cfg.tv_z_weight), rec,
-                        parts_shared_from=shared_from if shared_from is not None or not shared else float(taus[0]), parts_shared=shared)
+                        parts_shared_from=shared_from if shared_from is not None else kept_by, parts_shared=shared)
         if k == 0 and rec.parts_choice is not None and "validation" in rec.parts_choice.chosen_by.values():
             if kept_auto_parts(rec):
                 # its tests kept parts and every stage ran again with them: the later members start with them (where
