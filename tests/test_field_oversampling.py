@@ -4,6 +4,8 @@ RI on any grid: given the fine grid they are the brute-force model of the same c
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -220,6 +222,19 @@ def test_the_split_fine_grid_is_as_close_to_the_converged_answer_as_the_split_ca
     assert small[0] * small[1] < 0.5 * big[0] * big[1]
     with pytest.raises(ValueError, match="point samples"):
         OversampledModel(o, plan, device="cpu", pixel_integration=True, split=True)
+
+
+def test_the_split_fine_grid_holds_the_obliquity_screens() -> None:
+    """The per-source obliquity screens on the split fine grid against the full fine grid's with them over a window
+    twice the plan's (measured 1.2e-4; the planned full window 1.8e-3), where the correction itself is 1.4 %."""
+    dn, src = _scene()
+    o, plan = _plan(dn, src)
+    (hp, wp), (h, w) = plan.padded_shape, plan.image_shape
+    wide = dataclasses.replace(plan, padded_shape=(2 * hp, 2 * wp), offset=(hp - h // 2, wp - w // 2))
+    truth = _images(OversampledModel(o, wide, device="cpu", dtype=torch.float64, obliquity="per_source"), dn, src)
+    split = _images(OversampledModel(o, plan, device="cpu", dtype=torch.float64, obliquity="per_source", split=True), dn, src)
+    thin = _images(OversampledModel(o, plan, device="cpu", dtype=torch.float64, split=True), dn, src)
+    assert _rel(split, truth) < 3e-4 and _rel(split, truth) < 0.1 * _rel(thin, truth)
 
 
 def test_the_split_fine_grid_s_gradients_in_the_volume_and_the_sources() -> None:

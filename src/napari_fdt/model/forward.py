@@ -551,6 +551,13 @@ def ray_secant(model, sources_um: torch.Tensor, height_um: torch.Tensor | float,
     src = sources_um.to(dev, dt)
     h = (src[:, 2] + height_um).reshape(-1, 1, 1)
     r2 = (x - src[:, 0].reshape(-1, 1, 1)) ** 2 + (y - src[:, 1].reshape(-1, 1, 1)) ** 2
+    return secant_of_ray(model, r2, h, max_sine)
+
+
+def secant_of_ray(model, r2: torch.Tensor, h: torch.Tensor, max_sine: float | None = None) -> torch.Tensor:
+    """``1/cos θ = √(1 + r²/h²)`` of rays of squared lateral length ``r2`` (µm²) and height ``h`` (µm; broadcast),
+    capped at the band limit's angle (``max_sine``, default ``model``'s plan's f_hi): :func:`ray_secant`'s rule, which
+    the split-field model applies on the image alone."""
     sec = torch.sqrt(1.0 + r2 / (h * h))
     if max_sine is None:
         max_sine = model.plan.f_hi_per_um * model.optics.wavelength_um / model.optics.n_background

@@ -22,8 +22,9 @@ Against the full-window model on a window 1.8× the plan's, where the copies are
 0.02–0.13 % (its copies' pupil tails) and far below the thin screen's own error (1–8 %). The FFTs run on 17–52 % of
 the full window's pixels. Supported: one or more screens per slice, the pupil's edge, NA and aberrations (a
 non-radial phase takes the camera's source field from the full window, one FFT per image), pixel integration,
-per-call optics overrides (self-calibration, the spectral model); not the per-source obliquity screens or the 2× field
-grid (plain autograd through the loop). A pupil edge narrower than the window's taper is
+per-call optics overrides (self-calibration, the spectral model), the per-source obliquity screens (each source's
+screens scaled on the image by its rays' ``1/cos θ``: the screen update per source) and the 2× field grid
+(:class:`~napari_fdt.model.oversampled.OversampledModel` with ``split``). A pupil edge narrower than the window's taper is
 better served by the full window (its tails wrap on the small one): :func:`~napari_fdt.recon.problem.stages.uses_split_field`.
 """
 
@@ -35,8 +36,7 @@ import math
 import torch
 import torch.nn.functional as F
 
-from napari_fdt.errors import FDTInputError
-from napari_fdt.model.forward import Kernels, MultiSliceModel, _has_nonradial, _value
+from napari_fdt.model.forward import Kernels, MultiSliceModel, _has_nonradial, _value, secant_of_ray
 from napari_fdt.physics.camera import fine_field, pixel_average_from_fine
 from napari_fdt.physics.free_field import bessel_j0, free_field_profile, radial_nodes
 from napari_fdt.physics.grid import GridPlan, next_fast_even
@@ -82,17 +82,14 @@ class SplitFieldModel(MultiSliceModel):
     """:class:`~napari_fdt.model.forward.MultiSliceModel` with the sources' field exact and the sample's field on
     :func:`split_plan`'s window (see the module's docstring). ``plan`` is the full window's plan (from
     :func:`~napari_fdt.physics.grid.plan_grid`); the other keywords are :class:`MultiSliceModel`'s, except
-    ``obliquity`` (only ``"none"``) and ``backward_mode`` (the loop runs on plain autograd; accepted and ignored).
+    ``backward_mode`` (the loop runs on its written-out screens and propagators; accepted and ignored).
     The contrast volume must be on the image grid (n_slices, H, W).
     """
 
     def __init__(self, optics: Optics, plan: GridPlan, *, backward_mode: str = "auto", obliquity: str = "none",
                  exact_free_field: bool | str = "auto", clearance_um: float = CLEARANCE_UM, **options) -> None:
-        if obliquity != "none":
-            raise FDTInputError("obliquity", "the split-field model has no per-source obliquity screens",
-                                "use the full-window model (field_window 'full') for obliquity 'per_source'")
         self.full_plan = plan
-        super().__init__(optics, split_plan(plan, optics, clearance_um), backward_mode="autograd", obliquity="none",
+        super().__init__(optics, split_plan(plan, optics, clearance_um), backward_mode="autograd", obliquity=obliquity,
                          exact_free_field=False, **options)
         self._tables: dict[tuple, torch.Tensor] = {}
         self._full: MultiSliceModel | None = None
@@ -175,6 +172,23 @@ class SplitFieldModel(MultiSliceModel):
                              k.wavelength_um, TABLE_STEP_UM)
         return out.reshape(b, n_screens, h, w)
 
+    def screen_secants(self, sources_um: torch.Tensor, k: Kernels | None = None) -> torch.Tensor:
+        """``1/cos θ`` of each source's ray to every image pixel at every screen, (B, screens, H, W): the per-source
+        obliquity screens' scale (``obliquity="per_source"``), :func:`~napari_fdt.model.forward.ray_secant`'s on the
+        image (the contrast is zero beyond it), with its coordinates (the acquisition's pixel) and cap."""
+        k = k or self._default
+        oy, ox = self.plan.offset
+        h, w = self.plan.image_shape
+        dx = self.optics.pixel_size_um
+        ys = self._window_coordinates(oy, oy + h, 0, 1.0, dx)
+        xs = self._window_coordinates(ox, ox + w, 1, 1.0, dx)
+        dy, dxs = self.source_offsets(sources_um, ys, xs)[:2]
+        r2 = (dy * dy + dxs * dxs)[:, None]  # (B, 1, H, W)
+        n_screens = self.optics.n_slices * self.sub_slices
+        z = (torch.arange(n_screens, device=self.device, dtype=self.dtype) + 0.5) * k.step_um
+        heights = sources_um.to(self.device, self.dtype)[:, 2].reshape(-1, 1) + z.reshape(1, -1)
+        return secant_of_ray(self, r2, heights[..., None, None])
+
     def camera_free_field(self, sources_um: torch.Tensor, k: Kernels, ys: torch.Tensor, xs: torch.Tensor) -> torch.Tensor:
         """The sources' homogeneous-medium camera field (B, ny, nx) at window coordinates ``ys``, ``xs`` (µm), through
         the pupil of ``k``. A soft edge with rotationally symmetric aberrations: demodulated tables (exact, cheap); a
@@ -249,9 +263,13 @@ class SplitFieldModel(MultiSliceModel):
         hp, wp = self.plan.padded_shape
         oy, ox = self.plan.offset
         pad = (ox, wp - w - ox, oy, hp - h - oy)
-        # t − 1 per screen (H, W) and the sources' field per screen (B, H, W): unbound, so that each one's gradient is
-        # one stack at the end of the backward pass, not a zero-filled copy of the whole stack per screen
-        contrast = (phase_screen(delta_n, k.step_um, k.wavelength_um) - 1.0).unbind(0)
+        # t − 1 per screen (H, W), or per source and screen (B, H, W) with the obliquity screens, and the sources' field
+        # per screen (B, H, W): unbound, so that each one's gradient is one stack at the end of the backward pass, not a
+        # zero-filled copy of the whole stack per screen
+        if self.obliquity == "per_source":
+            contrast = (phase_screen(delta_n * self.screen_secants(sources_um, k), k.step_um, k.wavelength_um) - 1.0).unbind(1)
+        else:
+            contrast = (phase_screen(delta_n, k.step_um, k.wavelength_um) - 1.0).unbind(0)
         sources = self.incident_fields(sources_um, k).unbind(1)
         kernel = k.slice_kernel
         # a kernel with a gradient (a calibrated pixel, spacing or wavelength) goes through plain autograd
@@ -337,7 +355,8 @@ class _ScreenUpdate(torch.autograd.Function):
     """A screen on the sample's field: ``S ← S·t + (t − 1)·U = S + (t − 1)·(S + U)`` on the image, in place.
 
     Inputs: ``s`` (B, Hs, Ws) complex, the field on the window just below the screen (a fresh tensor that nothing
-    else keeps: it is changed in place); ``c`` (H, W) complex, ``t − 1``; ``u`` (B, H, W) complex, the sources' field
+    else keeps: it is changed in place); ``c`` (H, W) complex, ``t − 1``, or (B, H, W): each source's own screen (the
+    obliquity screens; its gradient then not summed over B); ``u`` (B, H, W) complex, the sources' field
     at the screen; ``oy``, ``ox`` the image's offset in the window. Only the image's pixels change, so the backward is
     written out on them (``∂L/∂S = g + conj(c)·g`` on the image, ``∂L/∂U = conj(c)·g``, ``∂L/∂c = Σ_B conj(S + U)·g``),
     where plain autograd through a crop and a zero padding would fill and copy the whole window twice per screen.
@@ -359,7 +378,11 @@ class _ScreenUpdate(torch.autograd.Function):
         oy, ox, h, w = ctx.region
         g = grad[..., oy : oy + h, ox : ox + w]
         g_image = g * c.conj()
-        grad_c = (g * total.conj()).sum(0) if ctx.needs_input_grad[1] else None
+        grad_c = None
+        if ctx.needs_input_grad[1]:
+            grad_c = g * total.conj()
+            if c.dim() < grad_c.dim():  # one screen for every source
+                grad_c = grad_c.sum(0)
         grad_s = None
         if ctx.needs_input_grad[0]:
             grad_s = grad.clone()

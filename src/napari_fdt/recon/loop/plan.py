@@ -61,6 +61,11 @@ PARTS_TEST = "testing the model parts"
 #: tables' interpolation and phase, forward and backward): the sample's finest stage on 2 CPU cores, 0.134 s per
 #: iteration on a 192² window against 0.078 s for its FFTs alone (2026-11-26).
 SOURCE_FIELD_UNITS = 43.0
+#: Cost units of the split-field model's per-source obliquity screen at one image pixel of one screen of one image
+#: (its secant, phase and screen update per source, forward and backward): the finest stage with 2 sub-slices on 2 CPU
+#: cores, obliquity's extra milliseconds per step over batch x screens x image pixels: 12.2 (fibres_thick, 64² image,
+#: 14 ms of 71), 9.8 (the sample, 96², 25 ms of 84), 8.7 (cells_fine, 64², 10 ms of 54); 2026-11-29.
+OBLIQUITY_UNITS = 10.0
 
 
 def iteration_units(batch: int, n_slices: int, fft_shape: tuple[int, int], pixel_integration: bool = False,
@@ -317,8 +322,8 @@ def stage_phase(config: SolverConfig, optics: Optics, image_shape: tuple[int, in
                 pixel_integration: bool = False, pupil_edge: float | None = None, pilot: bool = False) -> Phase:
     """The phase of stage ``stage`` (its model, FFT grid and predicted seconds per iteration; ``pixel_integration``: the
     multi-slice model's camera integrates over its pixels; ``pupil_edge`` its pupil's edge, None the default; ``parts``
-    the kept model parts it runs with: sub-slices and the 2x field grid in the finest stage, obliquity on the full
-    window, the spectral model one pass per wavelength).
+    the kept model parts it runs with: sub-slices and the 2x field grid in the finest stage, obliquity's screens per
+    source, the spectral model one pass per wavelength).
 
     ``pilot``: a step of the pupil's pilot on this stage's model instead (:mod:`napari_fdt.recon.choices.parts_pilot`):
     ``2·PILOT_BATCH`` images at Δn = 0, where the split-field model skips its slice loop (its camera's source field and
@@ -337,7 +342,7 @@ def stage_phase(config: SolverConfig, optics: Optics, image_shape: tuple[int, in
     else:
         _, opt, _, window = multislice_plan(optics, sc.factor, image_shape, sources_um)
         split = config_uses_split_field(config, device_type, sc.factor, window, opt, pupil_edge, field_grid="field_grid" in parts,
-                                        obliquity="obliquity" in parts, pixel_integration=pixel_integration)
+                                        pixel_integration=pixel_integration)
         shape = model_window(window, opt, split)
     model = "envelope" if envelope else "multislice"
     dev = "cuda" if device_type == "cuda" else "cpu"
@@ -355,6 +360,8 @@ def stage_phase(config: SolverConfig, optics: Optics, image_shape: tuple[int, in
         source_pixels = 4 * h * w if spec.fine_grid else h * w  # the sources' field at every screen's (fine) pixels
         camera_points = (2 * h + 2 * FINE_MARGIN) * (2 * w + 2 * FINE_MARGIN) if pixel_integration else h * w
     units = iteration_units(batch, screens, shape, pixel_integration and not envelope, source_pixels, camera_points)
+    if split and spec.obliquity == "per_source":  # each source's own screens on the image
+        units += float(batch) * screens * source_pixels * OBLIQUITY_UNITS
     if not envelope and ("spectral" in parts or config.coherence in ("spectral", "mask+spectral")):
         units *= config.n_wavelengths  # the spectral model: one forward and backward pass per wavelength
     per_it = OVERHEAD_S[dev] + SECONDS_PER_UNIT[(dev, model)] * units + (PILOT_STEP_OVERHEAD_S if pilot and dev == "cpu" else 0.0)

@@ -174,20 +174,20 @@ def split_window_fraction(plan: GridPlan, optics: Optics) -> float:
     return (small[0] * small[1]) / (plan.padded_shape[0] * plan.padded_shape[1])
 
 
-def uses_split_field(field_window: str, device_type: str, factor: int, window_fraction: float, *, obliquity: str = "none",
-                     field_oversampling: int = 1, pupil_edge: float | None = None, pixel_integration: bool = False,
+def uses_split_field(field_window: str, device_type: str, factor: int, window_fraction: float, *, field_oversampling: int = 1,
+                     pupil_edge: float | None = None, pixel_integration: bool = False,
                      image_shape: tuple[int, int] = (0, 0)) -> bool:
     """Whether a multi-slice stage of ``factor`` runs the split-field model (:class:`~napari_fdt.model.split_field.SplitFieldModel`,
     on the 2x field grid :class:`~napari_fdt.model.oversampled.OversampledModel` with ``split``), for the
     setting ``field_window`` on a device of ``device_type`` ("cpu", "cuda") with :func:`split_window_fraction`
     ``window_fraction``: ``"split"``, or ``"auto"`` on the CPU where the fraction is at most :data:`SPLIT_MAX_FRACTION`;
-    never where the stage needs what only the full window has (per-source obliquity screens; on the 2x grid, pixel
-    means or an image of odd size) or the pupil's edge is narrower than the window's taper (a hard pupil's tails wrap
+    never where the stage needs what only the full window has (on the 2x grid, pixel means or an image of odd size) or
+    the pupil's edge is narrower than the window's taper (a hard pupil's tails wrap
     on the small window: 0.25 % against 0.11 % image error on the sample, 1.3 % against 0.8 % on cells_pupil, both
     against a window twice as wide; docs/decisions/split-field.md)."""
     hard = pupil_edge is not None and pupil_edge < DEFAULT_PUPIL_TAPER
     fine_full = fine_field_grid(field_oversampling, factor) and (pixel_integration or any(n % 2 for n in image_shape))
-    if obliquity != "none" or hard or fine_full:
+    if hard or fine_full:
         return False
     if field_window == "auto":
         return device_type != "cuda" and window_fraction <= SPLIT_MAX_FRACTION
@@ -200,13 +200,11 @@ def model_window(plan: GridPlan, optics: Optics, split: bool) -> tuple[int, int]
 
 
 def config_uses_split_field(config, device_type: str, factor: int, plan: GridPlan, optics: Optics,
-                            pupil_edge: float | None, field_grid: bool = False, obliquity: bool = False,
-                            pixel_integration: bool = False) -> bool:
+                            pupil_edge: float | None, field_grid: bool = False, pixel_integration: bool = False) -> bool:
     """:func:`uses_split_field` for a solver configuration's stage of ``factor`` (its full window ``plan`` and stage
-    ``optics``), as the plan and the memory check price it before the run (obliquity as configured, or ``obliquity``:
-    kept by the parts' choice; ``field_grid``: the ``"auto"`` 2x field grid on; ``pixel_integration``: the camera's)."""
+    ``optics``), as the plan and the memory check price it before the run (``field_grid``: the ``"auto"`` 2x field grid
+    on; ``pixel_integration``: the camera's)."""
     return uses_split_field(config.field_window, device_type, factor, split_window_fraction(plan, optics),
-                            obliquity="per_source" if config.obliquity_correction == "true" or obliquity else "none",
                             field_oversampling=stage_field_oversampling(config.field_oversampling, field_grid),
                             pupil_edge=pupil_edge, pixel_integration=pixel_integration, image_shape=plan.image_shape)
 
@@ -256,7 +254,7 @@ def build_stage(
     h, w = plan.image_shape
     fine = fine_field_grid(field_oversampling, factor)
     model_class, options = (OversampledModel if fine else MultiSliceModel), {}
-    if uses_split_field(field_window, torch.device(device).type, factor, split_window_fraction(plan, opt), obliquity=obliquity,
+    if uses_split_field(field_window, torch.device(device).type, factor, split_window_fraction(plan, opt),
                         field_oversampling=field_oversampling, pupil_edge=pupil_edge, pixel_integration=pixel_integration,
                         image_shape=plan.image_shape):
         model_class, options = (OversampledModel, {"split": True}) if fine else (SplitFieldModel, {})

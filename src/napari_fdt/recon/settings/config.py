@@ -305,8 +305,8 @@ class SolverConfig:
         "field exact and non-periodic, only what the sample adds on the image and its light cone: 17-52 % of the pixels on the suite, "
         "as accurate; docs/decisions/split-field.md), `\"auto\"`: split on CPU where its window has at most 60 % of the full "
         "window's pixels, else full (on CUDA full: the split step measured 2.6-3.8x slower there, launch-bound); "
-        "the per-source obliquity screens, and the 2x field grid with pixel means or an odd image size, run on the full "
-        "window (the 2x grid otherwise splits too: docs/decisions/split-field.md)",
+        "the 2x field grid with pixel means or an odd image size runs on the full window (the 2x grid otherwise splits "
+        "too, and so do the per-source obliquity screens: docs/decisions/split-field.md)",
         fix="use \"auto\", \"full\" or \"split\"")
     pupil_edge: Optional[typing.Annotated[float, Field(ge=0.0, lt=0.5)]] = setting(
         None, strict=False, description="half-width of the pupil's raised-cosine edge relative to NA/λ (0: a hard pupil, held "
