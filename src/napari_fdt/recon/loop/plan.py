@@ -33,25 +33,27 @@ from napari_fdt.recon.settings.config import SolverConfig
 __all__ = ["SECONDS_PER_UNIT", "OVERHEAD_S", "SOURCE_FIELD_UNITS", "Phase", "Plan", "Pace", "iteration_units", "envelope_padded_shape", "stage_phase",
            "make_plan", "plan_for"]
 
-#: Seconds per cost unit of one iteration, by (device type, model). CPU: the bundled sample's default run on 2 cores
-#: (x4 and x2 envelope stages on their 2·3·5-smooth 40² and 80² windows 15.5 and 51.5 ms per iteration, 2026-11-26;
-#: the x1 multi-slice stage 237 ms, 2026-11-25). CUDA: an H100 on 2026-11-26 (docs/decisions/gpu-checklist-h100.md):
+#: Seconds per cost unit of one iteration, by (device type, model). CPU: 2 threads of a 2-core AMD EPYC (Zen 5),
+#: 2026-11-29, the default runs of the sample, cells, deep and beads (probe off): each stage's
+#: measured seconds per iteration over the rates before (5.5e-9 and 1.09e-9, fitted in 2026-11-25/26 on a first-generation
+#: EPYC), median 0.90 for the envelope stages (0.73-1.45, 6 stages) and 0.50 for the split multi-slice ones (0.40-0.76,
+#: 6 stages, the pupil's pilot 0.46). CUDA: an H100 on 2026-11-26 (docs/decisions/gpu-checklist-h100.md):
 #: the sample's finest stage 15.8-21 ms and the demo's 32.6 ms per multi-slice iteration, about 17 ms of it outside the
 #: model's step (before: 9 ms, from the November suite rows 10.0, 19.5, 99.5 ms); the envelope model on CUDA (not the
 #: default there) is priced like the multi-slice one.
 SECONDS_PER_UNIT: dict[tuple[str, str], float] = {
-    ("cpu", "envelope"): 5.5e-9,
-    ("cpu", "multislice"): 1.09e-9,
+    ("cpu", "envelope"): 5.0e-9,
+    ("cpu", "multislice"): 5.5e-10,
     ("cuda", "envelope"): 6.7e-12,
     ("cuda", "multislice"): 6.7e-12,
 }
 #: Seconds of one iteration that do not scale with its size (kernel launches), by device type.
 OVERHEAD_S: dict[str, float] = {"cpu": 0.0, "cuda": 1.7e-2}
 #: Seconds of one step of the pupil's pilot on the CPU that do not scale with its size (the sources' and gains'
-#: updates, Python), on the machine of :data:`SECONDS_PER_UNIT`: the sample's pilot took 2.1 s for 60 steps where its
-#: units give 0.6 s (an AMD EPYC whose finest sample iteration took 1.54x the plan's, 2026-11-26 night); on the GPU the
+#: updates, Python), on the machine of :data:`SECONDS_PER_UNIT`: the sample's pilot took 10.7 ms per step where its
+#: units give 3.5 ms (2026-11-29; on the first-generation EPYC of 2026-11-26 night 35 ms against 10 ms); on the GPU the
 #: iteration's overhead (:data:`OVERHEAD_S`) stands for it.
-PILOT_STEP_OVERHEAD_S = 0.016
+PILOT_STEP_OVERHEAD_S = 0.007
 
 
 #: What the tests at the finest stage's end are called in the plan (:attr:`Phase.test`; a rerun's are found by it).
@@ -63,9 +65,10 @@ PARTS_TEST = "testing the model parts"
 SOURCE_FIELD_UNITS = 43.0
 #: Cost units of the split-field model's per-source obliquity screen at one image pixel of one screen of one image
 #: (its secant, phase and screen update per source, forward and backward): the finest stage with 2 sub-slices on 2 CPU
-#: cores, obliquity's extra milliseconds per step over batch x screens x image pixels: 12.2 (fibres_thick, 64² image,
-#: 14 ms of 71), 9.8 (the sample, 96², 25 ms of 84), 8.7 (cells_fine, 64², 10 ms of 54); 2026-11-29.
-OBLIQUITY_UNITS = 10.0
+#: cores (the machine of :data:`SECONDS_PER_UNIT`), obliquity's extra milliseconds per step over batch x screens x image
+#: pixels: 24.5 (fibres_thick, 64² image, 14 ms of 71), 19.6 (the sample, 96², 25 ms of 84), 17.5 (cells_fine, 64², 10 ms
+#: of 54); 2026-11-29.
+OBLIQUITY_UNITS = 20.0
 
 
 def iteration_units(batch: int, n_slices: int, fft_shape: tuple[int, int], pixel_integration: bool = False,
