@@ -113,7 +113,8 @@ class MultiSliceModel:
         ``"per_source"``: each source's screens scaled by ``1/cos θ`` of its ray to each voxel
         (:func:`ray_secant`), the path oblique light really travels in a slab. Removes
         the thin screen's obliquity error for the direct wave (2.4 % → 0.1 % image error at NA 0.66 under a
-        uniform slab; ``docs/physics.md`` §6) at the cost of a screen per image and plain autograd.
+        uniform slab; ``docs/physics.md`` §6) at the cost of a screen per image and plain autograd (on the split
+        window, :class:`~napari_fdt.model.split_field.SplitFieldModel`, a screen per image on the image alone).
     pupil_edge: half-width of the pupil's raised-cosine edge relative to NA/λ; 0: a hard pupil; None (default):
         the plan's ``pupil_taper`` (0.03, the edge the window is sized for).
     aberrations: ``{mode: radians}`` of :data:`napari_fdt.physics.aberrations.ZERNIKE_MODES` (None: none).
