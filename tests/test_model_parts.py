@@ -348,3 +348,25 @@ def test_a_real_cameras_pixel_integration_follows_the_physical_rule() -> None:
     assert off is False and why.startswith("physics: ")
     assert requested(0.8, {"pixel_integration": False}) == (False, "acquisition")
     assert requested(0.8, {"simulated": {}}) == (False, "acquisition")  # written before the camera model: point samples
+
+
+def test_a_schedule_that_ends_coarse_on_the_envelope_model_tests_no_part(scene16) -> None:
+    """The finest stage at x2 on the envelope model (the CPU's coarse model) holds none of the parts: every "auto" part
+    is off, with the reason, and the run ends; before, the aberrations' test at the x4 stage's end went through that
+    model's missing exit spectra and the run died after its stages (AttributeError). The multi-slice coarse model
+    still tests them at x2 (the plan says so too)."""
+    from napari_fdt.recon.loop.plan import plan_for
+
+    cfg = SolverConfig(stages=[StageConfig(4, 10), StageConfig(2, 10)], tv_xy_weight=1.0, tv_z_weight=0.5,
+                       final_stage_min_passes=0, coarse_model="envelope")
+    rec = Reconstructor(scene16.acquisition, cfg, device="cpu")
+    assert rec._auto_parts == [] and rec.parts_choice is not None
+    assert all(not on for on in rec.parts.values() if on is not None)
+    why = rec.parts_choice.chosen_by
+    assert "envelope model" in why["aberrations"] and "envelope model" in why["sub_slices"]
+    snaps = list(rec.run())
+    assert snaps[-1].stage == 1 and np.isfinite(rec.delta_n_full()).all()
+    plan, _ = plan_for(scene16.acquisition, cfg, "cpu")
+    assert not any(p.test_s for p in plan.phases)
+    multi, _ = plan_for(scene16.acquisition, SolverConfig(stages=cfg.stages, coarse_model="multislice"), "cpu")
+    assert any(p.test_s for p in multi.phases)

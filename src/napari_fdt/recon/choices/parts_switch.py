@@ -25,7 +25,7 @@ def init_parts(rec: Run) -> None:
     """Each part's switch before any choice: as set or stated, "auto" ones off; with nothing to choose (or no
     validation split to choose by) ``rec.parts_choice`` is made at once."""
     cfg = rec.config
-    requested, chosen_by = requested_for(cfg, rec.acquisition)
+    requested, chosen_by = requested_for(cfg, rec.acquisition, rec.coarse_model)
     #: the parts chosen from the data
     rec._auto_parts = [p for p in PARTS if requested[p] is None]
     parts = {p: bool(requested[p]) for p in PARTS}

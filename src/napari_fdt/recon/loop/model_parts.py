@@ -43,6 +43,7 @@ from typing import Any
 
 import numpy as np
 
+from napari_fdt.recon.problem.stage_spec import runs_envelope
 from napari_fdt.recon.problem.stages import camera_grid_drops_band, resolved_pixel_integration, stated_pixel_integration, thick_slices
 from napari_fdt.recon.settings.config import AUTO, BEFORE_SPECTRAL, SolverConfig, grid_to_choose
 
@@ -255,10 +256,21 @@ class EarlyTrials:
     def from_dict(cls, d: dict[str, Any]) -> "EarlyTrials":
         return cls(list(d.get("trials", [])), float(d.get("seconds", 0.0)))
 
-def requested_for(cfg, acquisition) -> tuple[dict[str, bool | None], dict[str, str]]:
-    """Each part as the settings and the acquisition ask for it (None: "auto", to choose from the data), and why."""
+def requested_for(cfg, acquisition, coarse_model: str | None = None) -> tuple[dict[str, bool | None], dict[str, str]]:
+    """Each part as the settings and the acquisition ask for it (None: "auto", to choose from the data), and why.
+
+    ``coarse_model``: the run's coarse model resolved for its device; where the stage the parts are chosen at (the
+    finest with iterations) is coarser than the camera's grid and runs the envelope model, which holds none of the
+    parts, every "auto" part is off (a schedule that ends at x2: nothing to test them through)."""
     requested = requested_parts(cfg)
     chosen_by = {p: "setting" for p in PARTS}
+    if coarse_model is not None:
+        factor = cfg.stages[parts_stage(cfg)].factor
+        if runs_envelope(factor, coarse_model):
+            for p in PARTS:
+                if requested[p] is None:
+                    requested[p] = False
+                    chosen_by[p] = f"the finest stage (x{factor}) runs the envelope model, which holds no model part"
     stated = stated_pixel_integration(cfg, acquisition)
     if cfg.pixel_integration == "auto" and stated is not None:
         chosen_by["pixel_integration"] = "acquisition"

@@ -509,7 +509,7 @@ def plan_for(acquisition, config: SolverConfig, device_type: str, sources_um: np
     from napari_fdt.recon.loop.model_parts import FINEST_ONLY_PARTS, coarse_end_test_planned, coarse_test_stage, pupil_pilot_wanted, requested_for
 
     # the parts as the run starts them; pixel integration as stated, else the physical rule
-    requested, _ = requested_for(cfg, acquisition)
+    requested, _ = requested_for(cfg, acquisition, resolve_coarse_model(cfg.coarse_model, device_type))
 
     early = coarse_test_stage(cfg) if coarse_end_test_planned(cfg, n_held, requested["aberrations"] is None) else None
     plan = make_plan(cfg, acquisition.optics, acquisition.image_shape, src, resolve_coarse_model(cfg.coarse_model, device_type),
