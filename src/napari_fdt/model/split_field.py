@@ -159,11 +159,10 @@ class SplitFieldModel(MultiSliceModel):
         xs = self._window_coordinates(ox, ox + w, 1, 1.0, k.pixel_size_um)
         rho = self.source_offsets(sources_um, ys, xs)[2]
         src = sources_um.to(self.device, self.dtype)
-        n_screens = self.optics.n_slices * self.sub_slices
-        z = (torch.arange(n_screens, device=self.device, dtype=self.dtype) + 0.5) * k.step_um
-        b = src.shape[0]
+        heights = self._screen_heights(sources_um, k)
+        b, n_screens = heights.shape
         depth = src[:, 2].reshape(-1, 1).expand(b, n_screens).reshape(-1)
-        heights = (src[:, 2].reshape(-1, 1) + z.reshape(1, -1)).reshape(-1)
+        heights = heights.reshape(-1)
         ratio = self.optics.wavelength_um / k.wavelength_um
         f_lo, f_hi = self.plan.f_lo_per_um * ratio, self.plan.f_hi_per_um * ratio
         table = self._profile_table("incident", [0.0, f_lo, f_hi], lambda f: band_limit(f * f, f_lo, f_hi), depth,
@@ -184,10 +183,14 @@ class SplitFieldModel(MultiSliceModel):
         xs = self._window_coordinates(ox, ox + w, 1, 1.0, dx)
         dy, dxs = self.source_offsets(sources_um, ys, xs)[:2]
         r2 = (dy * dy + dxs * dxs)[:, None]  # (B, 1, H, W)
+        return secant_of_ray(self, r2, self._screen_heights(sources_um, k)[..., None, None])
+
+    def _screen_heights(self, sources_um: torch.Tensor, k: Kernels) -> torch.Tensor:
+        """Each source's distance below each screen, (B, screens) µm: its depth plus screen i's ``(i + 0.5)·step_um``
+        above the bottom face."""
         n_screens = self.optics.n_slices * self.sub_slices
         z = (torch.arange(n_screens, device=self.device, dtype=self.dtype) + 0.5) * k.step_um
-        heights = sources_um.to(self.device, self.dtype)[:, 2].reshape(-1, 1) + z.reshape(1, -1)
-        return secant_of_ray(self, r2, heights[..., None, None])
+        return sources_um.to(self.device, self.dtype)[:, 2].reshape(-1, 1) + z.reshape(1, -1)
 
     def camera_free_field(self, sources_um: torch.Tensor, k: Kernels, ys: torch.Tensor, xs: torch.Tensor) -> torch.Tensor:
         """The sources' homogeneous-medium camera field (B, ny, nx) at window coordinates ``ys``, ``xs`` (µm), through

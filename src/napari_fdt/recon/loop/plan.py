@@ -509,10 +509,11 @@ def plan_for(acquisition, config: SolverConfig, device_type: str, sources_um: np
     from napari_fdt.recon.loop.model_parts import FINEST_ONLY_PARTS, coarse_end_test_planned, coarse_test_stage, pupil_pilot_wanted, requested_for
 
     # the parts as the run starts them; pixel integration as stated, else the physical rule
-    requested, _ = requested_for(cfg, acquisition, resolve_coarse_model(cfg.coarse_model, device_type))
+    coarse_model = resolve_coarse_model(cfg.coarse_model, device_type)
+    requested, _ = requested_for(cfg, acquisition, coarse_model)
 
     early = coarse_test_stage(cfg) if coarse_end_test_planned(cfg, n_held, requested["aberrations"] is None) else None
-    plan = make_plan(cfg, acquisition.optics, acquisition.image_shape, src, resolve_coarse_model(cfg.coarse_model, device_type),
+    plan = make_plan(cfg, acquisition.optics, acquisition.image_shape, src, coarse_model,
                      device_type, choose_tv_at, pixel_integration=requested["pixel_integration"],
                      parts_to_choose=split and any(v is None for v in requested.values()),
                      pupil_edge=camera_model(cfg, acquisition).pupil_edge,
