@@ -195,6 +195,8 @@ class Plan:
     #: whether the 2x field grid is tried before a spectral model is kept (``field_oversampling = "before_spectral"``;
     #: :attr:`if_spectral_kept_s` holds the grid's test)
     grid_before_spectral: bool = False
+    #: seconds more if the grid is kept there: the finest stage again on it, with sub-slices where they are to choose too
+    if_grid_kept_s: float | None = None
 
     @property
     def pupil_pilot(self) -> bool:
@@ -268,7 +270,7 @@ class Plan:
                 phases = phases[:last] + (replace(phases[last], test_s=tested[-1].test_s * scale, test=tested[-1].test),)
         if choice_to_come:
             return replace(self, phases=phases, if_finest_parts_kept_s=None, finest_parts=(), if_part_kept_early_s=None,
-                           early_test_stage=None, if_spectral_kept_s=None)
+                           early_test_stage=None, if_spectral_kept_s=None, if_grid_kept_s=None)
         return Plan(phases, self.device_type, half_sets_s=self.half_sets_s, if_part_dropped_s=self.if_part_dropped_s,
                     bounds_s=self.bounds_s)
 
@@ -280,7 +282,8 @@ class Plan:
                 "predicted_extra_s_if_finest_parts_are_kept": self.if_finest_parts_kept_s, "finest_parts": list(self.finest_parts),
                 "pupil_pilot": self.pupil_pilot, "predicted_extra_s_if_a_part_is_dropped_at_the_end": self.if_part_dropped_s,
                 "predicted_extra_s_half_set_resolution": self.half_sets_s, "predicted_extra_s_error_bounds": self.bounds_s,
-                "predicted_extra_s_if_the_spectral_model_is_kept": self.if_spectral_kept_s}
+                "predicted_extra_s_if_the_spectral_model_is_kept": self.if_spectral_kept_s,
+                "predicted_extra_s_if_the_field_grid_is_kept": self.if_grid_kept_s}
 
     def summary(self) -> str:
         """One line per phase with its iterations and predicted seconds, and the total."""
@@ -293,8 +296,8 @@ class Plan:
                 early = (f" (~{_seconds(self.if_part_kept_early_s)} where stage {p.stage + 1}/{p.n_stages}'s end finds it:"
                          " the finest stage then runs once)")
             spectral = (f"; ~{_seconds(self.if_spectral_kept_s)} more if it is the spectral model, a pass per wavelength"
-                        + (" (the 2x field grid tried first in its place: ~4x the finest stage's cost where kept)"
-                           if self.grid_before_spectral else "") if self.if_spectral_kept_s else "")
+                        + (f" (the 2x field grid tried first in its place: the finest stage again on it, ~{_seconds(self.if_grid_kept_s)}"
+                           " more where kept)" if self.if_grid_kept_s else "") if self.if_spectral_kept_s else "")
             lines.append(f"  if the data ask for a model part (pupil, aberrations, ...): every stage again, "
                          f"~{_seconds(self.if_part_kept_s)} more{early}{spectral}")
         if self.if_finest_parts_kept_s:
@@ -447,9 +450,12 @@ def make_plan(config: SolverConfig, optics: Optics, image_shape: tuple[int, int]
                                            pupil_edge, auto_parts, n_images, n_held, early)
         if spectral is not None:  # under "before_spectral" the 2x grid is tested before a spectral model is kept
             spectral += grid_first_s
+    grid_first = spectral is not None and grid_waits_for_spectral(config, auto_parts)
+    grid_kept = stage_phase(config, optics, image_shape, src, len(config.stages) - 1, coarse_model, device_type, RERUN,
+                            ("field_grid", *(p for p in ("sub_slices",) if p in auto_parts)), pixel_integration=pixel_integration,
+                            pupil_edge=pupil_edge).predicted_s if grid_first else None
     return Plan(tuple(phases), "cuda" if device_type == "cuda" else "cpu", extra, early, early_test_stage if early is not None else None,
-                finest_again, finest_parts, dropped, halves, bounds, spectral,
-                grid_before_spectral=spectral is not None and grid_waits_for_spectral(config, auto_parts))
+                finest_again, finest_parts, dropped, halves, bounds, spectral, grid_before_spectral=grid_first, if_grid_kept_s=grid_kept)
 
 
 def _with_tests(phases: list[Phase], config: SolverConfig, optics: Optics, image_shape: tuple[int, int], src: np.ndarray,
