@@ -371,8 +371,8 @@ def test_the_model_parts_tests_are_priced_at_the_ends_of_the_phases_they_follow(
 def test_the_price_of_keeping_the_grid_in_the_spectral_models_place_is_within_1_5x_of_measured() -> None:
     """Where the 2x field grid is tried before a spectral model is kept (``field_oversampling = "before_spectral"``),
     the plan prices keeping it (the finest stage again on it, with sub-slices where they are to choose too). Checked
-    against the runs that kept both on cells_fine and beads_high (``benchmarks/results/plan_grid_kept_cpu.json``: that
-    phase's seconds less its parts' tests), where the text before said only "~4x the finest stage's cost"."""
+    against the runs that kept both on cells_fine, beads_high and fibres_thick (``benchmarks/results/plan_grid_kept_cpu.json``:
+    that phase's seconds less its stage's tests), where the text before said only "~4x the finest stage's cost"."""
     from napari_fdt.data.acquisition import Acquisition
     from napari_fdt.physics.optics import Optics
     from napari_fdt.recon.loop.plan import plan_for
