@@ -421,3 +421,25 @@ def test_least_squares_gain() -> None:
     spoiled[:, 4:] = 100.0
     assert torch.allclose(least_squares_gain(pred, spoiled, mask), least_squares_gain(pred, meas))
     assert least_squares_gain(torch.zeros(2, 3), torch.ones(2, 3)).item() == 0.0
+
+
+def test_the_masks_broadcast_follows_numpys_rules() -> None:
+    """``_broadcast_shape`` (written out: ``torch.broadcast_shapes`` imports sympy on its first call) against NumPy's
+    broadcasting on every pair of shapes of up to 2 dims of sizes 0-3; and the masked mean's two errors."""
+    import itertools
+
+    from napari_fdt.recon.problem.losses import _broadcast_shape, _weighted_mean
+
+    shapes = [s for n in range(3) for s in itertools.product(range(4), repeat=n)]
+    for a, b in itertools.product(shapes, repeat=2):
+        try:
+            ref = tuple(np.broadcast_shapes(a, b))
+        except ValueError:
+            ref = None
+        assert _broadcast_shape(a, b) == ref, (a, b)
+    values = torch.ones(2, 3, 4)
+    assert float(_weighted_mean(values * 2, torch.ones(3, 1))) == 2.0
+    with pytest.raises(ValueError, match="does not broadcast"):
+        _weighted_mean(values, torch.ones(5, 4))
+    with pytest.raises(ValueError, match="would enlarge"):
+        _weighted_mean(values, torch.ones(7, 2, 3, 4))

@@ -72,14 +72,13 @@ def _weighted_mean(
     mask = torch.as_tensor(mask, device=values.device)
     if mask.dtype == torch.bool or not mask.is_floating_point():
         mask = mask.to(values.dtype)
-    try:
-        shape = torch.broadcast_shapes(mask.shape, values.shape)
-    except RuntimeError as exc:
+    shape = _broadcast_shape(tuple(mask.shape), tuple(values.shape))
+    if shape is None:
         raise ValueError(
             f"mask of shape {tuple(mask.shape)} does not broadcast to the images' shape "
             f"{tuple(values.shape)}"
-        ) from exc
-    if shape != values.shape:
+        )
+    if shape != tuple(values.shape):
         raise ValueError(
             f"mask of shape {tuple(mask.shape)} would enlarge the images' shape "
             f"{tuple(values.shape)} (to {tuple(shape)}); it must broadcast to the images"
@@ -87,6 +86,16 @@ def _weighted_mean(
     weights = mask.expand(values.shape)
     num = (weights * values).sum()
     return _guarded_ratio(num, weights.sum() if denominator is None else denominator)
+
+
+def _broadcast_shape(a: tuple[int, ...], b: tuple[int, ...]) -> tuple[int, ...] | None:
+    """The broadcast of shapes ``a`` and ``b`` (NumPy's rules), None where they do not broadcast. Written out:
+    ``torch.broadcast_shapes`` imports torch's symbolic shapes and sympy on its first call (0.3 s of a cold run)."""
+    n = max(len(a), len(b))
+    a, b = (1,) * (n - len(a)) + a, (1,) * (n - len(b)) + b
+    if any(x != y and 1 not in (x, y) for x, y in zip(a, b)):
+        return None
+    return tuple(y if x == 1 else x for x, y in zip(a, b))
 
 
 def _guarded_ratio(num: torch.Tensor, den: torch.Tensor | float) -> torch.Tensor:
