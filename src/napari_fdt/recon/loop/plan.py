@@ -192,11 +192,15 @@ class Plan:
     #: seconds more if the part kept is the spectral model (every stage again, one pass per wavelength: 2-5x
     #: :attr:`if_part_kept_s` on beads and cells_fine, 2026-11-28); None where it is not to choose
     if_spectral_kept_s: float | None = None
-    #: whether the 2x field grid is tried before a spectral model is kept (``field_oversampling = "before_spectral"``;
-    #: :attr:`if_spectral_kept_s` holds the grid's test)
-    grid_before_spectral: bool = False
-    #: seconds more if the grid is kept there: the finest stage again on it, with sub-slices where they are to choose too
+    #: seconds more where the 2x field grid is tried before a spectral model is kept (``field_oversampling =
+    #: "before_spectral"``; :attr:`if_spectral_kept_s` holds the grid's test) and keeps it: the finest stage again on it,
+    #: with sub-slices where they are to choose too; None where the grid is not tried so
     if_grid_kept_s: float | None = None
+
+    @property
+    def grid_before_spectral(self) -> bool:
+        """Whether the 2x field grid is tried before a spectral model is kept (:attr:`if_grid_kept_s` prices it)."""
+        return self.if_grid_kept_s is not None
 
     @property
     def pupil_pilot(self) -> bool:
@@ -450,12 +454,13 @@ def make_plan(config: SolverConfig, optics: Optics, image_shape: tuple[int, int]
                                            pupil_edge, auto_parts, n_images, n_held, early)
         if spectral is not None:  # under "before_spectral" the 2x grid is tested before a spectral model is kept
             spectral += grid_first_s
-    grid_first = spectral is not None and grid_waits_for_spectral(config, auto_parts)
-    grid_kept = stage_phase(config, optics, image_shape, src, len(config.stages) - 1, coarse_model, device_type, RERUN,
-                            ("field_grid", *(p for p in ("sub_slices",) if p in auto_parts)), pixel_integration=pixel_integration,
-                            pupil_edge=pupil_edge).predicted_s if grid_first else None
+    grid_kept = None
+    if spectral is not None and grid_waits_for_spectral(config, auto_parts):  # the finest stage again on the grid
+        with_grid = ("field_grid", "sub_slices") if "sub_slices" in auto_parts else ("field_grid",)
+        grid_kept = stage_phase(config, optics, image_shape, src, len(config.stages) - 1, coarse_model, device_type, RERUN,
+                                with_grid, pixel_integration=pixel_integration, pupil_edge=pupil_edge).predicted_s
     return Plan(tuple(phases), "cuda" if device_type == "cuda" else "cpu", extra, early, early_test_stage if early is not None else None,
-                finest_again, finest_parts, dropped, halves, bounds, spectral, grid_before_spectral=grid_first, if_grid_kept_s=grid_kept)
+                finest_again, finest_parts, dropped, halves, bounds, spectral, if_grid_kept_s=grid_kept)
 
 
 def _with_tests(phases: list[Phase], config: SolverConfig, optics: Optics, image_shape: tuple[int, int], src: np.ndarray,
