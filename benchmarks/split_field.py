@@ -57,20 +57,32 @@ def _step_s(model, dn: torch.Tensor, src: torch.Tensor, target: torch.Tensor, re
     return best
 
 
-def measure(name: str, device: str = "cpu") -> dict:
-    folder = SCENES[name][0]
-    acq = read_acquisition(folder)
-    o = acq.optics
-    vol, _ = read_volume_tiff(folder / "ground_truth_ri.tif")
+def _geometry(name: str):
+    """A registry scene's acquisition, its planned full window, the converged window (1.8x the plan's, where the
+    periodic copies are far) and the plan's sources (N, 3) µm."""
+    acq = read_acquisition(SCENES[name][0])
     all_src = np.asarray(acq.sources_um)
-    plan = plan_for_sources(o, acq.image_shape, all_src, warn=False)
+    plan = plan_for_sources(acq.optics, acq.image_shape, all_src, warn=False)
     n2 = next_fast_even(int(1.8 * max(plan.padded_shape)))
     (h, w) = plan.image_shape
     wide = dataclasses.replace(plan, padded_shape=(n2, n2), offset=(n2 // 2 - h // 2, n2 // 2 - w // 2))
+    return acq, plan, wide, all_src
+
+
+def _spread(all_src: np.ndarray, n: int, dtype: torch.dtype, device: str = "cpu") -> torch.Tensor:
+    """``n`` sources spread over the list (first to last), as a tensor."""
+    return torch.tensor(all_src[np.linspace(0, len(all_src) - 1, n).round().astype(int)], dtype=dtype, device=device)
+
+
+def measure(name: str, device: str = "cpu") -> dict:
+    acq, plan, wide, all_src = _geometry(name)
+    o = acq.optics
+    vol, _ = read_volume_tiff(SCENES[name][0] / "ground_truth_ri.tif")
+    n2 = wide.padded_shape[0]
     row = {"scene": name, "image": list(acq.image_shape), "full_window": list(plan.padded_shape), "converged_window": n2}
     f64 = torch.float64
     dn = torch.tensor(vol - o.n_background, dtype=f64, device=device)
-    src = torch.tensor(all_src[np.linspace(0, len(all_src) - 1, 8).round().astype(int)], dtype=f64, device=device)
+    src = _spread(all_src, 8, f64, device)
     with torch.no_grad():
         for pix in (False, True):
             tag = "_pixels" if pix else ""
@@ -82,7 +94,7 @@ def measure(name: str, device: str = "cpu") -> dict:
             row["split_window"] = list(split.plan.padded_shape)
     f32 = torch.float32
     dn32 = dn.to(f32)
-    src32 = torch.tensor(all_src[np.linspace(0, len(all_src) - 1, 16).round().astype(int)], dtype=f32, device=device)
+    src32 = _spread(all_src, 16, f32, device)
     for pix in (False, True):
         tag = "_pixels" if pix else ""
         full = MultiSliceModel(o, plan, device=device, dtype=f32, pixel_integration=pix)
@@ -97,17 +109,11 @@ def measure(name: str, device: str = "cpu") -> dict:
 def volume_errors(name: str, volume: str, sub_slices: int, clearances: list[float]) -> dict:
     """Image errors (float64, 8 sources) of the planned full window and of the split window at each clearance against
     the full-window model on a window 1.8x the plan's, for ``volume`` (an RI file on the scene's grid)."""
-    folder = SCENES[name][0]
-    acq = read_acquisition(folder)
+    acq, plan, wide, all_src = _geometry(name)
     o = acq.optics
-    all_src = np.asarray(acq.sources_um)
-    plan = plan_for_sources(o, acq.image_shape, all_src, warn=False)
-    n2 = next_fast_even(int(1.8 * max(plan.padded_shape)))
-    (h, w) = plan.image_shape
-    wide = dataclasses.replace(plan, padded_shape=(n2, n2), offset=(n2 // 2 - h // 2, n2 // 2 - w // 2))
     f64 = torch.float64
     dn = torch.tensor(read_volume_tiff(volume)[0] - o.n_background, dtype=f64)
-    src = torch.tensor(all_src[np.linspace(0, len(all_src) - 1, 8).round().astype(int)], dtype=f64)
+    src = _spread(all_src, 8, f64)
     with torch.no_grad():
         truth = MultiSliceModel(o, wide, device="cpu", dtype=f64, sub_slices=sub_slices)(dn, src)
         row = {"scene": name, "volume": volume, "sub_slices": sub_slices, "full_window": list(plan.padded_shape),
