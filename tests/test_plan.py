@@ -14,8 +14,9 @@ import torch
 
 from napari_fdt.data.io import read_acquisition
 from napari_fdt.model.envelope import EnvelopeModel
+from napari_fdt.recon.loop.pace import Pace
 from napari_fdt.recon.loop.phases import RUN, TV_CHOICE, probe_iterations
-from napari_fdt.recon.loop.plan import Pace, Plan, make_plan
+from napari_fdt.recon.loop.plan import Plan, make_plan
 from napari_fdt.recon.loop.regularisation import TV_PATH
 from napari_fdt.recon.problem.stages import build_stage
 from napari_fdt.recon.settings.config import SolverConfig, StageConfig, resolve_stage_lengths

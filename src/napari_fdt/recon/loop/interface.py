@@ -36,7 +36,8 @@ if TYPE_CHECKING:
     from napari_fdt.data.acquisition import Acquisition
     from napari_fdt.recon.calibration.calibration import Calibration
     from napari_fdt.recon.loop.model_parts import EarlyTrials, PartsChoice
-    from napari_fdt.recon.loop.plan import Pace, Phase, Plan
+    from napari_fdt.recon.loop.pace import Pace
+    from napari_fdt.recon.loop.plan import Phase, Plan
     from napari_fdt.recon.loop.regularisation import TVChoice
     from napari_fdt.recon.problem.batches import BatchOrder
     from napari_fdt.recon.problem.distributed import Group

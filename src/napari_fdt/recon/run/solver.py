@@ -58,8 +58,9 @@ from napari_fdt.recon.loop.checkpoint import (
     write_checkpoint,
 )
 from napari_fdt.recon.loop.model_parts import FINEST_ONLY_PARTS, PartsChoice
+from napari_fdt.recon.loop.pace import Pace
 from napari_fdt.recon.loop.phases import RERUN, RUN, TV_CHOICE
-from napari_fdt.recon.loop.plan import Pace, Phase, Plan, make_plan, stage_phase
+from napari_fdt.recon.loop.plan import Phase, Plan, make_plan, stage_phase
 from napari_fdt.recon.loop.regularisation import TV_PATH, TVChoice, candidate_weights, selection_stages, tv_is_auto
 from napari_fdt.recon.loop.run_state import InState, RunState
 from napari_fdt.recon.loop.run_validation import validation_error
