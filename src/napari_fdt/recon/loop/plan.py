@@ -31,7 +31,7 @@ from napari_fdt.recon.problem.stage_spec import rerun_coarse_model
 from napari_fdt.recon.settings.config import SolverConfig
 
 __all__ = ["SECONDS_PER_UNIT", "OVERHEAD_S", "SOURCE_FIELD_UNITS", "Phase", "Plan", "iteration_units", "envelope_padded_shape", "stage_phase",
-           "make_plan", "plan_for"]
+           "make_plan", "most_seconds", "plan_for"]
 
 #: Seconds per cost unit of one iteration, by (device type, model). CPU: 2 threads of a 2-core AMD EPYC (Zen 5),
 #: 2026-11-29, the default runs of the sample, cells, deep and beads (probe off): each stage's
@@ -196,6 +196,11 @@ class Plan:
     #: "before_spectral"``; :attr:`if_spectral_kept_s` holds the grid's test) and keeps it: the finest stage again on it,
     #: with sub-slices where they are to choose too; None where the grid is not tried so
     if_grid_kept_s: float | None = None
+    #: seconds of the whole run where the data ask for the costliest choices: a TV weight larger than the first stages
+    #: ran with (they run again), and the costliest model parts of each kind (every stage again with the costliest single
+    #: part of the stages' model and the tests again, the finest stage again with its costliest parts, and again at the
+    #: end where a kept part is dropped: :func:`most_seconds`); None where nothing is to choose
+    most_s: float | None = None
 
     @property
     def grid_before_spectral(self) -> bool:
@@ -274,7 +279,7 @@ class Plan:
                 phases = phases[:last] + (replace(phases[last], test_s=tested[-1].test_s * scale, test=tested[-1].test),)
         if choice_to_come:
             return replace(self, phases=phases, if_finest_parts_kept_s=None, finest_parts=(), if_part_kept_early_s=None,
-                           early_test_stage=None, if_spectral_kept_s=None, if_grid_kept_s=None)
+                           early_test_stage=None, if_spectral_kept_s=None, if_grid_kept_s=None, most_s=None)
         return Plan(phases, self.device_type, half_sets_s=self.half_sets_s, if_part_dropped_s=self.if_part_dropped_s,
                     bounds_s=self.bounds_s)
 
@@ -287,7 +292,8 @@ class Plan:
                 "pupil_pilot": self.pupil_pilot, "predicted_extra_s_if_a_part_is_dropped_at_the_end": self.if_part_dropped_s,
                 "predicted_extra_s_half_set_resolution": self.half_sets_s, "predicted_extra_s_error_bounds": self.bounds_s,
                 "predicted_extra_s_if_the_spectral_model_is_kept": self.if_spectral_kept_s,
-                "predicted_extra_s_if_the_field_grid_is_kept": self.if_grid_kept_s}
+                "predicted_extra_s_if_the_field_grid_is_kept": self.if_grid_kept_s,
+                "predicted_total_s_if_the_costliest_parts_are_kept": self.most_s}
 
     def summary(self) -> str:
         """One line per phase with its iterations and predicted seconds, and the total."""
@@ -315,8 +321,13 @@ class Plan:
         if self.bounds_s is not None:
             lines.append(f"  then the error bound: the result re-simulated and run again with the run's choices, "
                          f"~{_seconds(self.bounds_s)} more")
+        most = ""
+        if self.most_s is not None and self.most_s > 1.05 * self.predicted_s:
+            most = (f" where the data ask for no model part; up to about {_seconds(self.most_s)} where they ask for the"
+                    " costliest ones (the lines below)" if self.if_part_kept_s else
+                    f"; up to about {_seconds(self.most_s)} where a larger TV weight wins (the stages before its trials again)")
         return "\n".join([f"plan ({self.device_type}): {len(self.phases)} phases, {self.iterations} iterations, "
-                          f"about {_seconds(self.predicted_s)}", *lines])
+                          f"about {_seconds(self.predicted_s)}{most}", *lines])
 
 
 def _seconds(s: float) -> str:
@@ -459,8 +470,41 @@ def make_plan(config: SolverConfig, optics: Optics, image_shape: tuple[int, int]
         with_grid = ("field_grid", "sub_slices") if "sub_slices" in auto_parts else ("field_grid",)
         grid_kept = stage_phase(config, optics, image_shape, src, len(config.stages) - 1, coarse_model, device_type, RERUN,
                                 with_grid, pixel_integration=pixel_integration, pupil_edge=pupil_edge).predicted_s
-    return Plan(tuple(phases), "cuda" if device_type == "cuda" else "cpu", extra, early, early_test_stage if early is not None else None,
+    plan = Plan(tuple(phases), "cuda" if device_type == "cuda" else "cpu", extra, early, early_test_stage if early is not None else None,
                 finest_again, finest_parts, dropped, halves, bounds, spectral, if_grid_kept_s=grid_kept)
+    # a TV weight larger than the one the stages before the trials ran with: they run again with it
+    tv_again_s = plan.with_stages_again(choose_tv_at).predicted_s - plan.predicted_s if choose_tv_at is not None else 0.0
+    if extra is None:
+        return replace(plan, most_s=plan.predicted_s + tv_again_s) if choose_tv_at is not None else plan
+    # the run's choices chained (every stage again with a part of the stages' model, the finest stage's parts kept with
+    # it; then the finest stage again with its own parts; then a drop at the end), each chain with its costliest parts:
+    # a fitted part (priced as the stages as given), obliquity's screens, the camera's pixel means; the spectral model
+    # (its passes; where the 2x grid is tried in its place, the grid's keep is a chain of the finest stage's parts)
+    again_s = [extra]
+    if config.parts_rerun == "stages":
+        for part in (None, *(p for p in ("obliquity", "pixel_integration") if p in auto_parts)):
+            parts = (part, *finest_parts) if part else finest_parts
+            again_s.append(sum(stage_phase(config, optics, image_shape, src, i, again, device_type, RERUN, parts,
+                                           pixel_integration=pixel_integration or part == "pixel_integration",
+                                           pupil_edge=pupil_edge).predicted_s for i in range(len(config.stages))))
+    finest_s = max(finest_again or 0.0, grid_kept or 0.0)
+    backward = bool(config.parts_backward)
+    most = max(most_seconds(plan, max(again_s), finest_s, backward), most_seconds(plan, 0.0, finest_s, backward))
+    if spectral is not None:  # the spectral model's passes, then the finest stage's parts other than a grid it excludes
+        most = max(most, most_seconds(plan, spectral, (finest_again or 0.0) if grid_kept is not None else finest_s, backward))
+    return replace(plan, most_s=most + tv_again_s)
+
+
+def most_seconds(plan: Plan, again_s: float, finest_s: float, backward: bool) -> float:
+    """The run's seconds where the data ask for the costliest model parts of each kind, as the run's choices chain
+    them: ``plan``'s phases; every stage again (``again_s``, 0 where no part of the stages' model is kept) with the
+    finest stage's tests again (priced as the first pass's); the finest stage again with its costliest parts
+    (``finest_s``, 0 where none is to choose: sub-slices, the 2x grid); and, with ``backward``, once more at the end
+    where a kept part is dropped (priced as the larger of the finest stage with those parts and as given). Not a bound:
+    two parts of the stages' model kept together, or kept parts dearer than priced, cost more."""
+    tests_s = sum(p.test_s for p in plan.phases if p.test == PARTS_TEST) if again_s else 0.0
+    finest = max(p.iterations_s for p in plan.phases if p.pass_name == RUN and p.stage == p.n_stages - 1)
+    return plan.predicted_s + again_s + tests_s + finest_s + (max(finest_s, finest) if backward else 0.0)
 
 
 def _with_tests(phases: list[Phase], config: SolverConfig, optics: Optics, image_shape: tuple[int, int], src: np.ndarray,
