@@ -151,6 +151,25 @@ def test_fdt_plan_prices_the_family_as_its_members(tmp_path: Path, tiny_sim, cap
     assert "a family of 3 volumes" in capsys.readouterr().out
 
 
+def test_the_familys_price_is_a_range_where_its_members_choose_model_parts() -> None:
+    """Where model parts are to choose, ``fdt plan --tv-family`` says what the family costs where the data ask for
+    none and up to what the costliest choices make of every member (the cells scene's geometry, as recorded in
+    ``benchmarks/results/plan_range_cpu.json``)."""
+    from napari_fdt.cli.family import family_json, family_summary, planned_config
+    from napari_fdt.data.acquisition import Acquisition
+    from napari_fdt.physics.optics import Optics
+    from napari_fdt.recon.loop.plan import plan_for
+
+    run = json.loads((Path(__file__).resolve().parents[1] / "benchmarks" / "results" / "plan_range_cpu.json").read_text())["runs"][1]
+    src = np.asarray(run["sources_um"], dtype=np.float64)
+    acq = Acquisition(np.zeros((len(src), *run["image_shape"]), np.float32), Optics(**run["optics"]), src, extra=run["extra"])
+    plan, _ = plan_for(acq, planned_config(SolverConfig(), True), "cpu")
+    assert plan.if_part_kept_s and plan.most_s > plan.predicted_s
+    entry = family_json(True, plan)["tv_family"]
+    assert entry["predicted_total_s_if_the_costliest_parts_are_kept"] == pytest.approx(len(FAMILY_TAUS) * plan.most_s)
+    assert "in all where the data ask for no model part, up to about" in family_summary(True, plan).splitlines()[0]
+
+
 def test_a_family_interrupted_resumes_from_its_checkpoints_to_the_same_volumes(tmp_path: Path, scene16, capsys) -> None:
     """A family stopped inside its second member (after that member's first stage) and resumed with ``--resume`` of its
     checkpoint folder writes the same members, bit for bit, as the family run without a stop: the first member

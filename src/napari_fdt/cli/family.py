@@ -82,12 +82,16 @@ def planned_config(config: SolverConfig, family: bool) -> SolverConfig:
 
 def family_summary(family: bool, plan) -> str:
     """``fdt plan``'s text: the plan, or with a ``family`` the family's price and one member's plan."""
+    from napari_fdt.recon.loop.plan import seconds_in_words
     from napari_fdt.recon.run.family import FAMILY_TAUS
 
     if not family:
         return plan.summary()
-    return (f"a family of {len(FAMILY_TAUS)} volumes, one whole run per TV weight (τ_xy {', '.join(f'{t:g}' for t in FAMILY_TAUS)}): "
-            f"about {len(FAMILY_TAUS) * plan.predicted_s:.0f} s in all; each member's plan:\n{plan.summary()}")
+    n = len(FAMILY_TAUS)
+    most = (f" where the data ask for no model part, up to about {seconds_in_words(n * plan.most_s)} where they ask for the costliest"
+            " (a member that shares the first one's parts runs no tests)" if plan.most_s and plan.if_part_kept_s else "")
+    return (f"a family of {n} volumes, one whole run per TV weight (τ_xy {', '.join(f'{t:g}' for t in FAMILY_TAUS)}): "
+            f"about {seconds_in_words(n * plan.predicted_s)} in all{most}; each member's plan:\n{plan.summary()}")
 
 
 def family_json(family: bool, plan) -> dict[str, Any]:
@@ -96,8 +100,10 @@ def family_json(family: bool, plan) -> dict[str, Any]:
 
     if not family:
         return {}
+    n = len(FAMILY_TAUS)
     return {"tv_family": {"taus": list(FAMILY_TAUS), "predicted_member_s": plan.predicted_s,
-                          "predicted_total_s": len(FAMILY_TAUS) * plan.predicted_s}}
+                          "predicted_total_s": n * plan.predicted_s,
+                          "predicted_total_s_if_the_costliest_parts_are_kept": n * plan.most_s if plan.most_s else None}}
 
 
 def check_family_request(config: SolverConfig, args: Any, out: Path) -> list[Path]:

@@ -31,7 +31,7 @@ from napari_fdt.recon.problem.stage_spec import rerun_coarse_model
 from napari_fdt.recon.settings.config import SolverConfig
 
 __all__ = ["SECONDS_PER_UNIT", "OVERHEAD_S", "SOURCE_FIELD_UNITS", "Phase", "Plan", "iteration_units", "envelope_padded_shape", "stage_phase",
-           "make_plan", "most_seconds", "plan_for"]
+           "make_plan", "most_seconds", "plan_for", "seconds_in_words"]
 
 #: Seconds per cost unit of one iteration, by (device type, model). CPU: 2 threads of a 2-core AMD EPYC (Zen 5),
 #: 2026-11-29, the default runs of the sample, cells, deep and beads (probe off): each stage's
@@ -297,40 +297,41 @@ class Plan:
 
     def summary(self) -> str:
         """One line per phase with its iterations and predicted seconds, and the total."""
-        lines = [f"  {p.name}: {p.iterations} it, ~{_seconds(p.predicted_s)}"
-                 + (f" (of which ~{_seconds(p.test_s)} {p.test} at its end)" if p.test_s else "") for p in self.phases]
+        lines = [f"  {p.name}: {p.iterations} it, ~{seconds_in_words(p.predicted_s)}"
+                 + (f" (of which ~{seconds_in_words(p.test_s)} {p.test} at its end)" if p.test_s else "") for p in self.phases]
         if self.if_part_kept_s:
             early = ""
             if self.if_part_kept_early_s is not None:
                 p = next(q for q in self.phases if q.stage == self.early_test_stage)
-                early = (f" (~{_seconds(self.if_part_kept_early_s)} where stage {p.stage + 1}/{p.n_stages}'s end finds it:"
+                early = (f" (~{seconds_in_words(self.if_part_kept_early_s)} where stage {p.stage + 1}/{p.n_stages}'s end finds it:"
                          " the finest stage then runs once)")
-            spectral = (f"; ~{_seconds(self.if_spectral_kept_s)} more if it is the spectral model, a pass per wavelength"
-                        + (f" (the 2x field grid tried first in its place: the finest stage again on it, ~{_seconds(self.if_grid_kept_s)}"
+            spectral = (f"; ~{seconds_in_words(self.if_spectral_kept_s)} more if it is the spectral model, a pass per wavelength"
+                        + (f" (the 2x field grid tried first in its place: the finest stage again on it, ~{seconds_in_words(self.if_grid_kept_s)}"
                            " more where kept)" if self.if_grid_kept_s else "") if self.if_spectral_kept_s else "")
             lines.append(f"  if the data ask for a model part (pupil, aberrations, ...): every stage again, "
-                         f"~{_seconds(self.if_part_kept_s)} more{early}{spectral}")
+                         f"~{seconds_in_words(self.if_part_kept_s)} more{early}{spectral}")
         if self.if_finest_parts_kept_s:
             what = " or ".join(PART_WORDS.get(p, p) for p in self.finest_parts)
-            lines.append(f"  if the data ask for {what} alone: the finest stage again with them, ~{_seconds(self.if_finest_parts_kept_s)} more")
+            lines.append(f"  if the data ask for {what} alone: the finest stage again with them, ~{seconds_in_words(self.if_finest_parts_kept_s)} more")
         if self.if_part_dropped_s:
-            lines.append(f"  if a kept part no longer helps at the end: the finest stage again without it, ~{_seconds(self.if_part_dropped_s)} more")
+            lines.append(f"  if a kept part no longer helps at the end: the finest stage again without it, ~{seconds_in_words(self.if_part_dropped_s)} more")
         if self.half_sets_s is not None:
             lines.append(f"  then the half-set resolution: each half of the images run again with the run's choices, "
-                         f"~{_seconds(self.half_sets_s)} more")
+                         f"~{seconds_in_words(self.half_sets_s)} more")
         if self.bounds_s is not None:
             lines.append(f"  then the error bound: the result re-simulated and run again with the run's choices, "
-                         f"~{_seconds(self.bounds_s)} more")
+                         f"~{seconds_in_words(self.bounds_s)} more")
         most = ""
         if self.most_s is not None and self.most_s > 1.05 * self.predicted_s:
-            most = (f" where the data ask for no model part; up to about {_seconds(self.most_s)} where they ask for the"
+            most = (f" where the data ask for no model part; up to about {seconds_in_words(self.most_s)} where they ask for the"
                     " costliest ones (the lines below)" if self.if_part_kept_s else
-                    f"; up to about {_seconds(self.most_s)} where a larger TV weight wins (the stages before its trials again)")
+                    f"; up to about {seconds_in_words(self.most_s)} where a larger TV weight wins (the stages before its trials again)")
         return "\n".join([f"plan ({self.device_type}): {len(self.phases)} phases, {self.iterations} iterations, "
-                          f"about {_seconds(self.predicted_s)}{most}", *lines])
+                          f"about {seconds_in_words(self.predicted_s)}{most}", *lines])
 
 
-def _seconds(s: float) -> str:
+def seconds_in_words(s: float) -> str:
+    """``s`` seconds as the plan says them: "16 s", "3 min", "1.2 h"."""
     if s < 90:
         return f"{s:.0f} s"
     if s < 5400:
