@@ -168,6 +168,11 @@ def test_a_run_counts_along_its_plan_and_its_time_table_adds_up(scene16) -> None
     smallest = rec.tv_choice.tv_xy_weight == TV_PATH[0]  # planned for: the stages before are kept
     assert rec.plan.iterations == planned - cut + (0 if smallest else cfg.stages[0].iterations + rec.tv_choice.probe_iterations)
     assert all(s.eta_s >= 0 for s in snaps) and snaps[-1].eta_s == 0 and snaps[-1].progress == 1.0
+    # the top of the time left while the TV weight and the model parts are still to choose, gone once they are chosen
+    assert rec.plan.most_s is None and snaps[-1].eta_most_s is None
+    assert snaps[0].eta_most_s is not None and snaps[0].eta_most_s > snaps[0].eta_s
+    assert all(s.eta_most_s is None or s.eta_most_s >= s.eta_s for s in snaps)
+    assert [s.eta_most_s is None for s in snaps] == sorted(s.eta_most_s is None for s in snaps)  # once gone, gone
     assert [s.phase_name for s in snaps if s.stage_complete][-3:] == ["stage 1/3 (x4)", "stage 2/3 (x2)", "stage 3/3 (x1)"]
     table = plan_report(rec)
     seconds = [p["seconds"] for p in table["phases"]]
@@ -442,5 +447,11 @@ def test_the_range_is_what_the_choices_left_to_the_data_can_add() -> None:
     again = tv_only.with_stages_again(min(selection_stages(resolve_stage_lengths(tv, len(src))))).predicted_s
     assert again > tv_only.predicted_s and tv_only.most_s == pytest.approx(again)
     assert "where a larger TV weight wins" in tv_only.summary().splitlines()[0]
+    # the choice settles it: a larger weight adds the stages again to the plan, the smallest keeps the plan; both close it
+    stage = min(selection_stages(resolve_stage_lengths(tv, len(src))))
+    assert tv_only.with_stages_again(stage).most_s is None and tv_only.tv_chosen().most_s is None
     everything, _ = plan_for(acq, SolverConfig(), "cpu")
     assert everything.most_s > tv_only.most_s + everything.if_part_kept_s
+    larger = everything.with_stages_again(stage)  # the top stays (the TV's share is now in the plan), the parts' remain
+    assert larger.most_s == pytest.approx(everything.most_s) and larger.predicted_s > everything.predicted_s
+    assert everything.choices_made().most_s is None and "up to" not in everything.choices_made().summary()

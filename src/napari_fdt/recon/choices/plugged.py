@@ -109,6 +109,7 @@ class ChooseModelParts:
         work.record.choice_s += time.perf_counter() - t0  # not the stage's own iterations
         rec.parts_choice.iteration = work.done
         if not any(rec.parts[p] for p in rec._auto_parts):
+            rec._revise_plan(rec.plan.choices_made())  # nothing kept: the run adds nothing more (its plan's top goes)
             return Verdict.GO_ON
         kept = tuple(p for p in rec._auto_parts if rec.parts[p])
         # the stages before would run as they did; not where a branch found the part (its volume differs from the thin

@@ -79,6 +79,7 @@ def choose_tv(rec: Run, work: StageWork, should_stop: Callable[[], bool] | None)
     if stage.index > 0 and (win["tv_xy_weight"], win["tv_z_weight"]) != (weights.tv_xy, weights.tv_z):
         rec._revise_plan(rec.plan.with_stages_again(stage.index))  # the stages before, again with the winner
         return Verdict.FROM_FIRST_STAGE
+    rec._revise_plan(rec.plan.tv_chosen())  # the stages before are kept: the plan's top loses the TV's share
     restore_branch(rec, ends[k])
     work.optimiser = new_optimiser(rec)
     work.optimiser.load_state_dict(ends[k]["vol_opt"])

@@ -199,8 +199,16 @@ class Plan:
     #: seconds of the whole run where the data ask for the costliest choices: a TV weight larger than the first stages
     #: ran with (they run again), and the costliest model parts of each kind (every stage again with the costliest single
     #: part of the stages' model and the tests again, the finest stage again with its costliest parts, and again at the
-    #: end where a kept part is dropped: :func:`most_seconds`); None where nothing is to choose
-    most_s: float | None = None
+    #: end where a kept part is dropped: :func:`most_seconds`), over :attr:`predicted_s`; None where nothing is left to
+    #: choose (the choices' revisions take off what they settle: :meth:`tv_chosen`, :meth:`choices_made`)
+    most_extra_s: float | None = None
+    #: the share of :attr:`most_extra_s` that the TV weight's choice settles (the stages before its trials again)
+    tv_again_s: float = 0.0
+
+    @property
+    def most_s(self) -> float | None:
+        """Seconds of the whole run where the data ask for the costliest choices still open (None: none is)."""
+        return None if self.most_extra_s is None else self.predicted_s + self.most_extra_s
 
     @property
     def grid_before_spectral(self) -> bool:
@@ -258,7 +266,16 @@ class Plan:
                 phases += before
                 p = replace(p, iterations=p.iterations + p.first_iteration, first_iteration=0)
             phases.append(p)
-        return replace(self, phases=tuple(phases))
+        return replace(self, phases=tuple(phases)).tv_chosen()
+
+    def tv_chosen(self) -> "Plan":
+        """The plan once the TV weight is chosen: its share of :attr:`most_extra_s` settled."""
+        extra = None if self.most_extra_s is None else self.most_extra_s - self.tv_again_s
+        return replace(self, most_extra_s=extra if extra is not None and extra > 1e-9 else None, tv_again_s=0.0)
+
+    def choices_made(self) -> "Plan":
+        """The plan once nothing is left to choose that could add work (the model parts' choice kept nothing)."""
+        return replace(self, most_extra_s=None, tv_again_s=0.0)
 
     def without(self, index: int) -> "Plan":
         """The plan without phase ``index`` (a phase that will not run: the first pass's finest stage when a part is
@@ -279,7 +296,8 @@ class Plan:
                 phases = phases[:last] + (replace(phases[last], test_s=tested[-1].test_s * scale, test=tested[-1].test),)
         if choice_to_come:
             return replace(self, phases=phases, if_finest_parts_kept_s=None, finest_parts=(), if_part_kept_early_s=None,
-                           early_test_stage=None, if_spectral_kept_s=None, if_grid_kept_s=None, most_s=None)
+                           early_test_stage=None, if_spectral_kept_s=None, if_grid_kept_s=None, most_extra_s=None,
+                           tv_again_s=0.0)
         return Plan(phases, self.device_type, half_sets_s=self.half_sets_s, if_part_dropped_s=self.if_part_dropped_s,
                     bounds_s=self.bounds_s)
 
@@ -476,7 +494,7 @@ def make_plan(config: SolverConfig, optics: Optics, image_shape: tuple[int, int]
     # a TV weight larger than the one the stages before the trials ran with: they run again with it
     tv_again_s = plan.with_stages_again(choose_tv_at).predicted_s - plan.predicted_s if choose_tv_at is not None else 0.0
     if extra is None:
-        return replace(plan, most_s=plan.predicted_s + tv_again_s) if choose_tv_at is not None else plan
+        return replace(plan, most_extra_s=tv_again_s, tv_again_s=tv_again_s) if choose_tv_at is not None else plan
     # the run's choices chained (every stage again with a part of the stages' model, the finest stage's parts kept with
     # it; then the finest stage again with its own parts; then a drop at the end), each chain with its costliest parts:
     # a fitted part (priced as the stages as given), obliquity's screens, the camera's pixel means; the spectral model
@@ -493,7 +511,7 @@ def make_plan(config: SolverConfig, optics: Optics, image_shape: tuple[int, int]
     most = max(most_seconds(plan, max(again_s), finest_s, backward), most_seconds(plan, 0.0, finest_s, backward))
     if spectral is not None:  # the spectral model's passes, then the finest stage's parts other than a grid it excludes
         most = max(most, most_seconds(plan, spectral, (finest_again or 0.0) if grid_kept is not None else finest_s, backward))
-    return replace(plan, most_s=most + tv_again_s)
+    return replace(plan, most_extra_s=most + tv_again_s - plan.predicted_s, tv_again_s=tv_again_s)
 
 
 def most_seconds(plan: Plan, again_s: float, finest_s: float, backward: bool) -> float:

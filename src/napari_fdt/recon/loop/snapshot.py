@@ -72,6 +72,9 @@ class Snapshot:
     plan_iterations: int = 0
     #: the plan's phase in words ("stage 2/3 (x2)", "choosing the TV weight at stage 2/3 (x2)", ASCII)
     phase_name: str = ""
+    #: seconds left where the choices still open (the TV weight, the model parts) ask for the costliest work
+    #: (:attr:`~napari_fdt.recon.loop.plan.Plan.most_extra_s`, scaled as ``eta_s`` is); None once none is open
+    eta_most_s: float | None = None
 
     @property
     def phase_label(self) -> str:
@@ -169,6 +172,8 @@ def take_snapshot(rec: Run, stage: Stage, it: int, global_it: int, terms: dict, 
     plan_iteration = rec.plan.iterations_before(index) + within
     rec.pace.observe(index, plan_iteration, elapsed)
     remaining = 0.0 if complete and index == len(rec.plan.phases) - 1 else rec.pace.seconds_left()
+    open_s = rec.plan.most_extra_s
+    most_left = remaining + rec.pace.correction() * open_s if open_s is not None and remaining > 0 else None
     losses = as_floats(terms) if terms else {}
     snap = Snapshot(
         stage=stage.index, n_stages=len(cfg.stages), factor=stage.factor, iteration=it,
@@ -179,7 +184,7 @@ def take_snapshot(rec: Run, stage: Stage, it: int, global_it: int, terms: dict, 
         stage_complete=complete, full_shape=rec.full_shape, validation_error=validation_error, train_error=train_error,
         rerun_with=rerun_with, phase=current.pass_name, tv_weights=None if trial is None else candidate_weights(cfg, TV_PATH[trial]),
         phase_iteration=within, phase_iterations=current.iterations,
-        plan_iteration=plan_iteration, plan_iterations=rec.plan.iterations, phase_name=current.name,
+        plan_iteration=plan_iteration, plan_iterations=rec.plan.iterations, phase_name=current.name, eta_most_s=most_left,
     )
     if trial is None and in_history:  # (a trial's losses are a candidate's, not the run's)
         rec.history.append({"stage": stage.index, "iteration": it, "global_iteration": global_it,
