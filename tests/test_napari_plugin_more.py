@@ -300,6 +300,13 @@ def test_error_curve_updates_during_a_run(make_napari_viewer, qtbot, tmp_path) -
     w = _docked(viewer, ReconstructionWidget(viewer))
     _settings(w, "2x10, 1x40", final_stage_min_passes=24)  # the default
     w.validation_fraction.value = 0.2
+    statuses, on_update = [], w._on_update
+
+    def recorded(update) -> None:
+        on_update(update)
+        statuses.append(w.status.value)
+
+    w._on_update = recorded  # (the worker takes the widget's handler at the click)
     w.run_button.clicked.emit()
     # 16 images in batches of 4: the finest stage's 40 iterations are 10 passes, lengthened to 24 passes = 96 iterations,
     # which the progress bar, the curve's range and the status know as the run starts (no update has arrived yet)
@@ -317,6 +324,10 @@ def test_error_curve_updates_during_a_run(make_napari_viewer, qtbot, tmp_path) -
     assert w._report["stage_lengths"]["iterations"] == [10, 96] and w._report["config"]["stages"][1]["iterations"] == 40
     assert all(0 < v < 1 for _, v in curve.validation)
     assert w._report["validation"]["n_images"] == 3 and "validation" in w.curve_caption.value
+    # the time left says up to what the choices still open could add (the TV weight, the model parts), then no more
+    running = [t for t in statuses if "elapsed" in t]  # the snapshots' lines
+    with_top = [i for i, t in enumerate(running) if "(up to " in t and "as the data choose)" in t]
+    assert with_top and with_top == list(range(len(with_top))) and len(with_top) < len(running), running[-3:]
 
 
 def test_the_widget_estimates_the_resolution_when_asked(make_napari_viewer, qtbot, tmp_path) -> None:
