@@ -224,6 +224,14 @@ def test_fdt_reconstruct_prints_its_plan_even_when_quiet_and_warns_about_a_long_
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         _warn_about_a_long_cpu_run(long, "cuda")  # a GPU run: no warning
+    # short where the data ask for nothing, long where they ask for the costliest parts: said so
+    short = replace(long, phases=(replace(long.phases[0], iterations=100),), most_extra_s=2 * LONG_CPU_RUN_S)
+    assert short.predicted_s < LONG_CPU_RUN_S < short.most_s
+    with pytest.warns(FDTWarning, match=r"^device: this CPU run is predicted to take about \d+ min, and up to 1\.0 h where"):
+        _warn_about_a_long_cpu_run(short, "cpu")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        _warn_about_a_long_cpu_run(replace(short, most_extra_s=None), "cpu")  # short, nothing to choose: no warning
 
 
 def test_pixel_integration_costs_what_its_fine_grid_ffts_cost(sample) -> None:

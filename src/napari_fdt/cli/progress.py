@@ -79,8 +79,17 @@ LONG_CPU_RUN_S = 1800.0
 
 
 def _warn_about_a_long_cpu_run(plan, device_type: str) -> None:
-    """Warn (FDTWarning) when a CPU run's plan predicts more than :data:`LONG_CPU_RUN_S`."""
-    if device_type == "cpu" and plan.predicted_s > LONG_CPU_RUN_S:
-        warnings.warn(f"device: this CPU run is predicted to take about {plan.predicted_s / 3600:.1f} h (the plan above); "
-                      "on a machine with an NVIDIA GPU, --device cuda runs it far faster (docs/install.md: the CUDA build "
-                      "of torch), or give fewer or shorter stages", FDTWarning, stacklevel=2)
+    """Warn (FDTWarning) when a CPU run's plan predicts more than :data:`LONG_CPU_RUN_S`, or up to more where the data
+    choose (its range's top, :attr:`~napari_fdt.recon.loop.plan.Plan.most_s`)."""
+    if device_type != "cpu":
+        return
+    if plan.predicted_s > LONG_CPU_RUN_S:
+        what = f"predicted to take about {plan.predicted_s / 3600:.1f} h"
+    elif plan.most_s is not None and plan.most_s > LONG_CPU_RUN_S:
+        what = (f"predicted to take about {plan.predicted_s / 60:.0f} min, and up to {plan.most_s / 3600:.1f} h where the "
+                "data ask for the costliest model parts")
+    else:
+        return
+    warnings.warn(f"device: this CPU run is {what} (the plan above); on a machine with an NVIDIA GPU, --device cuda runs "
+                  "it far faster (docs/install.md: the CUDA build of torch), or give fewer or shorter stages", FDTWarning,
+                  stacklevel=2)
