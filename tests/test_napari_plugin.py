@@ -285,6 +285,30 @@ def test_cancel_keeps_the_last_complete_stage(make_napari_viewer, qtbot, tiny_di
     assert w.progress.value == sum(p["iterations"] for p in plan[: first + 1])
 
 
+def test_before_a_run_the_status_says_what_reconstruct_would_take(make_napari_viewer, qtbot, tiny_dir) -> None:
+    """The plan ``fdt plan`` prints, in the widget before the click: its figure follows the settings, and a run's own
+    lines replace it."""
+    from napari_fdt.data.io import read_acquisition
+    from napari_fdt.recon.loop.plan import plan_for, seconds_in_words
+
+    viewer = make_napari_viewer()
+    _open(viewer, tiny_dir)
+    w = _docked(viewer, ReconstructionWidget(viewer))
+    w.device.value = "cpu"
+    plan, _ = plan_for(read_acquisition(tiny_dir), w.config(), "cpu")
+    assert w.status.value.startswith(f"Reconstruct would take about {seconds_in_words(plan.predicted_s)} on cpu")
+    before = w.status.value
+    w.stages.value = "4x100, 2x100, 1x4000"  # a far longer finest stage: a larger figure
+    longer, _ = plan_for(read_acquisition(tiny_dir), w.config(), "cpu")
+    assert longer.predicted_s > 5 * plan.predicted_s and w.status.value != before
+    assert w.status.value.startswith(f"Reconstruct would take about {seconds_in_words(longer.predicted_s)} on cpu")
+    _settings(w, "2x4, 1x4")
+    w.run_button.clicked.emit()
+    assert w.status.value.startswith("run #1")
+    _wait_done(qtbot, w)
+    assert not w.status.value.startswith("Reconstruct would take")  # the run's result stays
+
+
 def test_viewer_stays_responsive_during_a_run(make_napari_viewer, qtbot, tiny_dir) -> None:
     from qtpy.QtCore import QTimer
 

@@ -36,6 +36,7 @@ from napari_fdt.napari.layers import (
 )
 from napari_fdt.napari.result_view import content_slice, keep_view, results_line, ri_contrast_limits, show_bounds, show_slice, truth_error
 from napari_fdt.napari.settings import format_stages, merge_config
+from napari_fdt.napari.widgets.plan_line import PLAN_PREFIX, plan_line
 from napari_fdt.napari.widgets.schema_widgets import schema_widget
 from napari_fdt.napari.widgets.widget_curve import ErrorCurveWidget
 from napari_fdt.napari.widgets.widget_layers import acquisition_layer_choices, acquisition_of, follow_layers, refresh_layer_choice, set_sources, sources_for
@@ -186,9 +187,11 @@ class ReconstructionWidget(ResultActions, Container):
         claim_dock_height(self.native)
         self.masks_button.changed.connect(self.preview_masks)
         self.command_button.changed.connect(self.copy_command)
-        for name in _FIELDS:  # an error about a setting goes once the settings are edited
+        for name in _FIELDS:  # an error about a setting goes once the settings are edited; the plan's line follows them
             getattr(self, name).changed.connect(self._clear_stale_error)
+            getattr(self, name).changed.connect(self._show_plan)
         self.device.changed.connect(self._clear_stale_error)
+        self.device.changed.connect(self._show_plan)
         # run state
         self._worker = None
         self._rec = None
@@ -284,6 +287,19 @@ class ReconstructionWidget(ResultActions, Container):
             self.status.value = f"Reconstruct needs: {problem}"
         elif self.status.value.startswith("Reconstruct needs"):
             self.status.value = ""
+        self._show_plan()
+
+    def _show_plan(self, _value=None) -> None:
+        """Before a run, the status says what Reconstruct would take (:mod:`~napari_fdt.napari.widgets.plan_line`)."""
+        if self.running or (self.status.value and not self.status.value.startswith(PLAN_PREFIX)):
+            return
+        try:
+            layer = self.layer.value
+            acq = acquisition_of(layer)
+            line = plan_line(acq, self.config(), self.device.value, sources_for(self._viewer, layer, acq, required=False))
+        except FDTInputError:
+            line = ""
+        self.status.value = line
 
     # -- settings -----------------------------------------------------------------------------
     def config(self) -> SolverConfig:

@@ -1,0 +1,35 @@
+"""The reconstruction widget's line before a run: what Reconstruct would take, from the plan ``fdt plan`` prints
+(:func:`napari_fdt.recon.loop.plan.plan_for`; its range where the data choose the TV weight and the model parts).
+No Qt here."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from napari_fdt.errors import FDTInputError
+from napari_fdt.recon.settings.config import SolverConfig
+
+__all__ = ["PLAN_PREFIX", "plan_line"]
+
+#: How the line starts (the widget replaces only a status that is empty or one of these lines).
+PLAN_PREFIX = "Reconstruct would take"
+
+
+def plan_line(acquisition, config: SolverConfig, device: str, sources_um: np.ndarray | None) -> str:
+    """"Reconstruct would take about 30 s on cpu; up to about 4 min as the data choose (…)", or "" where the plan cannot
+    be made in a few milliseconds: no source positions yet (their fit takes seconds) or settings it refuses (the run
+    will say why). ``device``: the widget's choice ("auto", "cpu", "cuda")."""
+    from napari_fdt.device import resolve_device
+    from napari_fdt.recon.loop.plan import plan_for, seconds_in_words
+
+    if sources_um is None and acquisition.sources_um is None:
+        return ""
+    try:
+        dev = resolve_device(device).type
+        plan, _ = plan_for(acquisition, config, dev, sources_um)
+    except (FDTInputError, ValueError):
+        return ""
+    line = f"{PLAN_PREFIX} about {seconds_in_words(plan.predicted_s)} on {dev}"
+    if plan.most_s is not None and plan.most_s > 1.05 * plan.predicted_s:
+        line += f"; up to about {seconds_in_words(plan.most_s)} as the data choose (the smoothing, the model parts)"
+    return line + " (fdt plan)."
