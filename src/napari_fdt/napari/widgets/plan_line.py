@@ -16,7 +16,7 @@ PLAN_PREFIX = "Reconstruct would take"
 
 
 def plan_line(acquisition, config: SolverConfig, device: str, sources_um: np.ndarray | None) -> str:
-    """"Reconstruct would take about 30 s on cpu; up to about 4 min as the data choose (…)", or "" where the plan cannot
+    """"Reconstruct would take about 30 s on cpu; up to about 4 min as the data choose …", or "" where the plan cannot
     be made in a few milliseconds: no source positions yet (their fit takes seconds) or settings it refuses (the run
     will say why). ``device``: the widget's choice ("auto", "cpu", "cuda")."""
     from napari_fdt.device import resolve_device
@@ -31,5 +31,5 @@ def plan_line(acquisition, config: SolverConfig, device: str, sources_um: np.nda
         return ""
     line = f"{PLAN_PREFIX} about {seconds_in_words(plan.predicted_s)} on {dev}"
     if plan.most_s is not None and plan.most_s > 1.05 * plan.predicted_s:
-        line += f"; up to about {seconds_in_words(plan.most_s)} as the data choose (the smoothing, the model parts)"
+        line += f"; up to about {seconds_in_words(plan.most_s)} as the data choose the smoothing and the model parts"
     return line + " (fdt plan)."
