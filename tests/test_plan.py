@@ -463,3 +463,20 @@ def test_the_range_is_what_the_choices_left_to_the_data_can_add() -> None:
     larger = everything.with_stages_again(stage)  # the top stays (the TV's share is now in the plan), the parts' remain
     assert larger.most_s == pytest.approx(everything.most_s) and larger.predicted_s > everything.predicted_s
     assert everything.choices_made().most_s is None and "up to" not in everything.choices_made().summary()
+
+
+def test_the_widgets_plan_line_is_the_plans_range_with_what_was_asked_for_after_the_run(sample) -> None:
+    """The reconstruction widget's line before the click (no Qt in it): the plan's figures, plus the half-set
+    resolution's and the error bound's runs where they are asked for; nothing where the sources would have to be fitted."""
+    import dataclasses
+
+    from napari_fdt.napari.widgets.plan_line import plan_line
+    from napari_fdt.recon.loop.plan import plan_for, seconds_in_words
+
+    cfg = SolverConfig(half_set_resolution=True)
+    plan, _ = plan_for(sample, cfg, "cpu")
+    line = plan_line(sample, cfg, "cpu", None)
+    assert line.startswith(f"Reconstruct would take about {seconds_in_words(plan.predicted_s + plan.half_sets_s)} on cpu"
+                           " (with the resolution's half runs); up to about "
+                           f"{seconds_in_words(plan.most_s + plan.half_sets_s)} as the data choose")
+    assert plan_line(dataclasses.replace(sample, sources_um=None), cfg, "cpu", None) == ""

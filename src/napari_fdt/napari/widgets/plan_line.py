@@ -29,7 +29,12 @@ def plan_line(acquisition, config: SolverConfig, device: str, sources_um: np.nda
         plan, _ = plan_for(acquisition, config, dev, sources_um)
     except (FDTInputError, ValueError):
         return ""
-    line = f"{PLAN_PREFIX} about {seconds_in_words(plan.predicted_s)} on {dev}"
+    after = [(s, what) for s, what in ((plan.half_sets_s, "the resolution's half runs"), (plan.bounds_s, "the error bound's runs"))
+             if s is not None]  # asked for: they run after the reconstruction
+    extra = sum(s for s, _ in after)
+    line = f"{PLAN_PREFIX} about {seconds_in_words(plan.predicted_s + extra)} on {dev}"
+    if after:
+        line += f" (with {' and '.join(what for _, what in after)})"
     if plan.most_s is not None and plan.most_s > 1.05 * plan.predicted_s:
-        line += f"; up to about {seconds_in_words(plan.most_s)} as the data choose the smoothing and the model parts"
+        line += f"; up to about {seconds_in_words(plan.most_s + extra)} as the data choose the smoothing and the model parts"
     return line + " (fdt plan)."
