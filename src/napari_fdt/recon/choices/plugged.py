@@ -33,7 +33,7 @@ from napari_fdt.recon.choices.parts_backward import backward_due, drop_parts, ke
 from napari_fdt.recon.choices.parts_coarse_end import choose_fitted_parts_at_coarse_end, coarse_end_test_due
 from napari_fdt.recon.choices.parts_pilot import choose_pupil_parts_first, pilot_due, start_with_parts
 from napari_fdt.recon.choices.parts_search import choose_parts
-from napari_fdt.recon.choices.parts_switch import finest_again_with_parts, parts_chosen_by, restart_with_parts
+from napari_fdt.recon.choices.parts_switch import finest_again_with_parts, parts_chosen_by, restart_with_parts, tests_again_s
 from napari_fdt.recon.choices.tv_search import choose_tv
 from napari_fdt.recon.loop.model_parts import FINEST_ONLY_PARTS, EarlyTrials, PartsChoice, parts_stage
 from napari_fdt.recon.loop.regularisation import selection_stages, tv_is_auto
@@ -127,7 +127,8 @@ class ChooseModelParts:
             work.choosing["parts_from"] = start
         # the stage again from its start, with the kept parts on from their fitted values (a phase of its own, priced
         # with them)
-        rec._revise_plan(rec.plan.with_rerun([_stage_again_phase(rec)], choice_to_come=choose_again))
+        tests = tests_again_s(rec, tuple(kept_auto_parts(rec))) if choose_again else None
+        rec._revise_plan(rec.plan.with_rerun([_stage_again_phase(rec)], choice_to_come=choose_again, tests_s=tests))
         rec._phase_index = len(rec.plan.phases) - 1
         fitted = rec.calibration.copy_values(PUPIL_PARAMETERS)
         restore_branch(rec, start)
@@ -181,9 +182,11 @@ class ConfirmModelParts:
 
 def _stage_again_phase(rec: Run) -> Phase:
     """The current stage again from its start, priced (and labelled) with every part the run keeps now, those kept in
-    a pass before included."""
+    a pass before included; without the tests at the end of the phase it repeats (they ran: where more are to come,
+    :meth:`~napari_fdt.recon.loop.plan.Plan.with_rerun` prices them)."""
     phase = rec.plan.phases[rec._phase_index]
-    return phase.priced_as(rec._stage_phase(phase.stage, phase.pass_name, tuple(kept_auto_parts(rec))), label=True)
+    again = phase.priced_as(rec._stage_phase(phase.stage, phase.pass_name, tuple(kept_auto_parts(rec))), label=True)
+    return replace(again, test_s=0.0, test="")
 
 
 def _rebuild(rec: Run, work: StageWork) -> None:

@@ -282,18 +282,21 @@ class Plan:
         kept at the last coarse stage's end)."""
         return replace(self, phases=self.phases[:index] + self.phases[index + 1:], if_part_kept_early_s=None, early_test_stage=None)
 
-    def with_rerun(self, reruns: Sequence[Phase], choice_to_come: bool = False, tests_again: bool | None = None) -> "Plan":
+    def with_rerun(self, reruns: Sequence[Phase], choice_to_come: bool = False, tests_again: bool | None = None,
+                   tests_s: float | None = None) -> "Plan":
         """The plan with the phases of the stages run again appended (their ``pass_name`` set to "rerun"); without
         ``choice_to_come`` no choice of parts is to come (and nothing more to price for one); ``tests_again`` (default:
-        ``choice_to_come``): the parts still to choose are tested again at the last rerun phase's end."""
+        ``choice_to_come``): the parts still to choose are tested again at the last rerun phase's end, for ``tests_s``
+        seconds (:func:`~napari_fdt.recon.loop.parts_price.tests_again_s`; None: the first pass's price scaled by the
+        models' step costs)."""
         phases = self.phases + tuple(replace(p, pass_name=RERUN) for p in reruns)
-        if (choice_to_come if tests_again is None else tests_again) and reruns:  # tested again at the rerun's end,
-            # through the kept parts' model: the first pass's price scaled by the models' step costs
+        if (choice_to_come if tests_again is None else tests_again) and reruns:  # tested again at the rerun's end
             tested = [p for p in self.phases if p.test == PARTS_TEST]
             last = len(phases) - 1
             if tested and tested[-1].seconds_per_iteration > 0:
                 scale = phases[last].seconds_per_iteration / tested[-1].seconds_per_iteration
-                phases = phases[:last] + (replace(phases[last], test_s=tested[-1].test_s * scale, test=tested[-1].test),)
+                price = tested[-1].test_s * scale if tests_s is None else tests_s
+                phases = phases[:last] + (replace(phases[last], test_s=price, test=tested[-1].test),)
         if choice_to_come:
             return replace(self, phases=phases, if_finest_parts_kept_s=None, finest_parts=(), if_part_kept_early_s=None,
                            early_test_stage=None, if_spectral_kept_s=None, if_grid_kept_s=None, most_extra_s=None,

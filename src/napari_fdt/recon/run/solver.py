@@ -44,7 +44,7 @@ from napari_fdt.recon.calibration.calibration import Calibration
 from napari_fdt.recon.choices.parts_coarse_end import early_test_stage
 from napari_fdt.recon.choices.parts_pilot import pilot_due
 from napari_fdt.recon.choices.parts_search import choice_errors, fit_images
-from napari_fdt.recon.choices.parts_switch import apply_parts_choice, drop_parts_that_do_not_fit, init_parts
+from napari_fdt.recon.choices.parts_switch import apply_parts_choice, drop_parts_that_do_not_fit, init_parts, tests_again_s
 from napari_fdt.recon.choices.plugged import default_choices
 from napari_fdt.recon.loop.checkpoint import (
     checkpoint_path,
@@ -222,7 +222,8 @@ class Reconstructor:
         if any(p.pass_name == RERUN and p.stage == 0 for p in self.plan.phases):
             return
         again = [self._stage_phase(i, RERUN, rerun_parts(self)) for i in range(len(self.config.stages))]
-        self._revise_plan(self.plan.with_rerun(again, tests_again=bool(self._auto_parts)))
+        tests = tests_again_s(self, rerun_parts(self)) if self._auto_parts else None
+        self._revise_plan(self.plan.with_rerun(again, tests_again=bool(self._auto_parts), tests_s=tests))
 
     def _enter_stage_phase(self, stage_index: int) -> None:
         """Make the phase of stage ``stage_index`` in this pass the current one: a stage before the TV trials (while the
