@@ -56,8 +56,8 @@ def _show_progress(bar, snap) -> None:
     if snap.validation_error is not None:
         post["val"] = f"{snap.validation_error:.4f}"
     post["left"] = f"{snap.eta_s:.0f}s"
-    most = getattr(snap, "eta_most_s", None)
-    if most is not None and most > 1.05 * snap.eta_s:  # the choices still open could add this much
+    most = getattr(snap, "eta_up_to_s", None)  # the choices still open could add this much
+    if most is not None:
         post["up to"] = f"{most:.0f}s"
     bar.set_postfix(post, refresh=False)
     if bar.total != snap.plan_iterations:

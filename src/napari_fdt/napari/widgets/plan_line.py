@@ -35,6 +35,6 @@ def plan_line(acquisition, config: SolverConfig, device: str, sources_um: np.nda
     line = f"{PLAN_PREFIX} about {seconds_in_words(plan.predicted_s + extra)} on {dev}"
     if after:
         line += f" (with {' and '.join(what for _, what in after)})"
-    if plan.most_s is not None and plan.most_s > 1.05 * plan.predicted_s:
-        line += f"; up to about {seconds_in_words(plan.most_s + extra)} as the data choose the smoothing and the model parts"
+    if plan.range_top_s is not None:
+        line += f"; up to about {seconds_in_words(plan.range_top_s + extra)} as the data choose the smoothing and the model parts"
     return line + " (fdt plan)."

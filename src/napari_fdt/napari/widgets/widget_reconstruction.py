@@ -469,8 +469,8 @@ class ReconstructionWidget(ResultActions, Container):
         self.progress.max = max(1, int(snap.plan_iterations))
         self.progress.value = min(int(snap.plan_iteration), self.progress.max)
         left_txt = f", about {_duration(snap.eta_s)} left" if snap.eta_s and snap.eta_s > 0 else ""
-        most = getattr(snap, "eta_most_s", None)
-        if left_txt and most is not None and most > 1.05 * snap.eta_s:  # choices still open
+        most = getattr(snap, "eta_up_to_s", None)
+        if left_txt and most is not None:  # choices still open
             left_txt += f" (up to {_duration(most)}, as the data choose)"
         tried = f", tried xy {snap.tv_weights[0]:g}, z {snap.tv_weights[1]:g}" if snap.tv_weights is not None else ""
         where = "" if snap.phase in CANDIDATE_PHASES else f", iteration {snap.iteration}/{snap.stage_iterations}"

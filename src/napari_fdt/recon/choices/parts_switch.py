@@ -9,8 +9,8 @@ from typing import TYPE_CHECKING
 
 from napari_fdt.model.coherence import emission_spectrum
 from napari_fdt.recon.calibration.calibration import PUPIL_PARAMETERS
-from napari_fdt.recon.loop.model_parts import BINARY_PARTS, PARTS, PartsChoice, branch_iterations, requested_for
-from napari_fdt.recon.loop.parts_price import finest_end_test_s, test_images
+from napari_fdt.recon.loop.model_parts import PARTS, PartsChoice, requested_for
+from napari_fdt.recon.loop.parts_price import finest_end_test_s, finest_test_setup, part_costs
 from napari_fdt.recon.loop.phases import RERUN
 from napari_fdt.recon.problem.stage_roles import set_stage_roles
 from napari_fdt.recon.problem.stage_spec import rerun_coarse_model
@@ -154,10 +154,9 @@ def tests_again_s(rec: Run, kept: tuple[str, ...]) -> float:
         return rec._stage_phase(last, RERUN, tuple(kept) + parts).seconds_per_iteration / batch
 
     remaining = tuple(rec._auto_parts)
-    costs = {"": image_s(()), **{p: image_s((p,)) for p in BINARY_PARTS if p in remaining}}
     n_held = len(rec.validation_indices)
-    n_test, n_fit = test_images(rec.acquisition.n_images, n_held, cfg.parts_test_images)
-    branch = branch_iterations(cfg.stages[last].iterations) * batch if cfg.parts_branch and n_held >= 2 else 0
+    n_test, n_fit, branch = finest_test_setup(cfg, rec.acquisition.n_images, n_held)
     # (the 2x grid priced as tried: where it waits for a spectral model's trial, that trial passed on beads_high and
     # fibres_thick's reruns, and the grid's test and branch were most of their tests there)
-    return finest_end_test_s(costs, remaining, n_test, n_fit, n_held, "cuda" if rec.device.type == "cuda" else "cpu", branch)
+    return finest_end_test_s(part_costs(image_s(()), image_s, remaining), remaining, n_test, n_fit, n_held,
+                             "cuda" if rec.device.type == "cuda" else "cpu", branch)

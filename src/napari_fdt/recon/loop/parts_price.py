@@ -22,9 +22,20 @@ plan prices the parts' tests").
 
 from __future__ import annotations
 
-from napari_fdt.recon.loop.model_parts import BINARY_PARTS, FINEST_ONLY_PARTS, FIT_IMAGES, FIT_ITERATIONS, FITTED_PARTS, GRID_TRIAL_TRAINING_IMAGES
+from typing import Callable
 
-__all__ = ["PREDICT_SHARE", "FIT_SHARE", "FIT_STEP_S", "TRIAL_SETUP_S", "test_images", "finest_end_test_s", "coarse_end_test_s"]
+from napari_fdt.recon.loop.model_parts import (
+    BINARY_PARTS,
+    FINEST_ONLY_PARTS,
+    FIT_IMAGES,
+    FIT_ITERATIONS,
+    FITTED_PARTS,
+    GRID_TRIAL_TRAINING_IMAGES,
+    branch_iterations,
+)
+
+__all__ = ["PREDICT_SHARE", "FIT_SHARE", "FIT_STEP_S", "TRIAL_SETUP_S", "test_images", "finest_test_setup", "part_costs",
+           "finest_end_test_s", "coarse_end_test_s"]
 
 #: One image predicted without gradients over one image's share of a training step of the same model.
 PREDICT_SHARE = 0.3
@@ -42,6 +53,21 @@ def test_images(n_images: int, n_held: int, parts_test_images: str) -> tuple[int
     n_fit = min(FIT_IMAGES, max(0, n_images - n_held))
     n_test = n_held + (n_images - n_held - n_fit if parts_test_images == "held_out+training" else 0)
     return n_test, n_fit
+
+
+def finest_test_setup(config, n_images: int, n_held: int) -> tuple[int, int, int]:
+    """(the test images, the fit images, the images one arm of a branch trial trains on: 0 without branches) of the
+    tests at the finest stage's end of a run of ``config`` (a :class:`~napari_fdt.recon.settings.config.SolverConfig`)."""
+    last = len(config.stages) - 1
+    n_test, n_fit = test_images(n_images, n_held, config.parts_test_images)
+    branch = branch_iterations(config.stages[last].iterations) * config.stage_batch(last) if config.parts_branch and n_held >= 2 else 0
+    return n_test, n_fit, branch
+
+
+def part_costs(base_s: float, image_s: Callable[[tuple[str, ...]], float], parts: tuple[str, ...] | list[str]) -> dict[str, float]:
+    """:func:`finest_end_test_s`'s ``image_s``: ``base_s`` under key ``""``, and ``image_s((part,))`` for each binary part
+    among ``parts`` (a training step's seconds per image of the model with that part on)."""
+    return {"": base_s, **{p: image_s((p,)) for p in BINARY_PARTS if p in parts}}
 
 
 def _fitted_s(image_s: float, n_test: int, n_fit: int, n_parts: int, device_type: str) -> float:

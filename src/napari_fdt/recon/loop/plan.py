@@ -24,7 +24,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from napari_fdt.physics.optics import Optics
-from napari_fdt.recon.loop.model_parts import PILOT_BATCH, PILOT_ITERATIONS, branch_iterations, grid_waits_for_spectral
+from napari_fdt.recon.loop.model_parts import PILOT_BATCH, PILOT_ITERATIONS, grid_waits_for_spectral
 from napari_fdt.recon.loop.phases import PUPIL_PILOT, RERUN, RUN, TV_CHOICE, probe_iterations
 from napari_fdt.recon.loop.regularisation import TV_PATH, selection_stages
 from napari_fdt.recon.problem.stage_spec import rerun_coarse_model
@@ -211,6 +211,11 @@ class Plan:
         return None if self.most_extra_s is None else self.predicted_s + self.most_extra_s
 
     @property
+    def range_top_s(self) -> float | None:
+        """:attr:`most_s` where it is worth saying beside :attr:`predicted_s` (over 5 % more), else None."""
+        return self.most_s if self.most_s is not None and self.most_s > 1.05 * self.predicted_s else None
+
+    @property
     def grid_before_spectral(self) -> bool:
         """Whether the 2x field grid is tried before a spectral model is kept (:attr:`if_grid_kept_s` prices it)."""
         return self.if_grid_kept_s is not None
@@ -282,21 +287,14 @@ class Plan:
         kept at the last coarse stage's end)."""
         return replace(self, phases=self.phases[:index] + self.phases[index + 1:], if_part_kept_early_s=None, early_test_stage=None)
 
-    def with_rerun(self, reruns: Sequence[Phase], choice_to_come: bool = False, tests_again: bool | None = None,
-                   tests_s: float | None = None) -> "Plan":
+    def with_rerun(self, reruns: Sequence[Phase], choice_to_come: bool = False, tests_s: float | None = None) -> "Plan":
         """The plan with the phases of the stages run again appended (their ``pass_name`` set to "rerun"); without
-        ``choice_to_come`` no choice of parts is to come (and nothing more to price for one); ``tests_again`` (default:
-        ``choice_to_come``): the parts still to choose are tested again at the last rerun phase's end, for ``tests_s``
-        seconds (:func:`~napari_fdt.recon.loop.parts_price.tests_again_s`; None: the first pass's price scaled by the
-        models' step costs)."""
+        ``choice_to_come`` no choice of parts is to come (and nothing more to price for one); ``tests_s``: the parts
+        still to choose are tested again at the last rerun phase's end, for that many seconds
+        (:func:`~napari_fdt.recon.choices.parts_switch.tests_again_s`), where the plan priced the first pass's tests."""
         phases = self.phases + tuple(replace(p, pass_name=RERUN) for p in reruns)
-        if (choice_to_come if tests_again is None else tests_again) and reruns:  # tested again at the rerun's end
-            tested = [p for p in self.phases if p.test == PARTS_TEST]
-            last = len(phases) - 1
-            if tested and tested[-1].seconds_per_iteration > 0:
-                scale = phases[last].seconds_per_iteration / tested[-1].seconds_per_iteration
-                price = tested[-1].test_s * scale if tests_s is None else tests_s
-                phases = phases[:last] + (replace(phases[last], test_s=price, test=tested[-1].test),)
+        if tests_s is not None and reruns and any(p.test == PARTS_TEST for p in self.phases):
+            phases = phases[:-1] + (replace(phases[-1], test_s=tests_s, test=PARTS_TEST),)
         if choice_to_come:
             return replace(self, phases=phases, if_finest_parts_kept_s=None, finest_parts=(), if_part_kept_early_s=None,
                            early_test_stage=None, if_spectral_kept_s=None, if_grid_kept_s=None, most_extra_s=None,
@@ -342,11 +340,11 @@ class Plan:
         if self.bounds_s is not None:
             lines.append(f"  then the error bound: the result re-simulated and run again with the run's choices, "
                          f"~{seconds_in_words(self.bounds_s)} more")
-        most = ""
-        if self.most_s is not None and self.most_s > 1.05 * self.predicted_s:
-            most = (f" where the data ask for no model part; up to about {seconds_in_words(self.most_s)} where they ask for the"
+        most, top = "", self.range_top_s
+        if top is not None:
+            most = (f" where the data ask for no model part; up to about {seconds_in_words(top)} where they ask for the"
                     " costliest ones (the lines below)" if self.if_part_kept_s else
-                    f"; up to about {seconds_in_words(self.most_s)} where a larger TV weight wins (the stages before its trials again)")
+                    f"; up to about {seconds_in_words(top)} where a larger TV weight wins (the stages before its trials again)")
         return "\n".join([f"plan ({self.device_type}): {len(self.phases)} phases, {self.iterations} iterations, "
                           f"about {seconds_in_words(self.predicted_s)}{most}", *lines])
 
@@ -536,8 +534,8 @@ def _with_tests(phases: list[Phase], config: SolverConfig, optics: Optics, image
     and the last coarse stage's (where ``early``, that test's price of a keep, is planned); and the seconds of the 2x
     grid's test where ``field_oversampling`` is ``"before_spectral"`` (tested only before a spectral model is kept: not
     in the finest stage's price), else 0."""
-    from napari_fdt.recon.loop.model_parts import BINARY_PARTS, coarse_test_stage
-    from napari_fdt.recon.loop.parts_price import coarse_end_test_s, finest_end_test_s, test_images
+    from napari_fdt.recon.loop.model_parts import coarse_test_stage
+    from napari_fdt.recon.loop.parts_price import coarse_end_test_s, finest_end_test_s, finest_test_setup, part_costs
 
     last, dev = len(config.stages) - 1, ("cuda" if device_type == "cuda" else "cpu")
     batch = config.stage_batch(last)
@@ -546,11 +544,10 @@ def _with_tests(phases: list[Phase], config: SolverConfig, optics: Optics, image
         return stage_phase(config, optics, image_shape, src, last, coarse_model, device_type, RUN, parts,
                            pixel_integration=pixel_integration, pupil_edge=pupil_edge).seconds_per_iteration / batch
 
-    n_test, n_fit = test_images(n_images, n_held, config.parts_test_images)
+    n_test, n_fit, branch = finest_test_setup(config, n_images, n_held)
     out = list(phases)
     finest = max(i for i, p in enumerate(out) if p.pass_name == RUN and p.stage == last)
-    costs = {"": out[finest].seconds_per_iteration / batch, **{p: image_s((p,)) for p in BINARY_PARTS if p in auto_parts}}
-    branch = branch_iterations(config.stages[last].iterations) * batch if config.parts_branch and n_held >= 2 else 0
+    costs = part_costs(out[finest].seconds_per_iteration / batch, image_s, auto_parts)
     grid_later = grid_waits_for_spectral(config, auto_parts)
     tested = tuple(p for p in auto_parts if not (grid_later and p == "field_grid"))
     test_s = finest_end_test_s(costs, tested, n_test, n_fit, n_held, dev, branch)

@@ -77,6 +77,12 @@ class Snapshot:
     eta_most_s: float | None = None
 
     @property
+    def eta_up_to_s(self) -> float | None:
+        """:attr:`eta_most_s` where it is worth saying beside :attr:`eta_s` (over 5 % more), else None."""
+        most = self.eta_most_s
+        return most if most is not None and most > 1.05 * self.eta_s else None
+
+    @property
     def phase_label(self) -> str:
         """The phase in plain English: "choosing the smoothing (TV) weight", "reconstructing", "reconstructing again with …"."""
         return _phase_label(self.phase, self.rerun_with, self.tv_weights)

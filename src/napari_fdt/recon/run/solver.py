@@ -223,7 +223,7 @@ class Reconstructor:
             return
         again = [self._stage_phase(i, RERUN, rerun_parts(self)) for i in range(len(self.config.stages))]
         tests = tests_again_s(self, rerun_parts(self)) if self._auto_parts else None
-        self._revise_plan(self.plan.with_rerun(again, tests_again=bool(self._auto_parts), tests_s=tests))
+        self._revise_plan(self.plan.with_rerun(again, tests_s=tests))
 
     def _enter_stage_phase(self, stage_index: int) -> None:
         """Make the phase of stage ``stage_index`` in this pass the current one: a stage before the TV trials (while the
