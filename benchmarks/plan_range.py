@@ -32,6 +32,17 @@ def _geometry(acq) -> dict:
                       **({"simulated": {}} if "simulated" in acq.extra else {})}}  # (a simulated folder's camera)
 
 
+def recorded_acquisition(row: dict):
+    """The acquisition a record's row was planned on, without its images (zeros): what :func:`_geometry` kept."""
+    import numpy as np
+
+    from napari_fdt.data.acquisition import Acquisition
+    from napari_fdt.physics.optics import Optics
+
+    src = np.asarray(row["sources_um"], dtype=np.float64)
+    return Acquisition(np.zeros((len(src), *row["image_shape"]), np.float32), Optics(**row["optics"]), src, extra=row["extra"])
+
+
 def measure(path: Path, name: str, config_path: Path | None, out_dir: Path, device: str) -> dict:
     from napari_fdt.data.io import read_acquisition
     from napari_fdt.recon.loop.plan import plan_for

@@ -155,14 +155,12 @@ def test_the_familys_price_is_a_range_where_its_members_choose_model_parts() -> 
     """Where model parts are to choose, ``fdt plan --tv-family`` says what the family costs where the data ask for
     none and up to what the costliest choices make of every member (the cells scene's geometry, as recorded in
     ``benchmarks/results/plan_range_cpu.json``)."""
+    from benchmarks.plan_range import recorded_acquisition
     from napari_fdt.cli.family import family_json, family_summary, planned_config
-    from napari_fdt.data.acquisition import Acquisition
-    from napari_fdt.physics.optics import Optics
     from napari_fdt.recon.loop.plan import plan_for
 
     run = json.loads((Path(__file__).resolve().parents[1] / "benchmarks" / "results" / "plan_range_cpu.json").read_text())["runs"][1]
-    src = np.asarray(run["sources_um"], dtype=np.float64)
-    acq = Acquisition(np.zeros((len(src), *run["image_shape"]), np.float32), Optics(**run["optics"]), src, extra=run["extra"])
+    acq = recorded_acquisition(run)
     plan, _ = plan_for(acq, planned_config(SolverConfig(), True), "cpu")
     assert plan.if_part_kept_s and plan.most_s > plan.predicted_s
     entry = family_json(True, plan)["tv_family"]
