@@ -172,7 +172,7 @@ def test_fft_window_sides_are_smooth_and_hold_the_padding(factor) -> None:
     """Each side of the envelope's FFT window is even and 2·3·5-smooth (pocketfft: 74 = 2·37 points cost 5.7× 80), at
     least the grid plus the light cone's padding on both sides; the plan's cost model prices the model's own window."""
     from napari_fdt.model.envelope import envelope_window, padding_px
-    from napari_fdt.recon.loop.plan import envelope_padded_shape
+    from napari_fdt.recon.loop.step_cost import envelope_padded_shape
 
     o = Optics(wavelength_um=0.635, n_background=1.33, na=0.8, pixel_size_um=0.33, n_slices=8, slice_spacing_um=2.0)
     pad = padding_px(o, factor)

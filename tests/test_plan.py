@@ -238,7 +238,7 @@ def test_pixel_integration_costs_what_its_fine_grid_ffts_cost(sample) -> None:
     """The camera's pixel integration adds 4 FFTs on a twice-finer grid to a multi-slice iteration (envelope stages do
     not model it): at 256², 6 slices the model says 1.75×, measured 1.77× (189.3 / 106.7 ms, 2 cores, 2026-11-25,
     benchmarks/step_profile_cpu.py on cells_pupil)."""
-    from napari_fdt.recon.loop.plan import iteration_units
+    from napari_fdt.recon.loop.step_cost import iteration_units
 
     ratio = iteration_units(16, 6, (256, 256), True) / iteration_units(16, 6, (256, 256))
     assert ratio == pytest.approx(189.3 / 106.7, rel=0.05)
