@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import threading
 import time
-from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -35,17 +34,18 @@ from napari_fdt.napari.layers import (
     ri_layer,
 )
 from napari_fdt.napari.result_view import content_slice, keep_view, results_line, ri_contrast_limits, show_bounds, show_slice, truth_error
-from napari_fdt.napari.settings import format_stages, merge_config
+from napari_fdt.napari.settings import format_stages
 from napari_fdt.napari.widgets.plan_line import PLAN_PREFIX, plan_line
 from napari_fdt.napari.widgets.schema_widgets import schema_widget
 from napari_fdt.napari.widgets.widget_curve import ErrorCurveWidget
 from napari_fdt.napari.widgets.widget_layers import acquisition_layer_choices, acquisition_of, follow_layers, refresh_layer_choice, set_sources, sources_for
 from napari_fdt.napari.widgets.widget_layout import claim_dock_height, follow_ndisplay, sections_panel, tighten
 from napari_fdt.napari.widgets.widget_results import ResultActions, with_tiff_suffix
+from napari_fdt.napari.widgets.widget_settings import SETTING_FIELDS, SettingsFileActions
 from napari_fdt.napari.widgets.widget_tasks import BackgroundTasks, CloseWatcher, Feedback
 from napari_fdt.recon.loop.phases import CANDIDATE_PHASES
 from napari_fdt.recon.run.report import describe_parts
-from napari_fdt.recon.settings.config import SolverConfig, load_config, resolve_stage_lengths
+from napari_fdt.recon.settings.config import SolverConfig, resolve_stage_lengths
 
 if TYPE_CHECKING:  # pragma: no cover
     import napari
@@ -65,14 +65,6 @@ def _duration(seconds: float) -> str:
 #: Least time between two updates of the RI layer within a stage, s (stage ends always update).
 UPDATE_INTERVAL_S = 0.5
 
-#: Settings the widget edits, by widget attribute (= SolverConfig field).
-_FIELDS = ("stages", "coarse_model", "batch_size", "l1_l2_total", "ssim_weight", "tv_xy_weight", "tv_z_weight",
-           "calibrate_sources", "calibrate_gain", "calibrate_source_depth", "calibrate_pixel_size",
-           "calibrate_slice_spacing", "calibration_from_stage", "coherence", "mask_threshold", "seed", "snapshot_every",
-           "validation_fraction", "early_stopping", "pixel_integration", "obliquity_correction", "calibrate_pupil",
-           "calibrate_aberrations", "sub_slices", "half_set_resolution", "error_bounds")  # (no experimental setting: a loaded settings file keeps them)
-#: Settings the widget numbers from 1 (as the status line does) while the configuration counts from 0.
-_ONE_BASED = ("calibration_from_stage",)
 
 
 def device_choices() -> list[str]:
@@ -82,7 +74,7 @@ def device_choices() -> list[str]:
     return ["auto", "cpu"] + (["cuda"] if torch.cuda.is_available() else [])
 
 
-class ReconstructionWidget(ResultActions, Container):
+class ReconstructionWidget(ResultActions, SettingsFileActions, Container):
     """Dock widget: settings, Reconstruct / Cancel, progress, and the results of the last run."""
 
     def __init__(self, napari_viewer: "napari.viewer.Viewer") -> None:
@@ -187,7 +179,7 @@ class ReconstructionWidget(ResultActions, Container):
         claim_dock_height(self.native)
         self.masks_button.changed.connect(self.preview_masks)
         self.command_button.changed.connect(self.copy_command)
-        for name in _FIELDS:  # an error about a setting goes once the settings are edited; the plan's line follows them
+        for name in SETTING_FIELDS:  # an error about a setting goes once the settings are edited; the plan's line follows them
             getattr(self, name).changed.connect(self._clear_stale_error)
             getattr(self, name).changed.connect(self._show_plan)
         self.device.changed.connect(self._clear_stale_error)
@@ -300,50 +292,6 @@ class ReconstructionWidget(ResultActions, Container):
         except FDTInputError:
             line = ""
         self.status.value = line
-
-    # -- settings -----------------------------------------------------------------------------
-    def config(self) -> SolverConfig:
-        """The settings in the widget over the last loaded ones, checked (raises :class:`FDTInputError`)."""
-        values = {name: getattr(self, name).value for name in _FIELDS}
-        for name in _ONE_BASED:
-            values[name] = int(values[name]) - 1
-        return merge_config(self._base, values)
-
-    def set_config(self, config: SolverConfig) -> None:
-        """Show ``config`` in the widget; settings it does not show are kept for saving and running."""
-        self._base = config
-        for name in _FIELDS:
-            value = getattr(config, name)
-            getattr(self, name).value = (format_stages(value) if name == "stages" else
-                                         value + 1 if name in _ONE_BASED else value)
-
-    def save_settings(self, path: str | Path) -> Path:
-        """Write the settings as ``fdt reconstruct --config`` reads them."""
-        self.config().save(path)
-        return Path(path)
-
-    def load_settings(self, path: str | Path) -> SolverConfig:
-        """Read a settings file (JSON, or TOML for ``.toml``) into the widget."""
-        config = load_config(path)
-        self.set_config(config)
-        return config
-
-    def _save_settings_dialog(self) -> None:
-        from qtpy.QtWidgets import QFileDialog
-
-        path, _ = QFileDialog.getSaveFileName(self.native, "Save reconstruction settings", "fdt_settings.json", "JSON (*.json)")
-        if path:
-            with self.feedback.guard():
-                self.feedback.info(f"settings written to {self.save_settings(path)}")
-
-    def _load_settings_dialog(self) -> None:
-        from qtpy.QtWidgets import QFileDialog
-
-        path, _ = QFileDialog.getOpenFileName(self.native, "Load reconstruction settings", "", "Settings (*.json *.toml)")
-        if path:
-            with self.feedback.guard():
-                self.load_settings(path)
-                self.feedback.info(f"settings read from {path}")
 
     # -- the run ------------------------------------------------------------------------------
     @property
