@@ -283,10 +283,10 @@ def test_settings_widgets_are_generated_from_the_schema(make_napari_viewer) -> N
     with pytest.raises(TypeError):
         schema_widget(SolverConfig, "stages")
     # no experimental setting in the widget (issue 24: settings in tiers); a loaded file keeps its value for the run
-    from napari_fdt.napari.widgets.widget_reconstruction import _FIELDS
+    from napari_fdt.napari.widgets.widget_settings import SETTING_FIELDS
     from napari_fdt.schema import tier
 
-    assert not [n for n in _FIELDS if tier(fields[n]) == "experimental"] and not hasattr(w, "parts_rerun")
+    assert not [n for n in SETTING_FIELDS if tier(fields[n]) == "experimental"] and not hasattr(w, "parts_rerun")
     w.set_config(dataclasses.replace(SolverConfig(), parts_rerun="finest"))
     assert w.config().parts_rerun == "finest"
 
