@@ -83,7 +83,10 @@ def main() -> None:
         "`fdt info FOLDER`": measured([*fdt, "info", str(folder)]),
         "`fdt plan FOLDER --device cpu`": measured([*fdt, "plan", str(folder), "--device", "cpu"]),
         "read + `Reconstructor(acq, device=\"cpu\")` (set-up: the mean, the checks, the plan)": measured([sys.executable, "-c", SET_UP, str(folder), "0"]),
-        "the same and the first 3 iterations (stage 1, ×4)": measured([sys.executable, "-c", SET_UP, str(folder), "3"]),
+        # the first snapshot: the x4 stage's set-up (its block averages, the gains) and 10 steps of the pupil's pilot,
+        # which runs the finest stage's model (before the pilot existed, 2026-11-26: 3 iterations of the x4 stage)
+        "the same, to the first snapshot (the ×4 stage's set-up, 10 steps of the pupil's pilot at ×1)":
+            measured([sys.executable, "-c", SET_UP, str(folder), "1"]),
     }
     for name, r in rows.items():
         print(f"{name}: peak {r['peak_mb']} MB, {r['wall_s']} s", flush=True)
@@ -109,7 +112,11 @@ def main() -> None:
         "stack on the CPU; a coarse stage holds its block averages, a GPU stage the stack on the device). With the "
         "version before (commit 4873372, measured the same day) `fdt info` peaked at 1,020 MB and the solver's set-up "
         "at 4,047 MB (three float32 copies). The plugin's computation process receives the file reference, not a "
-        "pickled copy of the pixels.",
+        "pickled copy of the pixels. The first snapshot's peak is the pilot's: the finest stage's model (its 600² "
+        "window, 14 slices, the camera's pixel means) on 16 images, plus the stack's file pages its checks read. Its "
+        "training step alone grows the process by 1.2-1.4 GB (`python -m benchmarks run training_memory "
+        "FOLDER`), which the plan's peak below now bounds; before 2026-11-29 the plan left the pixel means out and said "
+        "0.89 GiB.",
         "",
         "`fdt plan` on this stack (what `fdt reconstruct` prints first, `--quiet` included, with the warning that a CPU "
         "run takes over 30 minutes):",

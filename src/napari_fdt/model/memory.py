@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from napari_fdt.model.slice_loop import leanest_mode, loop_bytes
 
-__all__ = ["BYTES_PER_PIXEL_SLICE_IMAGE", "GRAPH_FIELDS_PER_IMAGE", "training_bytes", "split_training_bytes", "leanest_mode",
+__all__ = ["BYTES_PER_PIXEL_SLICE_IMAGE", "GRAPH_FIELDS_PER_IMAGE", "FULL_BYTES_PIXEL_INTEGRATION", "training_bytes", "split_training_bytes", "leanest_mode",
            "grid_is_unitary", "FORWARD_BYTES_PER_PIXEL_IMAGE", "forward_bytes"]
 
 #: Upper estimate of plain-autograd memory, bytes per window pixel per slice per image (complex64).
@@ -30,27 +30,39 @@ def grid_is_unitary(pixel_size_um: float, n_background: float, wavelength_um: fl
     return f_corner2 < (n_background / wavelength_um) ** 2 * (1.0 - 1e-9)
 
 
+#: The camera's pixel integration in the full-window model (the exit field on a grid twice as fine, its intensity and
+#: their gradients), bytes per window pixel per image: an upper estimate of the extra peak resident growth of a training
+#: step with it on (``python -m benchmarks run training_memory``; torch 2.13, complex64, batch 16, 2 CPU cores,
+#: 2026-11-29, the same step reads up to 20 % apart from run to run): the sample 154-180 (324x360 window, 8 slices),
+#: cells_pupil 113-175 (256², 6), the full-size stack 70-88 (600², 14 slices). Before it was counted, the estimate was
+#: 0.57-0.76x the measured step with pixel integration on (docs/hard_cases.md).
+FULL_BYTES_PIXEL_INTEGRATION = 256
+
+
 def training_bytes(
     padded_shape: tuple[int, int],
     n_slices: int,
     batch: int,
     n_wavelengths: int = 1,
     mode: str = "stored",
+    pixel_integration: bool = False,
 ) -> int:
     """Estimated peak bytes of one training iteration of the multi-slice model (forward + backward).
 
     ``mode`` is the slice loop's backward mode (``"stored"``, ``"reversible"``, ``"checkpoint"`` or
     ``"autograd"``); complex64 fields. Each wavelength of a spectral model keeps its own graph.
+    ``pixel_integration``: the camera's pixel means on (:data:`FULL_BYTES_PIXEL_INTEGRATION` per window pixel per image).
     """
     pixels = int(padded_shape[0]) * int(padded_shape[1])
     n = max(1, int(n_slices))
     b = int(batch) * max(1, int(n_wavelengths))
     field = 8 * pixels
+    camera = FULL_BYTES_PIXEL_INTEGRATION * pixels * b if pixel_integration else 0
     if mode == "autograd":
         per_image = BYTES_PER_PIXEL_SLICE_IMAGE * pixels * n
-        return per_image * b + 64 * pixels
+        return per_image * b + 64 * pixels + camera
     volume = 5 * 4 * pixels * n  # Δn, phases, their gradients, Adam moments (float32)
-    return loop_bytes(mode, field, n, b) + GRAPH_FIELDS_PER_IMAGE * field * b + volume + 64 * pixels
+    return loop_bytes(mode, field, n, b) + GRAPH_FIELDS_PER_IMAGE * field * b + volume + 64 * pixels + camera
 
 
 #: The split-field model's training memory (its loop on plain autograd), bytes per screen per image: per pixel of its

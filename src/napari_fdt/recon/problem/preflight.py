@@ -96,7 +96,8 @@ def finest_stage_bytes(acquisition: Acquisition, config: SolverConfig, sources_u
         mode = leanest_mode(grid_is_unitary(opt.pixel_size_um, o.n_background, o.wavelength_um))
     if spec.fine_grid:  # the field on a grid twice as fine
         plan = fine_plan(plan)
-    return training_bytes(plan.padded_shape, screens, batch, n_wavelengths, mode) + images, plan, batch, mode
+    return (training_bytes(plan.padded_shape, screens, batch, n_wavelengths, mode, spec.pixel_integration) + images,
+            plan, batch, mode)
 
 
 def finest_stage_fits(acquisition: Acquisition, config: SolverConfig, sources_um: np.ndarray, device: torch.device,
