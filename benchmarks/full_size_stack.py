@@ -116,7 +116,9 @@ def main() -> None:
         "window, 14 slices, the camera's pixel means) on 16 images, plus the stack's file pages its checks read. Its "
         "training step alone grows the process by 1.2-1.4 GB (`python -m benchmarks run training_memory "
         "FOLDER`), which the plan's peak below now bounds; before 2026-11-29 the plan left the pixel means out and said "
-        "0.89 GiB.",
+        "0.89 GiB. With `coherence` \"mask\", the masks of all 1521 sources were imaged in one pass and the process was "
+        "killed by the kernel at 24 GB (2026-11-29); they are now made 16 at a time (`model/coherence.MASK_BATCH`): the "
+        "finest stage run alone then peaked at 4.6 GB, about 4 minutes of it the masks.",
         "",
         "`fdt plan` on this stack (what `fdt reconstruct` prints first, `--quiet` included, with the warning that a CPU "
         "run takes over 30 minutes):",

@@ -241,6 +241,30 @@ def test_masks_carry_no_gradient_and_check_input(mask_model) -> None:
     assert exc.value.field == "threshold"
 
 
+def test_masks_are_made_in_batches(mask_model, monkeypatch) -> None:
+    """The masks of many sources are imaged ``batch_size`` at a time (their memory is a batch's fields, not the stack's:
+    a full-size stack's 1521 masks in one pass took over 24 GB), and each mask is the one made alone."""
+    import napari_fdt.model.coherence as coherence
+
+    sources = np.array([[x, y, 20.0] for x in (-3.0, 0.0, 3.0) for y in (-2.0, 2.0)] + [[1.0, 1.0, 22.0]])
+    alone = torch.stack([coherence_masks(mask_model, sources[i:i + 1])[0] for i in range(len(sources))])
+    seen: list[int] = []
+    real = coherence.spectral_images
+
+    def spy(model, dn, src, *a, **k):
+        seen.append(int(src.shape[0]))
+        return real(model, dn, src, *a, **k)
+
+    monkeypatch.setattr(coherence, "spectral_images", spy)
+    batched = coherence_masks(mask_model, sources, batch_size=3)
+    assert seen == [3, 3, 1]
+    assert torch.equal(batched, alone)
+    seen.clear()
+    coherence_masks(mask_model, sources)
+    assert seen == [len(sources)]  # (fewer than MASK_BATCH: one pass)
+    assert coherence.MASK_BATCH <= 16
+
+
 # -- simulation ---------------------------------------------------------------------------------
 def test_simulate_renders_the_spectral_sum() -> None:
     optics = Optics(wavelength_um=LAM, n_background=N_B, na=0.8, pixel_size_um=0.33, n_slices=2, slice_spacing_um=2.0)

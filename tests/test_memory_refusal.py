@@ -51,6 +51,26 @@ def test_training_bytes_bound_the_measured_step_with_pixel_integration() -> None
     assert r["measured_bytes"] <= r["estimate_bytes"] < 3 * r["measured_bytes"], r
 
 
+def test_the_estimate_holds_the_coherence_masks() -> None:
+    """With ``coherence`` "mask" the finest stage holds every image's mask, (N, H, W) float32, for the whole stage: the
+    estimate counts them (before, a full-size stack's 1.6 GB of masks were not in it)."""
+    import dataclasses
+
+    from napari_fdt.recon.problem.preflight import coherence_mask_bytes, finest_stage_bytes
+    from napari_fdt.recon.settings.config import SolverConfig
+
+    acq = read_acquisition(ROOT / "sample_data" / "letters")
+    src = acq.sources_um
+    plain, masked = SolverConfig(coherence="none"), SolverConfig(coherence="mask")
+    n, (h, w) = acq.n_images, acq.image_shape
+    assert coherence_mask_bytes(acq, plain) == 0 and coherence_mask_bytes(acq, masked) == 4 * n * h * w
+    for device in ("cpu", "cuda"):
+        diff = finest_stage_bytes(acq, masked, src, 1, device)[0] - finest_stage_bytes(acq, plain, src, 1, device)[0]
+        assert diff == 4 * n * h * w
+    coarse = dataclasses.replace(masked, stages=[masked.stages[0]])  # a run whose finest stage is x4
+    assert coherence_mask_bytes(acq, coarse) == 4 * n * (h // 4) * (w // 4)
+
+
 @pytest.fixture()
 def clean_acquisition(tmp_path):
     """A noise-free acquisition with exact sources and gains 1, and its true RI volume."""

@@ -24,7 +24,7 @@ from napari_fdt.recon.settings.config import SolverConfig
 #: Share of the device's free memory a run may plan to use (the rest: allocator slack, other tensors).
 USABLE_SHARE = 0.9
 
-__all__ = ["warn_about_images", "warn_about_sampling", "finest_stage_bytes", "check_memory", "finest_stage_fits"]
+__all__ = ["warn_about_images", "warn_about_sampling", "coherence_mask_bytes", "finest_stage_bytes", "check_memory", "finest_stage_fits"]
 
 
 def warn_about_images(acquisition: Acquisition, stacklevel: int = 3) -> None:
@@ -62,10 +62,20 @@ def images_on_device(acquisition: Acquisition, device_type: str) -> int:
     return 0 if stays_on_host(device_type) else 4 * acquisition.n_images * h * w
 
 
+def coherence_mask_bytes(acquisition: Acquisition, config: SolverConfig) -> int:
+    """Bytes of the finest stage's coherence masks where ``coherence`` uses them: (N, h, w) float32 on the stage's
+    device, held for the whole stage (0 otherwise)."""
+    if config.coherence not in ("mask", "mask+spectral"):
+        return 0
+    factor = min(s.factor for s in config.stages)
+    h, w = acquisition.image_shape
+    return 4 * acquisition.n_images * (h // factor) * (w // factor)
+
+
 def finest_stage_bytes(acquisition: Acquisition, config: SolverConfig, sources_um: np.ndarray, n_wavelengths: int = 1,
                        device_type: str = "cuda", batch: int | None = None):
     """Bytes the finest multi-slice stage needs on its device (a training step of one batch, and the images there:
-    :func:`images_on_device`),
+    :func:`images_on_device`, with the coherence masks where ``coherence`` uses them),
     with its window plan, batch and backward mode: ``(bytes, plan, batch, mode)``. ``sources_um`` (N, 3) µm set the
     window; ``batch`` (None: the stage's) the images of the step."""
     from napari_fdt.model.memory import grid_is_unitary, leanest_mode, split_training_bytes, training_bytes
@@ -82,7 +92,7 @@ def finest_stage_bytes(acquisition: Acquisition, config: SolverConfig, sources_u
     _, opt, _, plan = multislice_plan(o, factor, full_shape, sources_um)
     if batch is None:
         batch = min(cfg.stage_batch(finest_index), acquisition.n_images)
-    images = images_on_device(acquisition, device_type)
+    images = images_on_device(acquisition, device_type) + coherence_mask_bytes(acquisition, cfg)
     screens = o.n_slices * spec.screens_per_slice  # ("auto" sub-slices: one screen)
     if config_uses_split_field(cfg, device_type, factor, plan, opt, spec.pupil_edge, pixel_integration=spec.pixel_integration):
         if spec.fine_grid:  # the split window of the field's 2x grid
@@ -125,7 +135,7 @@ def check_memory(acquisition: Acquisition, config: SolverConfig, sources_um: np.
         return
     need, plan, batch, mode = finest_stage_bytes(acquisition, config, sources_um, n_wavelengths, torch.device(device).type)
     o, k = acquisition.optics, n_wavelengths
-    images = images_on_device(acquisition, torch.device(device).type)
+    images = images_on_device(acquisition, torch.device(device).type) + coherence_mask_bytes(acquisition, config)
     if need <= USABLE_SHARE * free:
         return
     one = finest_stage_bytes(acquisition, config, sources_um, n_wavelengths, torch.device(device).type, batch=1)[0] - images
