@@ -234,6 +234,26 @@ def test_fdt_reconstruct_prints_its_plan_even_when_quiet_and_warns_about_a_long_
         _warn_about_a_long_cpu_run(replace(short, most_extra_s=None), "cpu")  # short, nothing to choose: no warning
 
 
+def test_the_full_window_is_priced_at_its_own_rate(sample, monkeypatch) -> None:
+    """On the CPU the multi-slice model on its full window costs 1.54-2.33x more per cost unit than the split-field model
+    (the finest step run alone, 2026-11-29: loop/step_cost.py); each is priced at its own rate. Doubling the full
+    window's rate doubles the full-window stage's price and leaves the split stage's as it was."""
+    import dataclasses
+
+    from napari_fdt.recon.loop import step_cost
+    from napari_fdt.recon.loop.plan import plan_for
+
+    def finest_s(field_window: str) -> float:
+        cfg = dataclasses.replace(SolverConfig(), field_window=field_window, coherence="none", calibrate_pupil=False)
+        return [p for p in plan_for(sample, cfg, "cpu")[0].phases if p.pass_name == "run"][-1].seconds_per_iteration
+
+    full, split = finest_s("full"), finest_s("auto")
+    assert step_cost.SECONDS_PER_UNIT[("cpu", "multislice")] > 1.5 * step_cost.SECONDS_PER_UNIT[("cpu", "split")]
+    monkeypatch.setitem(step_cost.SECONDS_PER_UNIT, ("cpu", "multislice"), 2 * step_cost.SECONDS_PER_UNIT[("cpu", "multislice")])
+    assert finest_s("full") == pytest.approx(2 * full, rel=1e-12)
+    assert finest_s("auto") == split
+
+
 def test_pixel_integration_costs_what_its_fine_grid_ffts_cost(sample) -> None:
     """The camera's pixel integration adds 4 FFTs on a twice-finer grid to a multi-slice iteration (envelope stages do
     not model it): at 256², 6 slices the model says 1.75×, measured 1.77× (189.3 / 106.7 ms, 2 cores, 2026-11-25,

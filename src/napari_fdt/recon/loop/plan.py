@@ -349,7 +349,8 @@ def stage_phase(config: SolverConfig, optics: Optics, image_shape: tuple[int, in
         units += float(batch) * screens * source_pixels * OBLIQUITY_UNITS
     if not envelope and ("spectral" in parts or config.coherence in ("spectral", "mask+spectral")):
         units *= config.n_wavelengths  # the spectral model: one forward and backward pass per wavelength
-    per_it = OVERHEAD_S[dev] + SECONDS_PER_UNIT[(dev, model)] * units + (PILOT_STEP_OVERHEAD_S if pilot and dev == "cpu" else 0.0)
+    rate = SECONDS_PER_UNIT[(dev, "split" if split else model)]
+    per_it = OVERHEAD_S[dev] + rate * units + (PILOT_STEP_OVERHEAD_S if pilot and dev == "cpu" else 0.0)
     return Phase(pass_name, stage, len(config.stages), sc.factor, model, sc.iterations, shape, per_it, parts=parts)
 
 

@@ -25,10 +25,16 @@ __all__ = ["SECONDS_PER_UNIT", "OVERHEAD_S", "PILOT_STEP_OVERHEAD_S", "SOURCE_FI
 #: the sample's finest stage 15.8-21 ms and the demo's 32.6 ms per multi-slice iteration, about 17 ms of it outside the
 #: model's step (before: 9 ms, from the November suite rows 10.0, 19.5, 99.5 ms); the envelope model on CUDA (not the
 #: default there) is priced like the multi-slice one.
+#: ``"split"``: the split-field multi-slice model (the CPU's default where its window is smaller); ``"multislice"``: the
+#: multi-slice model on its full window, on the CPU 1.54-2.33x slower per unit than the split model's rate (the
+#: finest step run alone, 2026-11-29, measured against 5.5e-10: the sample 217 ms against 138, cells_pupil 149 against
+#: 97, cells 130 against 83, the full-size stack's 600² window 2.51 s against 1.08 s); 1.0e-9 puts them at 0.78-1.28x.
 SECONDS_PER_UNIT: dict[tuple[str, str], float] = {
     ("cpu", "envelope"): 5.0e-9,
-    ("cpu", "multislice"): 5.5e-10,
+    ("cpu", "split"): 5.5e-10,
+    ("cpu", "multislice"): 1.0e-9,
     ("cuda", "envelope"): 6.7e-12,
+    ("cuda", "split"): 6.7e-12,
     ("cuda", "multislice"): 6.7e-12,
 }
 #: Seconds of one iteration that do not scale with its size (kernel launches), by device type.
