@@ -186,11 +186,12 @@ def coherence_masks(
     src = src.detach().to(model.device, model.dtype).reshape(-1, 3)
     h, w = model.image_shape
     sigma_px = sigma_um / model.pixel_size_um
+    step = max(1, int(batch_size))
     out = torch.empty((src.shape[0], h, w), device=model.device, dtype=model.dtype)
     with torch.no_grad():
         zero = torch.zeros((o.n_slices, h, w), device=model.device, dtype=model.dtype)
-        for start in range(0, src.shape[0], max(1, int(batch_size))):
-            part = slice(start, start + max(1, int(batch_size)))
+        for start in range(0, src.shape[0], step):  # (model/render.iter_batches imports this module)
+            part = slice(start, start + step)
             img = spectral_images(model, zero, src[part], None, wavelengths_um, weights)
             if sigma_px > 0:
                 img = _gaussian_blur(img, sigma_px)

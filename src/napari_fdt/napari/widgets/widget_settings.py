@@ -17,10 +17,10 @@ __all__ = ["SettingsFileActions", "SETTING_FIELDS"]
 
 #: Settings the widget edits, by widget attribute (= SolverConfig field).
 SETTING_FIELDS = ("stages", "coarse_model", "batch_size", "l1_l2_total", "ssim_weight", "tv_xy_weight", "tv_z_weight",
-           "calibrate_sources", "calibrate_gain", "calibrate_source_depth", "calibrate_pixel_size",
-           "calibrate_slice_spacing", "calibration_from_stage", "coherence", "mask_threshold", "seed", "snapshot_every",
-           "validation_fraction", "early_stopping", "pixel_integration", "obliquity_correction", "calibrate_pupil",
-           "calibrate_aberrations", "sub_slices", "half_set_resolution", "error_bounds")  # (no experimental setting: a loaded settings file keeps them)
+                  "calibrate_sources", "calibrate_gain", "calibrate_source_depth", "calibrate_pixel_size",
+                  "calibrate_slice_spacing", "calibration_from_stage", "coherence", "mask_threshold", "seed", "snapshot_every",
+                  "validation_fraction", "early_stopping", "pixel_integration", "obliquity_correction", "calibrate_pupil",
+                  "calibrate_aberrations", "sub_slices", "half_set_resolution", "error_bounds")  # (no experimental setting: a loaded settings file keeps them)
 #: Settings the widget numbers from 1 (as the status line does) while the configuration counts from 0.
 _ONE_BASED = ("calibration_from_stage",)
 

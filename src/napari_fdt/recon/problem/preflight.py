@@ -24,7 +24,7 @@ from napari_fdt.recon.settings.config import SolverConfig
 #: Share of the device's free memory a run may plan to use (the rest: allocator slack, other tensors).
 USABLE_SHARE = 0.9
 
-__all__ = ["warn_about_images", "warn_about_sampling", "coherence_mask_bytes", "finest_stage_bytes", "check_memory", "finest_stage_fits"]
+__all__ = ["warn_about_images", "warn_about_sampling", "held_on_device", "coherence_mask_bytes", "finest_stage_bytes", "check_memory", "finest_stage_fits"]
 
 
 def warn_about_images(acquisition: Acquisition, stacklevel: int = 3) -> None:
@@ -62,6 +62,12 @@ def images_on_device(acquisition: Acquisition, device_type: str) -> int:
     return 0 if stays_on_host(device_type) else 4 * acquisition.n_images * h * w
 
 
+def held_on_device(acquisition: Acquisition, config: SolverConfig, device_type: str) -> int:
+    """Bytes the finest stage holds on its device whatever its batch: the images (:func:`images_on_device`) and the
+    coherence masks (:func:`coherence_mask_bytes`)."""
+    return images_on_device(acquisition, device_type) + coherence_mask_bytes(acquisition, config)
+
+
 def coherence_mask_bytes(acquisition: Acquisition, config: SolverConfig) -> int:
     """Bytes of the finest stage's coherence masks where ``coherence`` uses them: (N, h, w) float32 on the stage's
     device, held for the whole stage (0 otherwise)."""
@@ -74,8 +80,8 @@ def coherence_mask_bytes(acquisition: Acquisition, config: SolverConfig) -> int:
 
 def finest_stage_bytes(acquisition: Acquisition, config: SolverConfig, sources_um: np.ndarray, n_wavelengths: int = 1,
                        device_type: str = "cuda", batch: int | None = None):
-    """Bytes the finest multi-slice stage needs on its device (a training step of one batch, and the images there:
-    :func:`images_on_device`, with the coherence masks where ``coherence`` uses them),
+    """Bytes the finest multi-slice stage needs on its device (a training step of one batch, and what it holds there:
+    :func:`held_on_device`),
     with its window plan, batch and backward mode: ``(bytes, plan, batch, mode)``. ``sources_um`` (N, 3) µm set the
     window; ``batch`` (None: the stage's) the images of the step."""
     from napari_fdt.model.memory import grid_is_unitary, leanest_mode, split_training_bytes, training_bytes
@@ -92,7 +98,7 @@ def finest_stage_bytes(acquisition: Acquisition, config: SolverConfig, sources_u
     _, opt, _, plan = multislice_plan(o, factor, full_shape, sources_um)
     if batch is None:
         batch = min(cfg.stage_batch(finest_index), acquisition.n_images)
-    images = images_on_device(acquisition, device_type) + coherence_mask_bytes(acquisition, cfg)
+    images = held_on_device(acquisition, cfg, device_type)
     screens = o.n_slices * spec.screens_per_slice  # ("auto" sub-slices: one screen)
     if config_uses_split_field(cfg, device_type, factor, plan, opt, spec.pupil_edge, pixel_integration=spec.pixel_integration):
         if spec.fine_grid:  # the split window of the field's 2x grid
@@ -135,7 +141,7 @@ def check_memory(acquisition: Acquisition, config: SolverConfig, sources_um: np.
         return
     need, plan, batch, mode = finest_stage_bytes(acquisition, config, sources_um, n_wavelengths, torch.device(device).type)
     o, k = acquisition.optics, n_wavelengths
-    images = images_on_device(acquisition, torch.device(device).type) + coherence_mask_bytes(acquisition, config)
+    images = held_on_device(acquisition, config, torch.device(device).type)
     if need <= USABLE_SHARE * free:
         return
     one = finest_stage_bytes(acquisition, config, sources_um, n_wavelengths, torch.device(device).type, batch=1)[0] - images
